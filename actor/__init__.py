@@ -1,0 +1,1 @@
+"""curlnav actor: see README."""

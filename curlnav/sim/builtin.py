@@ -1,0 +1,120 @@
+"""Built-in worlds for tests, demos and benchmarks, and the lookup of a world by name or file."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .world import Ball, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world
+
+
+def _walled_grid(width_m: float, height_m: float, resolution: float) -> np.ndarray:
+    cols = int(round(width_m / resolution))
+    rows = int(round(height_m / resolution))
+    grid = np.zeros((rows, cols), dtype=bool)
+    grid[0, :] = grid[-1, :] = True
+    grid[:, 0] = grid[:, -1] = True
+    return grid
+
+
+def _fill(grid: np.ndarray, resolution: float, x0: float, y0: float, x1: float, y1: float) -> None:
+    """Mark the cells covering ``[x0, x1] x [y0, y1]`` (m, map frame at origin 0) as obstacles."""
+    grid[int(round(y0 / resolution)):int(round(y1 / resolution)),
+         int(round(x0 / resolution)):int(round(x1 / resolution))] = True
+
+
+def open_room() -> World:
+    """A 10 m x 10 m walled room with four pillars and two balls re-placed on every reset.
+
+    Start/goal pairs are drawn at random, at least 4 m apart; four named pairs are kept for
+    evaluation and demos.
+    """
+    res = 0.1
+    grid = _walled_grid(10.0, 10.0, res)
+    for x, y in ((3.0, 3.0), (6.6, 3.2), (3.2, 6.6), (6.4, 6.4)):
+        _fill(grid, res, x, y, x + 0.6, y + 0.6)
+    pairs = (
+        StartGoal("diagonal", 1.2, 1.2, math.pi / 4, 8.8, 8.8),
+        StartGoal("across", 1.2, 5.0, 0.0, 8.8, 5.0),
+        StartGoal("up", 5.0, 1.2, math.pi / 2, 5.0, 8.8),
+        StartGoal("back", 8.8, 1.5, math.pi, 1.5, 8.5),
+    )
+    return World(
+        name="open-room", occupancy=grid, resolution=res, wall_height=1.0,
+        balls=(Ball(5.0, 5.0, 0.25, 0.5, region=0), Ball(2.0, 8.0, 0.25, 0.5, region=0)),
+        pairs=pairs, ball_regions=(Region(1.0, 1.0, 9.0, 9.0),),
+        random_pairs=RandomPairs(min_distance=4.0, clearance=0.8), source="builtin:open-room",
+    )
+
+
+def door_corridor() -> World:
+    """A 12 m x 4 m corridor cut by a wall at x = 6 m whose 1.4 m gap holds a hinged door.
+
+    The door hangs at (6.0, 1.3), closed along +y, and swings clockwise (toward +x) when pushed
+    from the start side. The only pair starts at x = 2 m and ends at x = 10 m.
+    """
+    res = 0.1
+    grid = _walled_grid(12.0, 4.0, res)
+    _fill(grid, res, 5.9, 0.0, 6.1, 1.3)
+    _fill(grid, res, 5.9, 2.7, 6.1, 4.0)
+    door = Door(hinge_x=6.0, hinge_y=1.3, width=1.38, closed_angle=math.pi / 2, swing="right",
+                mass=2.0, hinge_friction=0.5)
+    return World(
+        name="door-corridor", occupancy=grid, resolution=res, wall_height=1.0, doors=(door,),
+        pairs=(StartGoal("through-door", 2.0, 2.0, 0.0, 10.0, 2.0, step=1),),
+        source="builtin:door-corridor",
+    )
+
+
+def bench_world(seed: int = 7) -> World:
+    """The benchmark world: 36 m x 36 m at 0.6 m cells (the paper's grid), a wall all round,
+    scattered obstacle clusters to about 300 obstacle cells, and 8 balls."""
+    res = 0.6
+    rng = np.random.default_rng(seed)
+    grid = _walled_grid(36.0, 36.0, res)
+    target = 300
+    while grid.sum() < target:
+        iy, ix = rng.integers(3, 57, size=2)
+        h, w = rng.integers(1, 4, size=2)
+        grid[iy:iy + h, ix:ix + w] = True
+    grid[27:33, 27:33] = False  # keep the centre free for the start
+    free = np.argwhere(~grid)
+    balls = []
+    while len(balls) < 8:
+        iy, ix = free[rng.integers(len(free))]
+        x, y = (ix + 0.5) * res, (iy + 0.5) * res
+        if math.hypot(x - 18.0, y - 18.0) > 3.0:
+            balls.append(Ball(float(x), float(y), 0.25, 0.5))
+    return World(name="bench-36m", occupancy=grid, resolution=res, wall_height=1.0, balls=tuple(balls),
+                 pairs=(StartGoal("centre", 18.0, 18.0, 0.0, 30.0, 30.0),), source="builtin:bench-36m")
+
+
+BUILTIN_WORLDS: dict[str, Callable[[], World]] = {
+    "open-room": open_room,
+    "door-corridor": door_corridor,
+    "bench-36m": bench_world,
+}
+
+_CACHE: dict[str, World] = {}
+
+
+def get_world(spec: "str | os.PathLike | World") -> World:
+    """A world from a built-in name, a path to a world YAML, or a ``World`` (returned as is).
+
+    Raises ``WorldError`` naming the known built-ins when ``spec`` is neither.
+    """
+    if isinstance(spec, World):
+        return spec
+    key = os.fspath(spec)
+    if key in BUILTIN_WORLDS:
+        if key not in _CACHE:
+            _CACHE[key] = BUILTIN_WORLDS[key]()
+        return _CACHE[key]
+    path = Path(key)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        return load_world(path)
+    raise WorldError(f"unknown world {key!r}: not a built-in ({', '.join(BUILTIN_WORLDS)}) and not a world YAML file")

@@ -1,0 +1,320 @@
+"""``NamoEnv``: navigation among movable obstacles as a ``gymnasium.Env``.
+
+Action (float, shape ``(3,)``): ``[v, w, L]`` with ``v`` in [0, 1] (forward speed as a fraction
+of ``RobotConfig.max_linear_speed``; no reverse), ``w`` in [-1, 1] (turn rate as a fraction of
+``max_angular_speed``, positive counter-clockwise) and ``L`` in [0, 1] (end-effector forward
+displacement as a fraction of ``arm_reach``, 0.5 m for the Husky preset). NaN, infinite or
+out-of-range actions raise ``ValueError``; the policy must clip its own output.
+
+Observation (float32, shape ``(EnvConfig.observation_size,)``, 1958 by default), oldest frame
+first inside each block:
+
+- ``ranges``: ``range_frames`` x 241 LiDAR ranges in metres, -120..+120 deg, 1 deg apart, beam 0
+  on the right (clockwise-most), clipped at 10 m;
+- ``labels``: ``label_frames`` x 241 per-beam labels, 1.0 where the beam's first hit is a
+  movable object (ball, box, door panel), else 0.0;
+- ``goal``: ``goal_frames`` x 3 values ``[sign(dx) log(1+|dx|), sign(dy) log(1+|dy|), bearing]``
+  where ``(dx, dy)`` is the goal in the **robot frame** (m; x forward, y left) and ``bearing`` =
+  atan2(dy, dx) in [-pi, pi] (rad). The authors' code used world-frame dx, dy; the robot frame
+  makes the policy independent of the map's orientation.
+
+On reset all frames are filled with the first reading.
+
+Reward: equation (1) of the paper, each term reported in ``info["reward_terms"]``
+(see ``RewardConfig``). The episode terminates on success (within ``goal_tolerance`` of the
+goal) and, when ``end_on_base_collision`` is set (training), on a base collision with a wall;
+it is truncated after ``max_episode_steps``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from scipy import ndimage
+
+from .builtin import get_world
+from .config import EnvConfig
+from .scene import Scene
+from .world import StartGoal, World, WorldError
+
+
+class NamoEnv(gym.Env):
+    """A Husky-class robot with a pushing arm in a PyBullet world. See the module docstring."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 5}
+
+    def __init__(self, world: "str | os.PathLike | World" = "open-room", config: EnvConfig | None = None,
+                 render_mode: str | None = None) -> None:
+        super().__init__()
+        self.config = config or EnvConfig()
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.render_mode = render_mode
+        cfg = self.config
+        self.action_space = gym.spaces.Box(low=np.array([0.0, -1.0, 0.0], dtype=np.float32),
+                                           high=np.array([1.0, 1.0, 1.0], dtype=np.float32), dtype=np.float32)
+        self.observation_space = gym.spaces.Box(low=-np.inf, high=np.inf, shape=(cfg.observation_size,),
+                                                dtype=np.float32)
+        self._scene: Scene | None = None
+        self._client: int | None = None
+        self._cspace_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.world = get_world(world)
+        self.pair: StartGoal | None = None
+        self.trajectory: list[tuple[float, float]] = []
+        self.last_hits: np.ndarray | None = None  # (beams, 2) world x, y of the last scan's end points
+        self.last_labels: np.ndarray | None = None  # (beams,) movable labels of the last scan
+        self._steps = 0
+
+    # -- public helpers --------------------------------------------------------------------
+    @property
+    def scene(self) -> Scene:
+        if self._scene is None:
+            raise RuntimeError("call reset() before using the environment")
+        return self._scene
+
+    @property
+    def steps(self) -> int:
+        return self._steps
+
+    def set_world(self, world: "str | os.PathLike | World") -> None:
+        """Switch worlds; the PyBullet scene is rebuilt on the next reset."""
+        new = get_world(world)
+        if new is not self.world:
+            self.world = new
+            self._cspace_cache = {}
+            if self._scene is not None:
+                self._scene.close()
+                self._scene = None
+
+    # -- gymnasium API ---------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode.
+
+        ``options``: ``world`` (built-in name, YAML path or ``World``) and ``pair`` (index or
+        name of one of the world's start/goal pairs, or a ``StartGoal``). Without a pair, one
+        is drawn: at random on the C-space grid if the world has ``random_pairs``, else among
+        its pairs. Unknown worlds and pairs raise ``WorldError`` / ``KeyError``.
+        """
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - {"world", "pair"}
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; allowed: world, pair")
+        if "world" in options and options["world"] is not None:
+            self.set_world(options["world"])
+        world = self.world
+        if self._scene is None:
+            if self._client is not None:
+                self._scene = Scene(world, self.config, client=self._client)
+            else:
+                self._scene = Scene(world, self.config)
+                self._client = self._scene.client
+                self._scene._owns_client = False
+        pair = options.get("pair")
+        if isinstance(pair, StartGoal):
+            self.pair = pair
+        elif pair is not None:
+            self.pair = world.pair(pair)
+        else:
+            self.pair = self._draw_pair()
+        balls = self._place_balls(self.pair)
+        self.scene.reset((self.pair.x, self.pair.y, self.pair.yaw), balls)
+        self._steps = 0
+        self._base_collisions = 0
+        self._ee_collisions = 0
+        self._episode_return = 0.0
+        x, y, yaw, _ = self.scene.robot_pose()
+        self._pose = (x, y, yaw)
+        self._distance = math.hypot(self.pair.gx - x, self.pair.gy - y)
+        cfg = self.config
+        ranges, labels, hits = self.scene.scan(x, y, yaw)
+        self._range_stack = np.repeat(ranges[None, :], cfg.range_frames, axis=0)
+        self._label_stack = np.repeat(labels[None, :], cfg.label_frames, axis=0)
+        self._goal_stack = np.repeat(self._goal_frame(x, y, yaw)[None, :], cfg.goal_frames, axis=0)
+        self.trajectory = [(x, y)]
+        self.last_hits, self.last_labels = hits, labels
+        return self._observation(), self._info({}, success=False)
+
+    def step(self, action):
+        if self._scene is None:
+            raise RuntimeError("call reset() before step()")
+        a = self._check_action(action)
+        cfg = self.config
+        robot = cfg.robot
+        reward_cfg = cfg.reward
+        x0, y0, yaw0 = self._pose
+        self.scene.drive(a[0] * robot.max_linear_speed, a[1] * robot.max_angular_speed,
+                         a[2] * robot.arm_reach, yaw0)
+        x, y, yaw, _ = self.scene.robot_pose()
+        contacts = self.scene.contacts()
+        ranges, labels, hits = self.scene.scan(x, y, yaw)
+        self._steps += 1
+
+        distance = math.hypot(self.pair.gx - x, self.pair.gy - y)
+        if reward_cfg.heading_rule == "progress":
+            heading = (self._distance - distance) > reward_cfg.progress_epsilon
+        else:
+            bearing = math.atan2(self.pair.gy - y, self.pair.gx - x) - yaw
+            heading = abs(math.atan2(math.sin(bearing), math.cos(bearing))) <= reward_cfg.heading_cone
+        moved = math.hypot(x - x0, y - y0) > reward_cfg.moving_threshold
+        success = distance <= cfg.goal_tolerance
+        terms = {
+            "heading": reward_cfg.heading_toward if heading else reward_cfg.heading_away,
+            "goal": reward_cfg.reach_goal if success else 0.0,
+            "moving": reward_cfg.moving if moved else reward_cfg.not_moving,
+            "base_collision": reward_cfg.base_collision if contacts.base_static else 0.0,
+            "end_effector_collision": reward_cfg.end_effector_collision if contacts.end_effector_static else 0.0,
+        }
+        self._base_collisions += int(contacts.base_static)
+        self._ee_collisions += int(contacts.end_effector_static)
+        reward = float(sum(terms.values()))
+        self._episode_return += reward
+        terminated = success or (contacts.base_static and cfg.end_on_base_collision)
+        truncated = (not terminated) and self._steps >= cfg.max_episode_steps
+
+        self._pose = (x, y, yaw)
+        self._distance = distance
+        self._range_stack[:-1] = self._range_stack[1:]
+        self._range_stack[-1] = ranges
+        self._label_stack[:-1] = self._label_stack[1:]
+        self._label_stack[-1] = labels
+        self._goal_stack[:-1] = self._goal_stack[1:]
+        self._goal_stack[-1] = self._goal_frame(x, y, yaw)
+        self.trajectory.append((x, y))
+        self.last_hits, self.last_labels = hits, labels
+        info = self._info(terms, success=success)
+        info["contacts"] = contacts
+        return self._observation(), reward, terminated, truncated, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        from .render import render_topdown_array
+        return render_topdown_array(self)
+
+    def close(self) -> None:
+        if self._scene is not None:
+            self._scene.close()
+            self._scene = None
+        if self._client is not None:
+            import pybullet as pb
+            try:
+                pb.disconnect(physicsClientId=self._client)
+            except pb.error:
+                pass
+            self._client = None
+
+    # -- internals -------------------------------------------------------------------------
+    def _check_action(self, action) -> tuple[float, float, float]:
+        try:
+            a = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"action must be 3 numbers [v, w, L], got {action!r}") from None
+        if a.shape != (3,):
+            raise ValueError(f"action must have shape (3,) = [v, w, L], got shape {a.shape}")
+        v, w, arm = float(a[0]), float(a[1]), float(a[2])
+        if not (math.isfinite(v) and math.isfinite(w) and math.isfinite(arm)):
+            raise ValueError(f"action contains NaN or infinity: {a.tolist()}")
+        tol = 1e-5
+        if not (-tol <= v <= 1 + tol and -1 - tol <= w <= 1 + tol and -tol <= arm <= 1 + tol):
+            raise ValueError(f"action {a.tolist()} out of range: v in [0, 1], w in [-1, 1], L in [0, 1]")
+        return min(max(v, 0.0), 1.0), min(max(w, -1.0), 1.0), min(max(arm, 0.0), 1.0)
+
+    def _goal_frame(self, x: float, y: float, yaw: float) -> np.ndarray:
+        dxw, dyw = self.pair.gx - x, self.pair.gy - y
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = c * dxw + s * dyw, -s * dxw + c * dyw
+        return np.array([math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy),
+                         math.atan2(dy, dx)], dtype=np.float32)
+
+    def _observation(self) -> np.ndarray:
+        return np.concatenate([self._range_stack.ravel(), self._label_stack.ravel(), self._goal_stack.ravel()])
+
+    def _info(self, terms: dict[str, float], success: bool) -> dict[str, Any]:
+        x, y, yaw = self._pose
+        return {
+            "reward_terms": terms,
+            "is_success": success,
+            "distance_to_goal": self._distance,
+            "base_collisions": self._base_collisions,
+            "end_effector_collisions": self._ee_collisions,
+            "episode_return": self._episode_return,
+            "pose": (x, y, yaw),
+            "world": self.world.name,
+            "pair": self.pair.name,
+            "steps": self._steps,
+        }
+
+    def _cspace(self, clearance: float) -> tuple[np.ndarray, np.ndarray]:
+        """Free cells of the static map inflated by ``clearance`` (m), and their component labels."""
+        key = int(round(clearance * 1000))
+        if key not in self._cspace_cache:
+            world = self.world
+            dist = ndimage.distance_transform_edt(~world.occupancy) * world.resolution
+            free = dist > clearance
+            labels, _ = ndimage.label(free)
+            self._cspace_cache[key] = (free, labels)
+        return self._cspace_cache[key]
+
+    def _draw_pair(self) -> StartGoal:
+        world = self.world
+        rng = self.np_random
+        if world.random_pairs is None:
+            if not world.pairs:
+                raise WorldError(f"world {world.name!r} has no start/goal pairs and no random_pairs setting")
+            return world.pairs[int(rng.integers(len(world.pairs)))]
+        spec = world.random_pairs
+        free, labels = self._cspace(spec.clearance)
+        cells = np.argwhere(free)
+        if len(cells) == 0:
+            raise WorldError(f"world {world.name!r}: no free C-space cell at clearance {spec.clearance} m")
+        for _ in range(1000):
+            sy, sx = cells[rng.integers(len(cells))]
+            same = cells[labels[cells[:, 0], cells[:, 1]] == labels[sy, sx]]
+            d = np.hypot(same[:, 0] - sy, same[:, 1] - sx) * world.resolution
+            far = same[d >= spec.min_distance]
+            if len(far) == 0:
+                continue
+            gy, gx = far[rng.integers(len(far))]
+            start = world.cell_centre(int(sy), int(sx))
+            goal = world.cell_centre(int(gy), int(gx))
+            yaw = float(rng.uniform(-math.pi, math.pi))
+            return StartGoal("random", start[0], start[1], yaw, goal[0], goal[1])
+        raise WorldError(f"world {world.name!r}: found no start/goal pair {spec.min_distance} m apart")
+
+    def _place_balls(self, pair: StartGoal) -> list[tuple[float, float]]:
+        world = self.world
+        rng = self.np_random
+        robot_radius = self.config.robot.radius
+        dist = None
+        placed: list[tuple[float, float, float]] = []
+        out: list[tuple[float, float]] = []
+        for ball in world.balls:
+            position = (ball.x, ball.y)
+            if ball.region is not None:
+                if dist is None:
+                    dist = ndimage.distance_transform_edt(~world.occupancy) * world.resolution
+                region = world.ball_regions[ball.region]
+                for _ in range(200):
+                    bx = float(rng.uniform(region.x_min, region.x_max))
+                    by = float(rng.uniform(region.y_min, region.y_max))
+                    if not world.contains(bx, by):
+                        continue
+                    iy, ix = world.cell_of(bx, by)
+                    if dist[iy, ix] < ball.radius + world.resolution:
+                        continue
+                    if math.hypot(bx - pair.x, by - pair.y) < ball.radius + robot_radius + 0.2:
+                        continue
+                    if math.hypot(bx - pair.gx, by - pair.gy) < ball.radius + 0.3:
+                        continue
+                    if any(math.hypot(bx - ox, by - oy) < ball.radius + orad + 0.05 for ox, oy, orad in placed):
+                        continue
+                    position = (bx, by)
+                    break
+            placed.append((position[0], position[1], ball.radius))
+            out.append(position)
+        return out

@@ -1,0 +1,417 @@
+"""World model: an occupancy grid plus movable objects and start/goal pairs.
+
+A world is stored on disk as a ROS ``map_server`` map (a YAML file next to a PGM or PNG image,
+with ``image``, ``resolution``, ``origin``, ``negate``, ``occupied_thresh`` and ``free_thresh``)
+extended with curlnav's own keys (``wall_height``, ``balls``, ``doors``, ``boxes``, ``pairs``,
+``ball_regions``, ``random_pairs``). A map written by any ROS SLAM stack loads as a world with no
+movable objects and no pairs; add those keys to train on it.
+
+Conventions (all lengths in metres, angles in radians):
+
+- ``occupancy[iy, ix]`` is True for an obstacle cell. Row ``iy = 0`` is the *bottom* of the map
+  (smallest y), so cell ``(iy, ix)`` has its centre at
+  ``origin + ((ix + 0.5) * resolution, (iy + 0.5) * resolution)``. Image files store the top row
+  first, as ROS does; loading and saving flip rows.
+- Map cells marked unknown in a ROS map (between the two thresholds) are loaded as obstacles:
+  the robot must not plan or drive through space nobody has seen.
+- Door gaps are *free* in the occupancy grid: the grid is the static map, and the door is a
+  movable object on top of it (the same prior map the paper's baseline used).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+
+class WorldError(ValueError):
+    """A world file or world description is malformed; the message names the file and field."""
+
+
+@dataclass(frozen=True)
+class Ball:
+    """A movable ball. ``x, y`` centre (m), ``radius`` (m), ``mass`` (kg).
+
+    ``region``: index into ``World.ball_regions``; when set, the ball is re-placed uniformly at
+    random inside that region on every reset (away from walls, other balls, start and goal).
+    """
+
+    x: float
+    y: float
+    radius: float = 0.25
+    mass: float = 0.5
+    region: int | None = None
+
+
+@dataclass(frozen=True)
+class Door:
+    """A hinged door panel on a vertical hinge.
+
+    ``hinge_x, hinge_y``: hinge axis position (m). ``width``: panel length from the hinge (m).
+    ``closed_angle``: direction of the closed panel from the hinge, measured from +x (rad).
+    ``swing``: ``"left"`` opens counter-clockwise (seen from above), ``"right"`` clockwise.
+    ``max_open``: how far it opens from closed (rad). ``mass`` (kg). ``hinge_friction``: the
+    torque the hinge resists with (N m); 0 is a free hinge.
+    """
+
+    hinge_x: float
+    hinge_y: float
+    width: float = 1.1
+    closed_angle: float = 0.0
+    swing: str = "left"
+    max_open: float = math.radians(110.0)
+    mass: float = 2.0
+    hinge_friction: float = 0.5
+    thickness: float = 0.05
+
+
+@dataclass(frozen=True)
+class Box:
+    """A movable box: centre ``x, y`` (m), full sizes ``size_x, size_y`` (m), ``yaw`` (rad),
+    ``mass`` (kg)."""
+
+    x: float
+    y: float
+    size_x: float = 0.5
+    size_y: float = 0.5
+    yaw: float = 0.0
+    mass: float = 5.0
+
+
+@dataclass(frozen=True)
+class StartGoal:
+    """A start pose ``(x, y, yaw)`` (m, m, rad) and a goal point ``(gx, gy)`` (m).
+
+    ``step``: optional curriculum sub-step index (the paper's p1..p4 are steps 1..4).
+    """
+
+    name: str
+    x: float
+    y: float
+    yaw: float
+    gx: float
+    gy: float
+    step: int | None = None
+
+    @property
+    def distance(self) -> float:
+        """Straight-line start-goal distance (m)."""
+        return math.hypot(self.gx - self.x, self.gy - self.y)
+
+
+@dataclass(frozen=True)
+class Region:
+    """An axis-aligned rectangle ``[x_min, x_max] x [y_min, y_max]`` (m)."""
+
+    x_min: float
+    y_min: float
+    x_max: float
+    y_max: float
+
+
+@dataclass(frozen=True)
+class RandomPairs:
+    """Draw a random start/goal pair on reset when none is assigned.
+
+    Both points lie on free cells of the C-space grid (the static map inflated by
+    ``clearance``, m) and are at least ``min_distance`` (m) apart.
+    """
+
+    min_distance: float = 4.0
+    clearance: float = 0.6
+
+
+@dataclass(frozen=True)
+class World:
+    """A navigation world. See the module docstring for the conventions."""
+
+    name: str
+    occupancy: np.ndarray  # bool, shape (rows, cols), row 0 = smallest y
+    resolution: float  # m per cell
+    origin: tuple[float, float] = (0.0, 0.0)  # map position of cell (0, 0)'s outer corner (m)
+    wall_height: float = 1.0  # m
+    balls: tuple[Ball, ...] = ()
+    doors: tuple[Door, ...] = ()
+    boxes: tuple[Box, ...] = ()
+    pairs: tuple[StartGoal, ...] = ()
+    ball_regions: tuple[Region, ...] = ()
+    random_pairs: RandomPairs | None = None
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        occ = np.asarray(self.occupancy)
+        if occ.ndim != 2 or occ.shape[0] < 1 or occ.shape[1] < 1:
+            raise WorldError(f"{self.source}: occupancy must be a non-empty 2-D grid, got shape {occ.shape}")
+        object.__setattr__(self, "occupancy", occ.astype(bool))
+        if not (math.isfinite(self.resolution) and self.resolution > 0):
+            raise WorldError(f"{self.source}: resolution must be a positive number of metres, got {self.resolution}")
+        if not (math.isfinite(self.wall_height) and self.wall_height > 0):
+            raise WorldError(f"{self.source}: wall_height must be positive, got {self.wall_height}")
+        for i, ball in enumerate(self.balls):
+            if ball.radius <= 0 or ball.mass <= 0:
+                raise WorldError(f"{self.source}: balls[{i}] needs a positive radius and mass")
+            if ball.region is not None and not 0 <= ball.region < len(self.ball_regions):
+                raise WorldError(f"{self.source}: balls[{i}].region {ball.region} names no entry of ball_regions")
+        for i, door in enumerate(self.doors):
+            if door.swing not in ("left", "right"):
+                raise WorldError(f"{self.source}: doors[{i}].swing must be 'left' or 'right', got {door.swing!r}")
+            if door.width <= 0 or door.mass <= 0:
+                raise WorldError(f"{self.source}: doors[{i}] needs a positive width and mass")
+        names = [pair.name for pair in self.pairs]
+        if len(set(names)) != len(names):
+            raise WorldError(f"{self.source}: pair names must be unique, got {names}")
+        for pair in self.pairs:
+            for label, (px, py) in (("start", (pair.x, pair.y)), ("goal", (pair.gx, pair.gy))):
+                if not self.contains(px, py):
+                    raise WorldError(f"{self.source}: pair {pair.name!r} {label} ({px:.2f}, {py:.2f}) lies outside the map")
+                if self.is_occupied(px, py):
+                    raise WorldError(f"{self.source}: pair {pair.name!r} {label} ({px:.2f}, {py:.2f}) lies inside an obstacle")
+
+    # -- geometry -------------------------------------------------------------------------
+    @property
+    def size(self) -> tuple[float, float]:
+        """Map extent ``(width, height)`` in metres."""
+        rows, cols = self.occupancy.shape
+        return cols * self.resolution, rows * self.resolution
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(x_min, y_min, x_max, y_max)`` of the map (m)."""
+        width, height = self.size
+        return self.origin[0], self.origin[1], self.origin[0] + width, self.origin[1] + height
+
+    def cell_of(self, x: float, y: float) -> tuple[int, int]:
+        """The ``(iy, ix)`` cell containing map point ``(x, y)``; may lie outside the grid."""
+        return (int(math.floor((y - self.origin[1]) / self.resolution)),
+                int(math.floor((x - self.origin[0]) / self.resolution)))
+
+    def cell_centre(self, iy: int, ix: int) -> tuple[float, float]:
+        """Map coordinates (m) of the centre of cell ``(iy, ix)``."""
+        return (self.origin[0] + (ix + 0.5) * self.resolution, self.origin[1] + (iy + 0.5) * self.resolution)
+
+    def contains(self, x: float, y: float) -> bool:
+        iy, ix = self.cell_of(x, y)
+        rows, cols = self.occupancy.shape
+        return 0 <= iy < rows and 0 <= ix < cols
+
+    def is_occupied(self, x: float, y: float) -> bool:
+        """True on an obstacle cell or outside the map."""
+        if not self.contains(x, y):
+            return True
+        iy, ix = self.cell_of(x, y)
+        return bool(self.occupancy[iy, ix])
+
+    def pair(self, key: int | str) -> StartGoal:
+        """A start/goal pair by index or by name; ``KeyError`` names the choices."""
+        if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+            if 0 <= key < len(self.pairs):
+                return self.pairs[int(key)]
+        else:
+            for pair in self.pairs:
+                if pair.name == key:
+                    return pair
+        raise KeyError(f"world {self.name!r} has no pair {key!r}; it has {[p.name for p in self.pairs] or 'none'}")
+
+    def with_changes(self, **changes: Any) -> "World":
+        return dataclasses.replace(self, **changes)
+
+
+# -- static geometry -----------------------------------------------------------------------
+def merge_cells_into_rectangles(occupancy: np.ndarray) -> list[tuple[int, int, int, int]]:
+    """Cover the obstacle cells exactly with few axis-aligned rectangles.
+
+    Greedy: runs along each row, then each run grows upward while the rows above hold the same
+    run. Returns ``(iy, ix, height, width)`` in cells. A 36 m world of a few hundred obstacle
+    cells becomes a few dozen boxes, so the physics engine sees one small compound body.
+    """
+    occ = np.asarray(occupancy, dtype=bool).copy()
+    rows, cols = occ.shape
+    rects: list[tuple[int, int, int, int]] = []
+    for iy in range(rows):
+        row = occ[iy]
+        if not row.any():
+            continue
+        ix = 0
+        while ix < cols:
+            if not row[ix]:
+                ix += 1
+                continue
+            start = ix
+            while ix < cols and row[ix]:
+                ix += 1
+            width = ix - start
+            height = 1
+            while iy + height < rows and occ[iy + height, start:ix].all():
+                height += 1
+            occ[iy:iy + height, start:ix] = False
+            rects.append((iy, start, height, width))
+    return rects
+
+
+# -- file format ---------------------------------------------------------------------------
+_OUR_KEYS = ("name", "wall_height", "balls", "doors", "boxes", "pairs", "ball_regions", "random_pairs")
+
+
+def _fail(path: Path | str, message: str) -> WorldError:
+    return WorldError(f"{path}: {message}")
+
+
+def _build_items(path: Path, key: str, raw: Any, cls: type) -> tuple:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise _fail(path, f"'{key}' must be a list, got {type(raw).__name__}")
+    fields = {f.name for f in dataclasses.fields(cls)}
+    items = []
+    for i, entry in enumerate(raw):
+        if not isinstance(entry, dict):
+            raise _fail(path, f"{key}[{i}] must be a mapping, got {entry!r}")
+        unknown = set(entry) - fields
+        if unknown:
+            raise _fail(path, f"{key}[{i}] has unknown keys {sorted(unknown)}; allowed: {sorted(fields)}")
+        try:
+            values = {k: v for k, v in entry.items()}
+            for name, value in values.items():
+                if name in ("name", "swing"):
+                    values[name] = str(value)
+                elif name in ("step", "region"):
+                    values[name] = None if value is None else int(value)
+                else:
+                    values[name] = float(value)
+                    if not math.isfinite(values[name]):
+                        raise ValueError(f"{name} is not finite")
+            if cls is StartGoal and "name" not in values:
+                values["name"] = f"p{i + 1}"
+            items.append(cls(**values))
+        except (TypeError, ValueError) as exc:
+            raise _fail(path, f"{key}[{i}] is invalid: {exc}") from None
+    return tuple(items)
+
+
+def load_world(path: str | os.PathLike) -> World:
+    """Load a world from a ROS ``map_server`` YAML (plus curlnav keys). Errors name the file."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        meta = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise _fail(path, f"cannot read world file: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise _fail(path, f"not valid YAML: {exc}") from None
+    if not isinstance(meta, dict):
+        raise _fail(path, "a world file must be a YAML mapping")
+    for key in ("image", "resolution", "origin"):
+        if key not in meta:
+            raise _fail(path, f"missing required key '{key}' (ROS map_server format)")
+    try:
+        resolution = float(meta["resolution"])
+        origin = [float(v) for v in meta["origin"]]
+        negate = int(meta.get("negate", 0))
+        occupied_thresh = float(meta.get("occupied_thresh", 0.65))
+        free_thresh = float(meta.get("free_thresh", 0.196))
+    except (TypeError, ValueError) as exc:
+        raise _fail(path, f"bad map_server field: {exc}") from None
+    if len(origin) < 2:
+        raise _fail(path, "origin must be [x, y, yaw]")
+    if origin[2:3] and abs(origin[2]) > 1e-9:
+        raise _fail(path, "rotated map origins (yaw != 0) are not supported")
+    image_path = (path.parent / str(meta["image"])).resolve()
+    try:
+        with Image.open(image_path) as img:
+            pixels = np.asarray(img.convert("L"), dtype=np.float64)
+    except FileNotFoundError:
+        raise _fail(path, f"map image {image_path} does not exist") from None
+    except (UnidentifiedImageError, OSError) as exc:
+        raise _fail(path, f"map image {image_path} is unreadable: {exc}") from None
+    occ_prob = pixels / 255.0 if negate else (255.0 - pixels) / 255.0
+    occupied = occ_prob > occupied_thresh
+    unknown = (occ_prob >= free_thresh) & ~occupied
+    grid = np.flipud(occupied | unknown)
+
+    def item(key: str, cls: type) -> tuple:
+        return _build_items(path, key, meta.get(key), cls)
+
+    random_pairs = None
+    if meta.get("random_pairs") is not None:
+        raw = meta["random_pairs"]
+        if not isinstance(raw, dict):
+            raise _fail(path, "'random_pairs' must be a mapping")
+        try:
+            random_pairs = RandomPairs(**{k: float(v) for k, v in raw.items()})
+        except (TypeError, ValueError) as exc:
+            raise _fail(path, f"random_pairs is invalid: {exc}") from None
+    regions = []
+    for i, raw in enumerate(meta.get("ball_regions") or []):
+        try:
+            x_min, y_min, x_max, y_max = (float(v) for v in raw)
+        except (TypeError, ValueError):
+            raise _fail(path, f"ball_regions[{i}] must be [x_min, y_min, x_max, y_max], got {raw!r}") from None
+        if not (x_min < x_max and y_min < y_max):
+            raise _fail(path, f"ball_regions[{i}] is empty: {raw!r}")
+        regions.append(Region(x_min, y_min, x_max, y_max))
+    try:
+        wall_height = float(meta.get("wall_height", 1.0))
+    except (TypeError, ValueError):
+        raise _fail(path, "wall_height must be a number") from None
+    return World(
+        name=str(meta.get("name", path.stem)),
+        occupancy=grid,
+        resolution=resolution,
+        origin=(origin[0], origin[1]),
+        wall_height=wall_height,
+        balls=item("balls", Ball),
+        doors=item("doors", Door),
+        boxes=item("boxes", Box),
+        pairs=item("pairs", StartGoal),
+        ball_regions=tuple(regions),
+        random_pairs=random_pairs,
+        source=str(path),
+    )
+
+
+def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm") -> Path:
+    """Write ``world`` as ``path`` (YAML) plus ``<stem>.pgm`` or ``.png`` beside it."""
+    from PIL import Image
+
+    if image_format not in ("pgm", "png"):
+        raise ValueError(f"image_format must be 'pgm' or 'png', got {image_format!r}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    image_name = f"{path.stem}.{image_format}"
+    pixels = np.where(np.flipud(world.occupancy), 0, 254).astype(np.uint8)
+    Image.fromarray(pixels, mode="L").save(path.parent / image_name)
+
+    def as_dicts(items: tuple) -> list[dict]:
+        out = []
+        for obj in items:
+            d = dataclasses.asdict(obj)
+            out.append({k: v for k, v in d.items() if v is not None})
+        return out
+
+    meta: dict[str, Any] = {
+        "image": image_name,
+        "resolution": float(world.resolution),
+        "origin": [float(world.origin[0]), float(world.origin[1]), 0.0],
+        "negate": 0,
+        "occupied_thresh": 0.65,
+        "free_thresh": 0.196,
+        "name": world.name,
+        "wall_height": float(world.wall_height),
+        "balls": as_dicts(world.balls),
+        "doors": as_dicts(world.doors),
+        "boxes": as_dicts(world.boxes),
+        "pairs": as_dicts(world.pairs),
+        "ball_regions": [[r.x_min, r.y_min, r.x_max, r.y_max] for r in world.ball_regions],
+    }
+    if world.random_pairs is not None:
+        meta["random_pairs"] = dataclasses.asdict(world.random_pairs)
+    path.write_text(yaml.safe_dump(meta, sort_keys=False))
+    return path

@@ -1,0 +1,1 @@
+"""curlnav learner: see README."""

@@ -1,0 +1,1 @@
+"""curlnav proto: see README."""

@@ -1,0 +1,1 @@
+"""curlnav replay: see README."""

@@ -1,0 +1,1 @@
+"""curlnav scheduler: see README."""
