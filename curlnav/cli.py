@@ -47,6 +47,98 @@ def _cmd_bench_env(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    if not args.serial:
+        print("curlnav: error: the distributed trainer is not built yet; run `curlnav train --serial`",
+              file=sys.stderr)
+        return 2
+    import time as _time
+
+    from learner.config import D4PGConfig
+    from learner.serial import SerialTrainConfig, train_serial
+
+    run_dir = Path(args.run_dir or f"runs/{_time.strftime('%Y%m%d-%H%M%S')}-{args.world.replace('/', '_')}")
+    cfg = SerialTrainConfig(world=args.world, minutes=args.minutes, max_env_steps=args.max_env_steps,
+                            warmup_steps=args.warmup_steps, eval_every_s=args.eval_every_s,
+                            eval_episodes=args.eval_episodes, stop_at_success=args.stop_at_success,
+                            torch_threads=args.threads, seed=args.seed)
+    d4pg = D4PGConfig.named(args.preset, seed=args.seed,
+                            **({"replay_min_size": args.warmup_steps} if args.warmup_steps < 2000 else {}))
+    print(f"run folder: {run_dir}")
+    print(f"train: {cfg}")
+    print(f"d4pg: {d4pg}")
+    summary = train_serial(run_dir, cfg, d4pg, resume=args.resume)
+    final = summary["final_eval"]
+    print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min, {summary['env_steps']} env steps, "
+          f"{summary['updates']} updates, {summary['episodes']} episodes")
+    print(f"held-out evaluation: success {final['success_rate']:.0%} over {final['episodes']} episodes, "
+          f"{final['collisions_per_episode']:.2f} collisions/episode, time to goal {final['mean_time_to_goal_s']:.1f} s")
+    reached = summary["first_eval_reaching_80"]
+    if reached:
+        print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
+    print(f"policy artefact: {run_dir / 'policy'}; learning curve: {run_dir / 'learning_curve.png'}")
+    return 0
+
+
+def _load_policy(path: str):
+    """A policy callable from an artefact folder or a training checkpoint (.safetensors)."""
+    p = Path(path)
+    if p.is_dir() or p.name == "metadata.json":
+        from .policy import PolicyArtefact
+
+        return PolicyArtefact(p if p.is_dir() else p.parent)
+    from learner.d4pg import act, load_checkpoint
+
+    state, _ = load_checkpoint(p)
+    state.actor.eval()
+    return lambda obs: act(state.actor, obs)
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate, held_out_pairs
+
+    policy = _load_policy(args.policy)
+    pairs = held_out_pairs(args.world, args.episodes)
+    result = evaluate(policy, args.world, pairs)
+    print(f"{args.world}: {result.line()}, mean episode {result.mean_episode_time_s:.1f} s")
+    return 0
+
+
+def _cmd_policy_run(args: argparse.Namespace) -> int:
+    from .policy import PolicyArtefact
+    from .sim import NamoEnv
+    from .evaluate import evaluation_config
+    from .sim.render import save_env_picture
+
+    policy = PolicyArtefact(args.artefact)
+    cfg = evaluation_config()
+    env = NamoEnv(args.world, cfg)
+    options = {"pair": args.pair} if args.pair is not None else None
+    obs, info = env.reset(seed=args.seed, options=options)
+    while True:
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        if terminated or truncated:
+            break
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    picture = out / f"policy-v{policy.version}-{env.world.name}-{info['pair']}.png"
+    outcome = "reached the goal" if info["is_success"] else "did not reach the goal"
+    save_env_picture(env, picture, title=f"policy v{policy.version} on {env.world.name}/{info['pair']}: {outcome} "
+                                          f"in {info['steps'] * cfg.control_period:.1f} s, {info['base_collisions']} collisions")
+    print(f"policy v{policy.version} on {env.world.name}/{info['pair']}: {outcome} after {info['steps']} steps "
+          f"({info['steps'] * cfg.control_period:.1f} s), base collisions {info['base_collisions']}")
+    print(f"picture: {picture}")
+    env.close()
+    return 0
+
+
+def _cmd_bench_learner(args: argparse.Namespace) -> int:
+    from learner.bench import run_learner_bench
+
+    run_learner_bench(presets=args.presets.split(","), seconds=args.seconds, batch_size=args.batch, threads=args.threads)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="curlnav", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -59,6 +151,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/rollout", help="folder for the picture")
     p.set_defaults(func=_cmd_rollout)
 
+    p = sub.add_parser("train", help="train a policy (--serial: environment and learner in one process)")
+    p.add_argument("--serial", action="store_true", help="single-process trainer")
+    p.add_argument("--world", default="open-room", help="built-in world name or world YAML path")
+    p.add_argument("--minutes", type=float, default=15.0, help="wall-clock budget")
+    p.add_argument("--max-env-steps", type=int, default=None)
+    p.add_argument("--preset", default="default", choices=["default", "paper"])
+    p.add_argument("--warmup-steps", type=int, default=2000, help="random-action steps before learning")
+    p.add_argument("--eval-every-s", type=float, default=120.0)
+    p.add_argument("--eval-episodes", type=int, default=50)
+    p.add_argument("--stop-at-success", type=float, default=None, help="stop when held-out success reaches this")
+    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--run-dir", default=None, help="run folder (default runs/<time>-<world>)")
+    p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs")
+    p.add_argument("policy", help="policy artefact folder or checkpoint .safetensors")
+    p.add_argument("--world", default="open-room")
+    p.add_argument("--episodes", type=int, default=50)
+    p.set_defaults(func=_cmd_eval)
+
+    policy = sub.add_parser("policy", help="use exported policy artefacts")
+    policy_sub = policy.add_subparsers(dest="policy_command", required=True)
+    p = policy_sub.add_parser("run", help="drive the robot with an artefact and draw the trajectory")
+    p.add_argument("artefact", help="artefact folder (with metadata.json, actor.onnx)")
+    p.add_argument("--world", default="open-room")
+    p.add_argument("--pair", default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="runs/policy-run")
+    p.set_defaults(func=_cmd_policy_run)
+
     bench = sub.add_parser("bench", help="benchmarks that print their figures")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     p = bench_sub.add_parser("env", help="environment steps/s on one core vs a bare PyBullet loop")
@@ -66,6 +190,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--world", default="bench-36m")
     p.add_argument("--no-pin", action="store_true", help="do not pin the process to one CPU core")
     p.set_defaults(func=_cmd_bench_env)
+    p = bench_sub.add_parser("learner", help="D4PG learner updates/s per preset")
+    p.add_argument("--presets", default="default,paper")
+    p.add_argument("--seconds", type=float, default=20.0, help="timed seconds per preset")
+    p.add_argument("--batch", type=int, default=256)
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=_cmd_bench_learner)
     return parser
 
 
@@ -74,11 +204,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if getattr(args, "pair", None) is not None and str(args.pair).isdigit():
         args.pair = int(args.pair)
+    from .policy import ArtefactError
     from .sim.world import WorldError
 
     try:
         return int(args.func(args) or 0)
-    except (WorldError, KeyError) as exc:
+    except (WorldError, KeyError, ArtefactError) as exc:
         print(f"curlnav: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

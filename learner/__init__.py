@@ -1,1 +1,1 @@
-"""curlnav learner: see README."""
+"""curlnav learner: the D4PG core (config, networks, update) and its service shell."""

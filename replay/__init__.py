@@ -1,1 +1,7 @@
-"""curlnav replay: see README."""
+"""curlnav replay: the replay table core (n-step writer, table, rate limiter) and its service shell."""
+
+from .nstep import FrameBatch, NStepWriter
+from .table import RateLimiterTimeout, ReplayInputError, ReplayTable, SampleBatch, SampleToInsertRatio
+
+__all__ = ["FrameBatch", "NStepWriter", "RateLimiterTimeout", "ReplayInputError", "ReplayTable", "SampleBatch",
+           "SampleToInsertRatio"]

@@ -42,6 +42,11 @@ from .scene import Scene
 from .world import StartGoal, World, WorldError
 
 
+def pair_key(x: float, y: float, gx: float, gy: float) -> tuple[float, float, float, float]:
+    """A start/goal pair's identity for ``NamoEnv.excluded_pairs`` (positions rounded to 1 mm)."""
+    return (round(x, 3), round(y, 3), round(gx, 3), round(gy, 3))
+
+
 class NamoEnv(gym.Env):
     """A Husky-class robot with a pushing arm in a PyBullet world. See the module docstring."""
 
@@ -67,6 +72,8 @@ class NamoEnv(gym.Env):
         self.trajectory: list[tuple[float, float]] = []
         self.last_hits: np.ndarray | None = None  # (beams, 2) world x, y of the last scan's end points
         self.last_labels: np.ndarray | None = None  # (beams,) movable labels of the last scan
+        # Random pairs never drawn (held out for evaluation): (x, y, gx, gy) rounded to 1 mm.
+        self.excluded_pairs: set[tuple[float, float, float, float]] = set()
         self._steps = 0
 
     # -- public helpers --------------------------------------------------------------------
@@ -282,6 +289,8 @@ class NamoEnv(gym.Env):
             gy, gx = far[rng.integers(len(far))]
             start = world.cell_centre(int(sy), int(sx))
             goal = world.cell_centre(int(gy), int(gx))
+            if pair_key(start[0], start[1], goal[0], goal[1]) in self.excluded_pairs:
+                continue
             yaw = float(rng.uniform(-math.pi, math.pi))
             return StartGoal("random", start[0], start[1], yaw, goal[0], goal[1])
         raise WorldError(f"world {world.name!r}: found no start/goal pair {spec.min_distance} m apart")

@@ -1,0 +1,94 @@
+"""Greedy evaluation on held-out start/goal pairs: success rate, collisions, time.
+
+Evaluation follows the authors' protocol: a base collision is counted and the trial goes on;
+a trial that has not reached the goal after ``max_episode_steps`` (60 s) is a failure.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .sim import EnvConfig, NamoEnv, StartGoal, World, get_world
+from .sim.env import pair_key
+
+EVAL_SEED = 1_000_003  # seeds of held-out pairs live far from training seeds
+
+
+@dataclass(frozen=True)
+class EvalResult:
+    episodes: int
+    success_rate: float
+    collisions_per_episode: float  # base collisions with walls, per episode
+    end_effector_collisions_per_episode: float
+    mean_time_to_goal_s: float  # over successful episodes (nan if none)
+    mean_episode_time_s: float  # over all episodes
+
+    def line(self) -> str:
+        return (f"success {self.success_rate:.0%} over {self.episodes} episodes, "
+                f"{self.collisions_per_episode:.2f} base collisions/episode, "
+                f"{self.end_effector_collisions_per_episode:.2f} end-effector collisions/episode, "
+                f"time to goal {self.mean_time_to_goal_s:.1f} s")
+
+
+def evaluation_config(base: EnvConfig | None = None) -> EnvConfig:
+    return dataclasses.replace(base or EnvConfig(), end_on_base_collision=False, max_episode_steps=300)
+
+
+def held_out_pairs(world: "str | World", count: int = 50, seed: int = EVAL_SEED) -> list[StartGoal]:
+    """``count`` evaluation pairs: random draws (from their own seeds) for worlds with
+    ``random_pairs``, else the world's own pairs in turn."""
+    world = get_world(world)
+    if world.random_pairs is None:
+        if not world.pairs:
+            raise ValueError(f"world {world.name!r} has no pairs to evaluate on")
+        return [world.pairs[i % len(world.pairs)] for i in range(count)]
+    env = NamoEnv(world)
+    try:
+        pairs = []
+        for i in range(count):
+            env.np_random = np.random.default_rng(seed + i)
+            pair = env._draw_pair()
+            pairs.append(dataclasses.replace(pair, name=f"eval-{i}"))
+        return pairs
+    finally:
+        env.close()
+
+
+def excluded_keys(pairs: list[StartGoal]) -> set:
+    return {pair_key(p.x, p.y, p.gx, p.gy) for p in pairs}
+
+
+def evaluate(policy: Callable[[np.ndarray], np.ndarray], world: "str | World", pairs: list[StartGoal],
+             env_config: EnvConfig | None = None, seed: int = EVAL_SEED,
+             on_episode: Callable[[int, dict], None] | None = None, env: NamoEnv | None = None) -> EvalResult:
+    """Run ``policy`` greedily once per pair (balls placed from ``seed + i``)."""
+    cfg = evaluation_config(env_config)
+    own_env = env is None
+    env = env or NamoEnv(world, cfg)
+    successes, collisions, ee_collisions, times, goal_times = 0, 0, 0, [], []
+    try:
+        for i, pair in enumerate(pairs):
+            obs, info = env.reset(seed=seed + i, options={"world": world, "pair": pair})
+            while True:
+                obs, _, terminated, truncated, info = env.step(policy(obs))
+                if terminated or truncated:
+                    break
+            successes += int(info["is_success"])
+            collisions += info["base_collisions"]
+            ee_collisions += info["end_effector_collisions"]
+            duration = info["steps"] * cfg.control_period
+            times.append(duration)
+            if info["is_success"]:
+                goal_times.append(duration)
+            if on_episode:
+                on_episode(i, info)
+    finally:
+        if own_env:
+            env.close()
+    n = max(len(pairs), 1)
+    return EvalResult(len(pairs), successes / n, collisions / n, ee_collisions / n,
+                      float(np.mean(goal_times)) if goal_times else float("nan"), float(np.mean(times)) if times else 0.0)

@@ -1,0 +1,57 @@
+"""The observation layout shared by the environment, the replay and the networks.
+
+An observation is ``[ranges (range_frames x beams), labels (label_frames x beams),
+goal (goal_frames x 3)]``, oldest frame first in each block (see ``curlnav.sim.env``). One env
+step adds one *frame*: the newest ranges, labels and goal. The replay stores frames once and
+rebuilds stacked observations from them, so no frame is stored four (or ten) times.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ObservationLayout:
+    beams: int = 241
+    range_frames: int = 4
+    label_frames: int = 4
+    goal_frames: int = 10
+    max_range: float = 10.0  # m
+
+    @staticmethod
+    def from_env_config(cfg) -> "ObservationLayout":
+        return ObservationLayout(cfg.lidar_beams, cfg.range_frames, cfg.label_frames, cfg.goal_frames,
+                                 cfg.lidar_max_range)
+
+    @property
+    def size(self) -> int:
+        return (self.range_frames + self.label_frames) * self.beams + 3 * self.goal_frames
+
+    @property
+    def history(self) -> int:
+        """How many frames one observation spans."""
+        return max(self.range_frames, self.label_frames, self.goal_frames)
+
+    def newest_frame(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(ranges (beams,), labels (beams,), goal (3,))`` of the newest frame in ``obs``."""
+        b = self.beams
+        r_end = self.range_frames * b
+        l_end = r_end + self.label_frames * b
+        return obs[r_end - b:r_end], obs[l_end - b:l_end], obs[-3:]
+
+    def split(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Batched ``obs (B, size)`` into ranges ``(B, range_frames, beams)``, labels
+        ``(B, label_frames, beams)`` and goals ``(B, goal_frames * 3)``."""
+        b = self.beams
+        r_end = self.range_frames * b
+        l_end = r_end + self.label_frames * b
+        lead = obs.shape[:-1]
+        return (obs[..., :r_end].reshape(*lead, self.range_frames, b),
+                obs[..., r_end:l_end].reshape(*lead, self.label_frames, b),
+                obs[..., l_end:])
+
+    def to_dict(self) -> dict:
+        return asdict(self)

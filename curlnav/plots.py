@@ -1,0 +1,64 @@
+"""Learning-curve pictures from a run folder's CSV logs."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def _read(path: Path) -> list[dict[str, float]]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        rows = []
+        for row in csv.DictReader(f):
+            try:
+                rows.append({k: float(v) for k, v in row.items() if v not in ("", None)})
+            except ValueError:
+                continue
+        return rows
+
+
+def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
+    """Success rate (training, last 100 episodes; held-out evaluation) against wall-clock minutes
+    and environment steps, plus critic loss. Writes ``learning_curve.png`` in the run folder."""
+    run_dir = Path(run_dir)
+    train = _read(run_dir / "metrics.csv")
+    evals = _read(run_dir / "eval.csv")
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), dpi=100)
+    for ax, key, label in ((axes[0], "wall_s", "wall clock (min)"), (axes[1], "env_steps", "environment steps")):
+        scale = 60.0 if key == "wall_s" else 1.0
+        if train:
+            ax.plot([r[key] / scale for r in train], [r.get("train_success_100", 0) for r in train],
+                    label="training success (last 100 episodes, with noise)", color="tab:blue")
+        if evals:
+            ax.plot([r[key] / scale for r in evals], [r["success_rate"] for r in evals], "o-",
+                    label="held-out evaluation success (greedy)", color="tab:red")
+        ax.axhline(0.8, ls="--", color="grey", lw=0.8)
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_xlabel(label)
+        ax.set_ylabel("success rate")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    if train:
+        axes[2].plot([r["env_steps"] for r in train], [r.get("losses/critic", float("nan")) for r in train],
+                     color="tab:purple", label="critic loss")
+        ax2 = axes[2].twinx()
+        ax2.plot([r["env_steps"] for r in train], [r.get("return_100", float("nan")) for r in train],
+                 color="tab:green", label="return (last 100)")
+        ax2.set_ylabel("episode return")
+        axes[2].set_xlabel("environment steps")
+        axes[2].set_ylabel("critic loss (cross-entropy)")
+        axes[2].legend(loc="upper left", fontsize=7)
+        ax2.legend(loc="upper right", fontsize=7)
+    fig.suptitle(f"curlnav learning curve: {run_dir.name}")
+    fig.tight_layout()
+    out = Path(out) if out else run_dir / "learning_curve.png"
+    fig.savefig(out)
+    plt.close(fig)
+    return out

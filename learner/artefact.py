@@ -1,0 +1,101 @@
+"""Export a trained actor as a self-contained policy artefact.
+
+A folder with:
+
+- ``actor.onnx``: the actor, input ``observation`` float32 (B, obs_size), output ``action``
+  float32 (B, 3) already inside the action bounds;
+- ``policy.safetensors``: the actor's weights (for fine-tuning or other runtimes);
+- ``metadata.json``: observation and action layout and scaling, robot, training steps,
+  curriculum stage, source worlds, and the sha256 of each file above.
+
+``curlnav.policy`` loads it with ONNX Runtime alone: no training code needed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import torch
+from safetensors.torch import save_file
+
+from curlnav.sim.config import EnvConfig
+
+from .d4pg import D4PGState
+from .networks import ACTION_HIGH, ACTION_LOW
+
+ARTEFACT_FORMAT = "curlnav-policy"
+ARTEFACT_VERSION = 1
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, *, worlds: list[str],
+                  curriculum_stage: str = "none", env_steps: int = 0, version: int | None = None,
+                  extra: dict | None = None) -> Path:
+    """Write the artefact folder ``out_dir`` atomically (built beside it, then renamed)."""
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=out_dir.name + ".", dir=out_dir.parent))
+    actor = state.actor
+    layout = state.layout
+    was_training = actor.training
+    actor.eval()
+    cpu_actor = actor.to("cpu") if state.device.type != "cpu" else actor
+    try:
+        save_file({k: v.detach().cpu().contiguous() for k, v in cpu_actor.state_dict().items()},
+                  str(tmp / "policy.safetensors"))
+        example = torch.zeros(1, layout.size)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(cpu_actor, (example,), str(tmp / "actor.onnx"), input_names=["observation"],
+                              output_names=["action"], dynamic_axes={"observation": {0: "batch"}, "action": {0: "batch"}},
+                              dynamo=False)
+    finally:
+        if state.device.type != "cpu":
+            actor.to(state.device)
+        actor.train(was_training)
+    robot = env_config.robot
+    metadata = {
+        "format": ARTEFACT_FORMAT,
+        "version": ARTEFACT_VERSION,
+        "policy_version": version if version is not None else state.steps,
+        "created_unix_s": time.time(),
+        "observation": {
+            "size": layout.size,
+            "layout": layout.to_dict(),
+            "order": ["ranges (range_frames x beams, m, oldest first)", "labels (label_frames x beams, 1 = movable)",
+                      "goal (goal_frames x [sign(dx)log(1+|dx|), sign(dy)log(1+|dy|), bearing rad], robot frame)"],
+            "lidar_fov_rad": env_config.lidar_fov,
+            "control_period_s": env_config.control_period,
+        },
+        "action": {
+            "names": ["linear_velocity", "angular_velocity", "end_effector_displacement"],
+            "low": list(ACTION_LOW), "high": list(ACTION_HIGH),
+            "scale": [robot.max_linear_speed, robot.max_angular_speed, robot.arm_reach],
+            "units": ["m/s", "rad/s", "m"],
+            "note": "physical command = action * scale",
+        },
+        "robot": {k: getattr(robot, k) for k in ("base_length", "base_width", "arm_reach", "max_linear_speed",
+                                                  "max_angular_speed")},
+        "training": {"learner_steps": state.steps, "env_steps": env_steps, "curriculum_stage": curriculum_stage,
+                     "worlds": list(worlds), "preset": state.config.preset, "d4pg": state.config.to_dict(),
+                     **(extra or {})},
+        "files": {name: sha256_of(tmp / name) for name in ("actor.onnx", "policy.safetensors")},
+    }
+    (tmp / "metadata.json").write_text(json.dumps(metadata, indent=2))
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
+    return out_dir

@@ -1,0 +1,209 @@
+"""D4PG: the learner's state, the categorical projection and one SGD step.
+
+``sgd_step(state, batch) -> (state, metrics)`` is the whole algorithm; every loop (serial
+trainer, learner service) is a thin shell around it. PyTorch updates the state's tensors in
+place; the function still returns the state so callers read as if it were pure.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from curlnav.layout import ObservationLayout
+
+from .config import D4PGConfig
+from .networks import ACTION_HIGH, ACTION_LOW, Actor, DistributionalCritic
+
+
+def categorical_projection(next_probs: torch.Tensor, reward: torch.Tensor, discount: torch.Tensor,
+                           support: torch.Tensor) -> torch.Tensor:
+    """Project the distribution of ``reward + discount * Z'`` onto ``support``.
+
+    ``next_probs`` (B, K) are the probabilities of Z' on ``support`` (K,), evenly spaced;
+    ``reward`` and ``discount`` are (B,) (the n-step return and gamma^m, 0 at a terminal).
+    Each shifted atom's mass is split between its two neighbouring atoms in proportion to
+    closeness (atoms beyond the ends are clipped onto them). Returns (B, K), rows summing to 1.
+    """
+    k = support.shape[0]
+    v_min, v_max = support[0], support[-1]
+    delta = (v_max - v_min) / (k - 1)
+    shifted = (reward[:, None] + discount[:, None] * support[None, :]).clamp(v_min, v_max)  # (B, K)
+    position = (shifted - v_min) / delta  # fractional index of each shifted atom
+    lower = position.floor().clamp(0, k - 1)
+    upper_weight = position - lower  # share of mass for the atom above
+    lower = lower.long()
+    upper = (lower + 1).clamp(max=k - 1)
+    out = torch.zeros_like(next_probs)
+    out.scatter_add_(1, lower, next_probs * (1.0 - upper_weight))
+    out.scatter_add_(1, upper, next_probs * upper_weight)
+    return out
+
+
+@dataclass
+class D4PGState:
+    """Everything a learner needs to continue: networks, targets, optimisers, step count."""
+
+    config: D4PGConfig
+    layout: ObservationLayout
+    actor: Actor
+    critic: DistributionalCritic
+    target_actor: Actor
+    target_critic: DistributionalCritic
+    actor_opt: torch.optim.Optimizer
+    critic_opt: torch.optim.Optimizer
+    steps: int = 0
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.actor.parameters()).device
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def init_state(config: D4PGConfig, layout: ObservationLayout, device: torch.device | str | None = None) -> D4PGState:
+    torch.manual_seed(config.seed)
+    device = torch.device(device) if device is not None else default_device()
+    actor = Actor(layout, config).to(device)
+    critic = DistributionalCritic(layout, config).to(device)
+    target_actor = copy.deepcopy(actor).requires_grad_(False)
+    target_critic = copy.deepcopy(critic).requires_grad_(False)
+    return D4PGState(config, layout, actor, critic, target_actor, target_critic,
+                     torch.optim.Adam(actor.parameters(), lr=config.actor_lr),
+                     torch.optim.Adam(critic.parameters(), lr=config.critic_lr))
+
+
+@dataclass
+class TensorBatch:
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    discount: torch.Tensor
+    next_obs: torch.Tensor
+    weights: torch.Tensor | None = None  # importance weights for prioritised replay
+
+    @staticmethod
+    def from_sample(sample, device: torch.device, weights: np.ndarray | None = None) -> "TensorBatch":
+        def t(x):
+            return torch.as_tensor(x, dtype=torch.float32, device=device)
+
+        return TensorBatch(t(sample.obs), t(sample.action), t(sample.reward), t(sample.discount), t(sample.next_obs),
+                           None if weights is None else t(weights))
+
+
+def sgd_step(state: D4PGState, batch: TensorBatch) -> tuple[D4PGState, dict[str, float], np.ndarray]:
+    """One critic and one actor update. Returns (state, metrics, per-item critic loss)."""
+    cfg = state.config
+    critic, actor = state.critic, state.actor
+    support = critic.support
+    with torch.no_grad():
+        next_action = state.target_actor(batch.next_obs)
+        next_probs = torch.softmax(state.target_critic(batch.next_obs, next_action), dim=-1)
+        target = categorical_projection(next_probs, batch.reward, batch.discount, support)
+
+    logits = critic(batch.obs, batch.action)
+    item_loss = -(target * torch.log_softmax(logits, dim=-1)).sum(-1)
+    critic_loss = (item_loss * batch.weights).mean() if batch.weights is not None else item_loss.mean()
+    state.critic_opt.zero_grad(set_to_none=True)
+    critic_loss.backward()
+    critic_norm = torch.nn.utils.clip_grad_norm_(critic.parameters(), cfg.grad_clip_norm)
+    state.critic_opt.step()
+
+    critic.requires_grad_(False)  # the actor's gradient flows through the critic, not into it
+    q = critic.mean(critic(batch.obs, actor(batch.obs)))
+    actor_loss = -q.mean()
+    state.actor_opt.zero_grad(set_to_none=True)
+    actor_loss.backward()
+    actor_norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip_norm)
+    state.actor_opt.step()
+    critic.requires_grad_(True)
+
+    state.steps += 1
+    if state.steps % cfg.target_update_period == 0:
+        state.target_actor.load_state_dict(actor.state_dict())
+        state.target_critic.load_state_dict(critic.state_dict())
+    metrics = {"losses/critic": critic_loss.item(), "losses/actor": actor_loss.item(), "values/q_mean": -actor_loss.item(),
+               "grads/critic_norm": float(critic_norm), "grads/actor_norm": float(actor_norm)}
+    return state, metrics, item_loss.detach().cpu().numpy()
+
+
+def act(actor: Actor, obs: np.ndarray, sigma: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+    """The actor's action for one observation, plus Gaussian noise of ``sigma`` times each
+    action's half-range, clipped to the action bounds."""
+    device = next(actor.parameters()).device
+    with torch.no_grad():
+        action = actor(torch.as_tensor(obs, dtype=torch.float32, device=device)[None])[0].cpu().numpy()
+    if sigma > 0:
+        low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
+        rng = rng or np.random.default_rng()
+        action = np.clip(action + rng.normal(0.0, sigma * (high - low) / 2), low, high)
+    return action.astype(np.float32)
+
+
+# -- checkpoints (safetensors + JSON, no pickle) -----------------------------------------------
+def _flatten_optimizer(prefix: str, opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
+    sd = opt.state_dict()
+    tensors = {}
+    for index, param_state in sd["state"].items():
+        for key, value in param_state.items():
+            tensors[f"{prefix}.state.{index}.{key}"] = torch.as_tensor(value).detach().cpu().contiguous()
+    return tensors, {"param_groups": sd["param_groups"]}
+
+
+def _unflatten_optimizer(prefix: str, tensors: dict[str, torch.Tensor], groups: dict) -> dict:
+    state: dict[int, dict] = {}
+    for name, value in tensors.items():
+        if not name.startswith(prefix + ".state."):
+            continue
+        index, key = name[len(prefix) + 7:].split(".", 1)
+        state.setdefault(int(index), {})[key] = value
+    return {"state": state, "param_groups": groups["param_groups"]}
+
+
+def save_checkpoint(state: D4PGState, path: str | Path, extra: dict | None = None) -> Path:
+    """Write networks, targets and optimiser moments to one safetensors file, with JSON metadata."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors: dict[str, torch.Tensor] = {}
+    for name in ("actor", "critic", "target_actor", "target_critic"):
+        for key, value in getattr(state, name).state_dict().items():
+            tensors[f"{name}.{key}"] = value.detach().cpu().contiguous()
+    actor_opt, actor_groups = _flatten_optimizer("actor_opt", state.actor_opt)
+    critic_opt, critic_groups = _flatten_optimizer("critic_opt", state.critic_opt)
+    tensors.update(actor_opt)
+    tensors.update(critic_opt)
+    meta = {"format": "curlnav-d4pg-checkpoint", "version": 1, "steps": state.steps,
+            "config": state.config.to_dict(), "layout": state.layout.to_dict(),
+            "actor_opt": actor_groups, "critic_opt": critic_groups, "extra": extra or {}}
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata={"curlnav": json.dumps(meta)})
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(path: str | Path, device: torch.device | str | None = None) -> tuple[D4PGState, dict]:
+    """Rebuild a ``D4PGState`` from ``save_checkpoint``'s file; returns (state, extra)."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    with safe_open(str(path), framework="pt") as f:
+        meta = json.loads(f.metadata()["curlnav"])
+    if meta.get("format") != "curlnav-d4pg-checkpoint":
+        raise ValueError(f"{path}: not a curlnav D4PG checkpoint")
+    tensors = load_file(str(path))
+    state = init_state(D4PGConfig.from_dict(meta["config"]), ObservationLayout(**meta["layout"]), device)
+    for name in ("actor", "critic", "target_actor", "target_critic"):
+        module = getattr(state, name)
+        module.load_state_dict({k[len(name) + 1:]: v for k, v in tensors.items() if k.startswith(name + ".")})
+    state.actor_opt.load_state_dict(_unflatten_optimizer("actor_opt", tensors, meta["actor_opt"]))
+    state.critic_opt.load_state_dict(_unflatten_optimizer("critic_opt", tensors, meta["critic_opt"]))
+    state.steps = int(meta["steps"])
+    return state, meta.get("extra", {})

@@ -1,0 +1,431 @@
+"""``ReplayTable``: n-step transitions over de-duplicated frames, FIFO, uniform or prioritised,
+rate-limited, saved to and restored from disk without pickle.
+
+Storage. Each env step's frame (241 ranges as float16, 241 labels as uint8, the goal frame as
+3 float32, and the id of the previous frame of its episode) is stored once; an observation is
+rebuilt by following the previous-frame links (4 range and label frames, 10 goal frames), so
+no frame is stored four or ten times. Ranges are rounded to float16 (at most 4 mm at 10 m).
+A transition holds two frame ids, its action, n-step reward and discount, a key, a priority.
+
+Bytes per transition, with the default 1.25 frames of capacity per transition:
+``1.25 * (241*2 + 241 + 3*4 + 8) + (8 + 8 + 3*4 + 4 + 4 + 8 + 8 + 4) = 985`` bytes, against
+``2 * 1958 * 4 = 15,664`` bytes for storing the stacked float32 observation and next observation.
+
+Eviction. Transitions leave first-in first-out when the table is full. Frames live in a ring
+of ``frame_capacity``; when a frame a transition needs is overwritten, that transition is
+evicted too (at the head, where the oldest frames are; rarely elsewhere, lazily at sampling).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from curlnav.layout import ObservationLayout
+
+from .nstep import FrameBatch
+
+TRANSITION_BYTES_FIXED = 8 + 8 + 3 * 4 + 4 + 4 + 8 + 8 + 4
+
+
+class ReplayInputError(ValueError):
+    """An insert was refused; ``reason`` is a short machine-readable cause for counters."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class RateLimiterTimeout(TimeoutError):
+    """A blocking insert or sample waited longer than its timeout (Reverb's DeadlineExceeded)."""
+
+
+class SampleToInsertRatio:
+    """Keeps ``samples / inserts`` near ``samples_per_insert``, as Reverb's limiter of that name.
+
+    Items, not calls, are counted. Below ``min_size_to_sample`` items in the table, inserts
+    always pass and samples wait. From then on, with ``error = inserts * samples_per_insert -
+    samples``, a call is allowed only if it keeps ``error`` inside
+    ``[min_size_to_sample * spi - error_buffer, min_size_to_sample * spi + error_buffer]``.
+
+    No deadlock: when neither an insert of one item nor a sample of ``batch`` items is allowed,
+    ``error > hi - spi`` and ``error < lo + batch``, impossible when
+    ``2 * error_buffer >= spi + batch``; ``check_batch`` enforces that.
+
+    Restore: the counters are not restored as saved (Reverb's known trap: a restored limiter can
+    block sampling forever); ``recentre(size)`` sets ``error`` to the middle of the window.
+    """
+
+    def __init__(self, samples_per_insert: float, min_size_to_sample: int, error_buffer: float) -> None:
+        if samples_per_insert <= 0 or not math.isfinite(samples_per_insert):
+            raise ValueError("samples_per_insert must be positive")
+        if min_size_to_sample < 1:
+            raise ValueError("min_size_to_sample must be at least 1")
+        if error_buffer < samples_per_insert:
+            raise ValueError(f"error_buffer ({error_buffer}) must be at least samples_per_insert ({samples_per_insert})")
+        self.samples_per_insert = float(samples_per_insert)
+        self.min_size_to_sample = int(min_size_to_sample)
+        self.error_buffer = float(error_buffer)
+        self.inserts = 0
+        self.samples = 0
+
+    @staticmethod
+    def unlimited(min_size_to_sample: int = 1) -> "SampleToInsertRatio":
+        return SampleToInsertRatio(1.0, min_size_to_sample, 1e18)
+
+    @property
+    def window(self) -> tuple[float, float]:
+        centre = self.min_size_to_sample * self.samples_per_insert
+        return centre - self.error_buffer, centre + self.error_buffer
+
+    @property
+    def error(self) -> float:
+        return self.inserts * self.samples_per_insert - self.samples
+
+    def check_batch(self, batch: int) -> None:
+        if 2 * self.error_buffer < self.samples_per_insert + batch:
+            raise ValueError(f"error_buffer {self.error_buffer} too small for batches of {batch} at "
+                             f"{self.samples_per_insert} samples per insert: inserts and samples could both block")
+
+    def can_insert(self, size: int, n: int = 1) -> bool:
+        if size < self.min_size_to_sample:
+            return True
+        return (self.inserts + n) * self.samples_per_insert - self.samples <= self.window[1]
+
+    def can_sample(self, size: int, n: int) -> bool:
+        if size < self.min_size_to_sample:
+            return False
+        return self.inserts * self.samples_per_insert - (self.samples + n) >= self.window[0]
+
+    def recentre(self, size: int) -> None:
+        self.inserts = size
+        self.samples = int(size * self.samples_per_insert - self.min_size_to_sample * self.samples_per_insert)
+
+
+@dataclass
+class SampleBatch:
+    """A sampled batch. ``obs`` and ``next_obs`` (float32, (B, layout.size)), ``action`` (B, 3),
+    ``reward`` and ``discount`` (B,), ``keys`` (int64), ``probabilities`` (of being drawn),
+    ``priorities``, ``times_sampled``."""
+
+    keys: np.ndarray
+    probabilities: np.ndarray
+    priorities: np.ndarray
+    times_sampled: np.ndarray
+    obs: np.ndarray
+    action: np.ndarray
+    reward: np.ndarray
+    discount: np.ndarray
+    next_obs: np.ndarray
+
+
+class ReplayTable:
+    """See the module docstring. Thread-safe; ``insert`` and ``sample`` may block on the limiter."""
+
+    def __init__(self, layout: ObservationLayout, max_size: int, rate_limiter: SampleToInsertRatio | None = None,
+                 sampler: str = "uniform", priority_exponent: float = 0.6, frame_capacity: int | None = None,
+                 seed: int = 0, action_size: int = 3) -> None:
+        if max_size < 1:
+            raise ValueError("max_size must be at least 1")
+        if sampler not in ("uniform", "prioritized"):
+            raise ValueError(f"sampler must be 'uniform' or 'prioritized', got {sampler!r}")
+        self.layout = layout
+        self.max_size = int(max_size)
+        self.sampler = sampler
+        self.priority_exponent = float(priority_exponent)
+        self.rate_limiter = rate_limiter or SampleToInsertRatio.unlimited()
+        self.frame_capacity = int(frame_capacity or (self.max_size + self.max_size // 4 + 4 * 1024))
+        self.action_size = action_size
+        self._rng = np.random.default_rng(seed)
+        self._cond = threading.Condition()
+        beams = layout.beams
+        fc = self.frame_capacity
+        self._f_ranges = np.zeros((fc, beams), np.float16)
+        self._f_labels = np.zeros((fc, beams), np.uint8)
+        self._f_goal = np.zeros((fc, 3), np.float32)
+        self._f_prev = np.zeros(fc, np.int64)
+        self._next_frame = 0  # global id of the next frame
+        n = self.max_size
+        self._t_obs = np.zeros(n, np.int64)
+        self._t_next = np.zeros(n, np.int64)
+        self._t_action = np.zeros((n, action_size), np.float32)
+        self._t_reward = np.zeros(n, np.float32)
+        self._t_discount = np.zeros(n, np.float32)
+        self._t_priority = np.zeros(n, np.float64)
+        self._t_sampled = np.zeros(n, np.int64)
+        self._first_key = 0  # key of the oldest live transition
+        self._next_key = 0  # key of the next transition; slot = key % max_size
+        self._max_priority = 1.0
+        self._streams: dict[str, OrderedDict[int, int]] = {}
+        self._stream_window = layout.history + 64
+        self.rejected: dict[str, int] = {}
+        self.total_inserted = 0
+        self.total_sampled = 0
+
+    # -- properties ------------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        return self._next_key - self._first_key
+
+    @property
+    def bytes_per_transition(self) -> float:
+        beams = self.layout.beams
+        frame = beams * 2 + beams + 3 * 4 + 8
+        return self.frame_capacity / self.max_size * frame + TRANSITION_BYTES_FIXED + self.action_size * 4 - 12
+
+    def info(self) -> dict:
+        with self._cond:
+            return {"size": self.size, "max_size": self.max_size, "total_inserted": self.total_inserted,
+                    "total_sampled": self.total_sampled, "frames": min(self._next_frame, self.frame_capacity),
+                    "rejected": dict(self.rejected), "sampler": self.sampler,
+                    "bytes_per_transition": round(self.bytes_per_transition, 1),
+                    "rate_limiter": {"inserts": self.rate_limiter.inserts, "samples": self.rate_limiter.samples,
+                                     "samples_per_insert": self.rate_limiter.samples_per_insert,
+                                     "min_size_to_sample": self.rate_limiter.min_size_to_sample}}
+
+    # -- insert ----------------------------------------------------------------------------
+    def _reject(self, reason: str, message: str) -> ReplayInputError:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        return ReplayInputError(reason, message)
+
+    def validate(self, batch: FrameBatch) -> None:
+        """Raise ``ReplayInputError`` (and count it) unless ``batch`` has the table's shapes and
+        only finite values."""
+        beams = self.layout.beams
+        f, t = batch.num_frames, batch.num_transitions
+        shapes = {"prev_id": (f,), "ranges": (f, beams), "labels": (f, beams), "goal": (f, 3),
+                  "next_id": (t,), "action": (t, self.action_size), "reward": (t,), "discount": (t,)}
+        for name, shape in shapes.items():
+            value = getattr(batch, name)
+            if not isinstance(value, np.ndarray) or value.shape != shape:
+                got = getattr(value, "shape", type(value).__name__)
+                raise self._reject("shape", f"{name} has shape {got}, expected {shape}")
+        for name in ("ranges", "goal", "action", "reward", "discount"):
+            if not np.all(np.isfinite(getattr(batch, name).astype(np.float64))):
+                raise self._reject("non_finite", f"{name} contains NaN or infinity")
+        if t and (np.any(batch.discount < 0) or np.any(batch.discount > 1)):
+            raise self._reject("range", "discount outside [0, 1]")
+
+    def insert(self, batch: FrameBatch, stream: str = "0", timeout: float | None = None) -> int:
+        """Add frames and transitions from one writer ``stream``; returns transitions added.
+
+        Blocks while the rate limiter refuses inserts (``timeout`` seconds at most, then
+        ``RateLimiterTimeout``; ``timeout=0`` never waits). Transitions that refer to frames
+        the table does not hold are dropped and counted as ``unknown_frame``.
+        """
+        with self._cond:
+            self.validate(batch)
+            t = batch.num_transitions
+            if t:
+                self._wait(lambda: self.rate_limiter.can_insert(self.size, t), timeout, "insert")
+            ids = self._streams.setdefault(stream, OrderedDict())
+            fc = self.frame_capacity
+            for i in range(batch.num_frames):
+                gid = self._next_frame
+                self._next_frame += 1
+                slot = gid % fc
+                self._f_ranges[slot] = batch.ranges[i]
+                self._f_labels[slot] = batch.labels[i]
+                self._f_goal[slot] = batch.goal[i]
+                local = int(batch.local_id[i])
+                self._f_prev[slot] = ids.get(int(batch.prev_id[i]), gid)
+                ids[local] = gid
+                if len(ids) > self._stream_window:
+                    ids.popitem(last=False)
+            self._evict_stale_head()
+            added = 0
+            for i in range(t):
+                obs = ids.get(int(batch.obs_id[i]))
+                nxt = ids.get(int(batch.next_id[i]))
+                if obs is None or nxt is None:
+                    self.rejected["unknown_frame"] = self.rejected.get("unknown_frame", 0) + 1
+                    continue
+                if self.size == self.max_size:
+                    self._first_key += 1
+                slot = self._next_key % self.max_size
+                self._t_obs[slot] = obs
+                self._t_next[slot] = nxt
+                self._t_action[slot] = batch.action[i]
+                self._t_reward[slot] = batch.reward[i]
+                self._t_discount[slot] = batch.discount[i]
+                self._t_priority[slot] = self._max_priority
+                self._t_sampled[slot] = 0
+                self._next_key += 1
+                added += 1
+            self.rate_limiter.inserts += added
+            self.total_inserted += added
+            self._cond.notify_all()
+            return added
+
+    def _oldest_frame(self) -> int:
+        return max(0, self._next_frame - self.frame_capacity)
+
+    def _evict_stale_head(self) -> None:
+        oldest = self._oldest_frame()
+        while self.size and self._t_obs[self._first_key % self.max_size] < oldest:
+            self._first_key += 1
+
+    def _wait(self, allowed, timeout: float | None, what: str) -> None:
+        if allowed():
+            return
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not allowed():
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                raise RateLimiterTimeout(f"rate limiter blocked {what} for {timeout} s "
+                                         f"(size {self.size}, error {self.rate_limiter.error:.0f}, "
+                                         f"window {self.rate_limiter.window})")
+            self._cond.wait(remaining)
+
+    # -- sample ----------------------------------------------------------------------------
+    def can_sample(self, batch_size: int) -> bool:
+        with self._cond:
+            return self.rate_limiter.can_sample(self.size, batch_size)
+
+    def can_insert(self, n: int = 1) -> bool:
+        with self._cond:
+            return self.rate_limiter.can_insert(self.size, n)
+
+    def sample(self, batch_size: int, timeout: float | None = None) -> SampleBatch:
+        """Draw ``batch_size`` transitions (with replacement); blocks on the rate limiter."""
+        with self._cond:
+            self._wait(lambda: self.rate_limiter.can_sample(self.size, batch_size), timeout, "sample")
+            slots = self._draw(batch_size)
+            oldest = self._oldest_frame()
+            stale = self._t_obs[slots] < oldest
+            for _ in range(10):
+                if not stale.any():
+                    break
+                self._t_priority[slots[stale]] = 0.0  # never drawn again by the prioritised sampler
+                slots[stale] = self._draw(int(stale.sum()))
+                stale = self._t_obs[slots] < oldest
+            probabilities = self._probabilities(slots)
+            self._t_sampled[slots] += 1
+            self.rate_limiter.samples += batch_size
+            self.total_sampled += batch_size
+            obs = self._observations(self._t_obs[slots], oldest)
+            next_obs = self._observations(self._t_next[slots], oldest)
+            keys = self._first_key + ((slots - self._first_key) % self.max_size)
+            out = SampleBatch(keys=keys.astype(np.int64), probabilities=probabilities,
+                              priorities=self._t_priority[slots].copy(), times_sampled=self._t_sampled[slots].copy(),
+                              obs=obs, action=self._t_action[slots].copy(), reward=self._t_reward[slots].copy(),
+                              discount=self._t_discount[slots].copy(), next_obs=next_obs)
+            self._cond.notify_all()
+            return out
+
+    def _live_slots(self) -> np.ndarray:
+        return (self._first_key + np.arange(self.size)) % self.max_size
+
+    def _draw(self, n: int) -> np.ndarray:
+        size = self.size
+        if self.sampler == "uniform":
+            return (self._first_key + self._rng.integers(0, size, n)) % self.max_size
+        live = self._live_slots()
+        p = self._t_priority[live] ** self.priority_exponent
+        total = p.sum()
+        if total <= 0:
+            return (self._first_key + self._rng.integers(0, size, n)) % self.max_size
+        return live[self._rng.choice(size, n, p=p / total)]
+
+    def _probabilities(self, slots: np.ndarray) -> np.ndarray:
+        if self.sampler == "uniform":
+            return np.full(len(slots), 1.0 / self.size)
+        live = self._live_slots()
+        total = (self._t_priority[live] ** self.priority_exponent).sum()
+        return (self._t_priority[slots] ** self.priority_exponent) / max(total, 1e-300)
+
+    def _observations(self, frame_ids: np.ndarray, oldest: int) -> np.ndarray:
+        layout = self.layout
+        fc = self.frame_capacity
+        history = [frame_ids]
+        ids = frame_ids
+        for _ in range(layout.history - 1):
+            prev = self._f_prev[ids % fc]
+            ids = np.where(prev >= oldest, prev, ids)
+            history.append(ids)
+        history.reverse()  # oldest first
+        b = len(frame_ids)
+        beams = layout.beams
+        out = np.empty((b, layout.size), np.float32)
+        r_end = layout.range_frames * beams
+        l_end = r_end + layout.label_frames * beams
+        ranges = out[:, :r_end].reshape(b, layout.range_frames, beams)
+        labels = out[:, r_end:l_end].reshape(b, layout.label_frames, beams)
+        goals = out[:, l_end:].reshape(b, layout.goal_frames, 3)
+        h = layout.history
+        for k in range(layout.range_frames):
+            ranges[:, k] = self._f_ranges[history[h - layout.range_frames + k] % fc]
+        for k in range(layout.label_frames):
+            labels[:, k] = self._f_labels[history[h - layout.label_frames + k] % fc]
+        for k in range(layout.goal_frames):
+            goals[:, k] = self._f_goal[history[h - layout.goal_frames + k] % fc]
+        return out
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> int:
+        """Set priorities of live keys (stale keys are ignored); returns how many were set."""
+        keys = np.asarray(keys, np.int64)
+        priorities = np.asarray(priorities, np.float64)
+        if keys.shape != priorities.shape:
+            raise ValueError("keys and priorities must have the same shape")
+        if not np.all(np.isfinite(priorities)) or np.any(priorities < 0):
+            raise ValueError("priorities must be finite and non-negative")
+        with self._cond:
+            live = (keys >= self._first_key) & (keys < self._next_key)
+            slots = keys[live] % self.max_size
+            self._t_priority[slots] = priorities[live]
+            if live.any():
+                self._max_priority = max(self._max_priority, float(priorities[live].max()))
+            return int(live.sum())
+
+    # -- persistence -----------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the table to ``path`` (a ``.npz`` of arrays plus JSON metadata, no pickle)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with self._cond:
+            meta = {
+                "format": "curlnav-replay", "version": 1, "layout": self.layout.to_dict(),
+                "max_size": self.max_size, "frame_capacity": self.frame_capacity, "sampler": self.sampler,
+                "priority_exponent": self.priority_exponent, "action_size": self.action_size,
+                "next_frame": self._next_frame, "first_key": self._first_key, "next_key": self._next_key,
+                "max_priority": self._max_priority, "total_inserted": self.total_inserted,
+                "total_sampled": self.total_sampled, "rejected": self.rejected,
+                "streams": {name: [[k, v] for k, v in ids.items()] for name, ids in self._streams.items()},
+            }
+            tmp = path.with_name(path.name + ".tmp.npz")
+            np.savez(tmp, meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
+                     f_ranges=self._f_ranges, f_labels=self._f_labels, f_goal=self._f_goal, f_prev=self._f_prev,
+                     t_obs=self._t_obs, t_next=self._t_next, t_action=self._t_action, t_reward=self._t_reward,
+                     t_discount=self._t_discount, t_priority=self._t_priority, t_sampled=self._t_sampled)
+            tmp.replace(path)
+        return path
+
+    @classmethod
+    def restore(cls, path: str | Path, rate_limiter: SampleToInsertRatio | None = None, seed: int = 0) -> "ReplayTable":
+        """Load a table written by ``save``. The limiter is re-centred (see ``SampleToInsertRatio``)."""
+        with np.load(Path(path), allow_pickle=False) as data:
+            meta = json.loads(bytes(data["meta"]).decode())
+            if meta.get("format") != "curlnav-replay" or meta.get("version") != 1:
+                raise ValueError(f"{path}: not a curlnav replay file of version 1")
+            table = cls(ObservationLayout(**meta["layout"]), meta["max_size"], rate_limiter, meta["sampler"],
+                        meta["priority_exponent"], meta["frame_capacity"], seed, meta["action_size"])
+            for name in ("f_ranges", "f_labels", "f_goal", "f_prev", "t_obs", "t_next", "t_action", "t_reward",
+                         "t_discount", "t_priority", "t_sampled"):
+                getattr(table, "_" + name)[...] = data[name]
+        table._next_frame = meta["next_frame"]
+        table._first_key = meta["first_key"]
+        table._next_key = meta["next_key"]
+        table._max_priority = meta["max_priority"]
+        table.total_inserted = meta["total_inserted"]
+        table.total_sampled = meta["total_sampled"]
+        table.rejected = dict(meta["rejected"])
+        table._streams = {name: OrderedDict((int(k), int(v)) for k, v in pairs) for name, pairs in meta["streams"].items()}
+        table.rate_limiter.recentre(table.size)
+        return table

@@ -1,0 +1,166 @@
+"""D4PG core: projection, learning signal, checkpoints, artefacts, the serial trainer."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from curlnav.layout import ObservationLayout
+from curlnav.policy import ArtefactError, PolicyArtefact
+from curlnav.sim import EnvConfig
+from learner.artefact import export_policy
+from learner.config import D4PGConfig
+from learner.d4pg import TensorBatch, act, categorical_projection, init_state, load_checkpoint, save_checkpoint, sgd_step
+
+LAYOUT = ObservationLayout()
+
+
+def brute_force_projection(probs, reward, discount, support):
+    """Each shifted atom's mass goes to its two neighbours, by linear interpolation, one by one."""
+    z = support.tolist()
+    dz = z[1] - z[0]
+    out = np.zeros(probs.shape)
+    for b in range(probs.shape[0]):
+        for i, zi in enumerate(z):
+            tz = min(max(float(reward[b]) + float(discount[b]) * zi, z[0]), z[-1])
+            for j, zj in enumerate(z):
+                out[b, j] += max(0.0, 1.0 - abs(tz - zj) / dz) * float(probs[b, i])
+    return out
+
+
+def test_categorical_projection_matches_brute_force():
+    g = torch.Generator().manual_seed(0)
+    support = torch.linspace(-50.0, 250.0, 51)
+    probs = torch.softmax(torch.randn(24, 51, generator=g) * 2, dim=-1)
+    reward = torch.cat([torch.randn(20, generator=g) * 60, torch.tensor([400.0, -400.0, 0.0, 3.0])])
+    discount = torch.cat([torch.rand(20, generator=g), torch.tensor([0.9, 0.9, 0.0, 1.0])])
+    projected = categorical_projection(probs, reward, discount, support)
+    assert np.allclose(projected.numpy(), brute_force_projection(probs, reward, discount, support), atol=1e-5)
+    assert torch.allclose(projected.sum(-1), torch.ones(24), atol=1e-5)
+    # a terminal transition (discount 0) puts all mass around the reward itself
+    assert projected[22].argmax().item() == int((0.0 + 50) / 6)
+    # the mean is preserved when no shifted atom falls off the support
+    inside = (reward[:20] + discount[:20] * -50.0 >= -50.0) & (reward[:20] + discount[:20] * 250.0 <= 250.0)
+    assert inside.sum() >= 5
+    means = (projected * support).sum(-1)
+    expected = reward + discount * (probs * support).sum(-1)
+    assert torch.allclose(means[:20][inside], expected[:20][inside], atol=0.3)
+
+
+def random_batch(b=64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return TensorBatch(torch.rand(b, LAYOUT.size, generator=g) * 5, torch.rand(b, 3, generator=g),
+                       torch.randn(b, generator=g) * 10, torch.full((b,), 0.95), torch.rand(b, LAYOUT.size, generator=g) * 5)
+
+
+def test_critic_loss_falls_on_a_fixed_batch():
+    torch.set_num_threads(2)
+    state = init_state(D4PGConfig(seed=1, critic_lr=1e-3, actor_lr=1e-3), LAYOUT, "cpu")
+    batch = random_batch()
+    # Terminal transitions: the target is the projected n-step return itself, a fixed two-atom
+    # distribution, so the cross-entropy can fall far (bootstrapped targets keep an entropy floor).
+    batch.discount[:] = 0.0
+    batch.reward[:] = torch.linspace(-40, 240, batch.reward.shape[0])
+    losses = [sgd_step(state, batch)[1]["losses/critic"] for _ in range(200)]
+    assert np.mean(losses[-20:]) < 0.5 * np.mean(losses[:20])
+    assert state.steps == 200
+
+
+def test_target_networks_are_hard_copies_every_period():
+    state = init_state(D4PGConfig(target_update_period=3, actor_lr=1e-2, critic_lr=1e-2), LAYOUT, "cpu")
+    batch = random_batch(8)
+    before = [p.clone() for p in state.target_critic.parameters()]
+    sgd_step(state, batch)
+    sgd_step(state, batch)
+    assert all(torch.equal(a, b) for a, b in zip(before, state.target_critic.parameters()))
+    sgd_step(state, batch)
+    assert all(torch.equal(a, b) for a, b in zip(state.critic.parameters(), state.target_critic.parameters()))
+
+
+def test_exploration_noise_stays_inside_the_action_bounds():
+    state = init_state(D4PGConfig(), LAYOUT, "cpu")
+    obs = np.random.default_rng(0).uniform(0, 10, LAYOUT.size).astype(np.float32)
+    rng = np.random.default_rng(0)
+    actions = np.stack([act(state.actor, obs, sigma=3.0, rng=rng) for _ in range(200)])
+    assert actions[:, 0].min() >= 0 and actions[:, 0].max() <= 1
+    assert actions[:, 1].min() >= -1 and actions[:, 1].max() <= 1
+    assert actions[:, 2].min() >= 0 and actions[:, 2].max() <= 1
+    assert actions.std(0).min() > 0.1
+
+
+@pytest.mark.parametrize("preset", ["default", "paper"])
+def test_checkpoint_round_trip_restores_networks_and_optimisers(tmp_path, preset):
+    state = init_state(D4PGConfig.named(preset, batch_size=8), LAYOUT, "cpu")
+    batch = random_batch(8)
+    for _ in range(3):
+        sgd_step(state, batch)
+    path = save_checkpoint(state, tmp_path / "ckpt.safetensors", extra={"counters": {"env_steps": 7}})
+    loaded, extra = load_checkpoint(path, "cpu")
+    assert extra == {"counters": {"env_steps": 7}} and loaded.steps == 3
+    assert loaded.config == state.config
+    for a, b in zip(state.critic.parameters(), loaded.critic.parameters()):
+        assert torch.equal(a, b)
+    # the next update is identical: the Adam moments came back too
+    _, m1, _ = sgd_step(state, batch)
+    _, m2, _ = sgd_step(loaded, batch)
+    assert m1["losses/critic"] == pytest.approx(m2["losses/critic"], rel=1e-5)
+    for a, b in zip(state.actor.parameters(), loaded.actor.parameters()):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_artefact_gives_the_same_actions_as_the_live_network(tmp_path):
+    state = init_state(D4PGConfig(seed=3), LAYOUT, "cpu")
+    sgd_step(state, random_batch(16))
+    folder = export_policy(state, tmp_path / "policy", EnvConfig(), worlds=["open-room"], env_steps=123)
+    meta = json.loads((folder / "metadata.json").read_text())
+    assert meta["observation"]["size"] == 1958 and meta["action"]["scale"] == [1.0, 1.0, 0.5]
+    assert meta["training"]["env_steps"] == 123 and set(meta["files"]) == {"actor.onnx", "policy.safetensors"}
+    policy = PolicyArtefact(folder)
+    obs = np.random.default_rng(0).uniform(0, 10, (32, LAYOUT.size)).astype(np.float32)
+    with torch.no_grad():
+        live = state.actor(torch.from_numpy(obs)).numpy()
+    assert np.allclose(policy(obs), live, atol=1e-5)
+    assert np.allclose(policy(obs[0]), live[0], atol=1e-5)
+
+
+def test_a_tampered_artefact_is_refused(tmp_path):
+    state = init_state(D4PGConfig(), LAYOUT, "cpu")
+    folder = export_policy(state, tmp_path / "policy", EnvConfig(), worlds=["open-room"])
+    with open(folder / "actor.onnx", "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(ArtefactError, match="sha256"):
+        PolicyArtefact(folder)
+    with pytest.raises(ArtefactError, match="no metadata.json"):
+        PolicyArtefact(tmp_path)
+
+
+def test_serial_training_smoke_run_writes_logs_checkpoint_and_artefact_and_resumes(tmp_path):
+    run = tmp_path / "run"
+    base = [sys.executable, "-m", "curlnav.cli", "train", "--serial", "--run-dir", str(run), "--max-env-steps", "400",
+            "--warmup-steps", "300", "--eval-episodes", "2", "--threads", "1"]
+    result = subprocess.run(base + ["--minutes", "3"], capture_output=True, text=True, timeout=400)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "held-out evaluation: success" in result.stdout
+    for name in ("metrics.csv", "eval.csv", "learning_curve.png", "summary.json", "checkpoints/latest.safetensors",
+                 "checkpoints/replay.npz", "policy/actor.onnx", "policy/metadata.json"):
+        assert (run / name).exists(), name
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["env_steps"] == 400 and summary["updates"] > 0
+    # resume: counters continue from the checkpoint instead of starting over
+    result = subprocess.run(base[:8] + ["500"] + base[9:] + ["--minutes", "3", "--resume"], capture_output=True,
+                            text=True, timeout=400)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "resumed from" in result.stdout
+    resumed = json.loads((run / "summary.json").read_text())
+    assert resumed["env_steps"] == 500 and resumed["updates"] > summary["updates"]
+    # the artefact drives the robot without training code
+    out = subprocess.run([sys.executable, "-m", "curlnav.cli", "policy", "run", str(run / "policy"), "--world",
+                          "open-room", "--pair", "across", "--out", str(tmp_path / "pics")], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert len(list((tmp_path / "pics").glob("*.png"))) == 1
