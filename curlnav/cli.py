@@ -139,6 +139,90 @@ def _cmd_bench_learner(args: argparse.Namespace) -> int:
     return 0
 
 
+def _world_from_spec(spec: str):
+    """A built-in name, a world YAML path, or FAMILY:SEED for a generated world."""
+    from .sim import get_world
+    from .worlds.generators import FAMILIES, generate
+
+    family, sep, seed = spec.rpartition(":")
+    if sep and family in FAMILIES and seed.isdigit():
+        return generate(family, int(seed))
+    return get_world(spec)
+
+
+def _parse_params(items: list[str]) -> dict:
+    params = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--param takes KEY=VALUE, got {item!r}")
+        params[key.replace("-", "_")] = float(value) if any(ch in value for ch in ".e") else int(value)
+    return params
+
+
+def _cmd_worlds_generate(args: argparse.Namespace) -> int:
+    from .sim import save_world
+    from .worlds.generators import generate
+
+    out = Path(args.out)
+    for seed in range(args.seed, args.seed + args.count):
+        world = generate(args.family, seed, **_parse_params(args.param))
+        path = save_world(world, out / f"{world.name}.yaml")
+        print(f"{path}: {world.size[0]:.1f} m x {world.size[1]:.1f} m, {len(world.pairs)} pairs, "
+              f"{len(world.balls)} balls, {len(world.doors)} doors")
+    return 0
+
+
+def _cmd_worlds_show(args: argparse.Namespace) -> int:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .sim.render import draw_world
+    from .worlds.rank import METRIC_RESOLUTION, measure, world_paths
+
+    world = _world_from_spec(args.world)
+    _, paths = world_paths(world)
+    d = measure(world)
+    fig, ax = plt.subplots(figsize=(8, 8 * world.size[1] / max(world.size[0], 1e-9) + 0.6), dpi=110)
+    draw_world(ax, world, pairs=world.pairs)
+    for path in paths:
+        ax.plot((path[:, 1] + 0.5) * METRIC_RESOLUTION + world.origin[0],
+                (path[:, 0] + 0.5) * METRIC_RESOLUTION + world.origin[1], "-", lw=1, color="tab:green")
+    ax.set_title(f"{world.name}: Dist {d.distance:.2f}  Vis {d.visibility:.2f}  Disp {d.dispersion:.2f}  "
+                 f"CD {d.characteristic_dimension:.2f}  Tor {d.tortuosity:.2f}", fontsize=9)
+    out = Path(args.out or f"runs/worlds/{world.name}.png")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+    print(f"{world.name}: {world.size[0]:.1f} m x {world.size[1]:.1f} m, {len(world.pairs)} pairs; picture: {out}")
+    return 0
+
+
+def _cmd_worlds_rank(args: argparse.Namespace) -> int:
+    import time as _time
+
+    from .worlds.rank import rank, table, write_outputs
+
+    worlds = [_world_from_spec(spec) for spec in args.worlds]
+    t0 = _time.perf_counter()
+    rows = rank(worlds)
+    elapsed = _time.perf_counter() - t0
+    print(table(rows))
+    files = write_outputs(rows, args.out)
+    print(f"measured {len(worlds)} worlds in {elapsed:.2f} s; wrote {files['csv']}, {files['json']}, {files['png']}")
+    return 0
+
+
+def _cmd_bench_metrics(args: argparse.Namespace) -> int:
+    from .worlds.bench import run_metrics_bench
+
+    run_metrics_bench(per_setting=args.per_setting)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="curlnav", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -183,6 +267,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/policy-run")
     p.set_defaults(func=_cmd_policy_run)
 
+    worlds = sub.add_parser("worlds", help="generate, draw and rank worlds")
+    worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)
+    p = worlds_sub.add_parser("generate", help="write generated worlds as world files")
+    p.add_argument("family", help="barn, barn-3x3, t-maze, cave, forest, garage, indoor, office, campus, auditorium")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--count", type=int, default=1, help="worlds with seeds seed, seed+1, ...")
+    p.add_argument("--param", action="append", help="generator parameter KEY=VALUE (e.g. fill_pct=0.3)")
+    p.add_argument("--out", default="worlds")
+    p.set_defaults(func=_cmd_worlds_generate)
+    p = worlds_sub.add_parser("show", help="draw a world with its pairs and their shortest paths")
+    p.add_argument("world", help="built-in name, world YAML, or FAMILY:SEED")
+    p.add_argument("--out", default=None, help="PNG path")
+    p.set_defaults(func=_cmd_worlds_show)
+    p = worlds_sub.add_parser("rank", help="Table I and the MDS picture for a set of worlds")
+    p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")
+    p.add_argument("--out", default="runs/ranking")
+    p.set_defaults(func=_cmd_worlds_rank)
+
     bench = sub.add_parser("bench", help="benchmarks that print their figures")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     p = bench_sub.add_parser("env", help="environment steps/s on one core vs a bare PyBullet loop")
@@ -196,6 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=_cmd_bench_learner)
+    p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
+    p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
+    p.set_defaults(func=_cmd_bench_metrics)
     return parser
 
 
@@ -206,10 +311,11 @@ def main(argv: list[str] | None = None) -> int:
         args.pair = int(args.pair)
     from .policy import ArtefactError
     from .sim.world import WorldError
+    from .worlds.metrics import MetricsError
 
     try:
         return int(args.func(args) or 0)
-    except (WorldError, KeyError, ArtefactError) as exc:
+    except (WorldError, KeyError, ArtefactError, MetricsError, ValueError) as exc:
         print(f"curlnav: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

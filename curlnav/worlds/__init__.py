@@ -1,0 +1,1 @@
+"""World families, navigation-difficulty metrics and ranking."""
