@@ -48,11 +48,27 @@ def _cmd_bench_env(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    if not args.serial:
-        print("curlnav: error: the distributed trainer is not built yet; run `curlnav train --serial`",
-              file=sys.stderr)
-        return 2
     import time as _time
+
+    if not args.serial:
+        from .launch import train_embedded
+
+        run_dir = Path(args.run_dir or f"runs/{_time.strftime('%Y%m%d-%H%M%S')}-{args.world.replace('/', '_')}-x{args.actors}")
+        print(f"run folder: {run_dir}; {args.actors} actors, world {args.world}, "
+              f"curriculum {args.curriculum or 'none'}, {args.minutes} min")
+        summary = train_embedded(run_dir, args.actors, args.minutes, args.world, args.curriculum,
+                                 eval_every_s=args.eval_every_s, eval_episodes=args.eval_episodes,
+                                 stop_at_success=args.stop_at_success)
+        print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min")
+        if summary["evals"]:
+            last = summary["evals"][-1]
+            print(f"last held-out evaluation: success {last['success_rate']:.0%}, "
+                  f"{last['collisions_per_episode']:.2f} collisions/episode")
+        reached = summary["first_eval_reaching_80"]
+        if reached:
+            print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min (policy v{reached['version']})")
+        print(f"policy artefacts: {run_dir / 'learner' / 'artefacts'}")
+        return 0
 
     from learner.config import D4PGConfig
     from learner.serial import SerialTrainConfig, train_serial
@@ -216,6 +232,19 @@ def _cmd_worlds_rank(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_pull(args: argparse.Namespace) -> int:
+    from .policy import PolicyArtefact
+    from .pull import pull_policy
+
+    try:
+        folder = pull_policy(args.source, args.out, args.version)
+    except OSError as exc:
+        raise ValueError(f"cannot reach {args.source}: {exc}") from None
+    policy = PolicyArtefact(folder)
+    print(f"pulled policy v{policy.version} into {folder} (sha256 verified)")
+    return 0
+
+
 def _cmd_bench_metrics(args: argparse.Namespace) -> int:
     from .worlds.bench import run_metrics_bench
 
@@ -237,6 +266,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train a policy (--serial: environment and learner in one process)")
     p.add_argument("--serial", action="store_true", help="single-process trainer")
+    p.add_argument("--actors", type=int, default=2, help="actor processes (distributed trainer)")
+    p.add_argument("--curriculum", default="", help="curriculum YAML for the scheduler (distributed trainer)")
     p.add_argument("--world", default="open-room", help="built-in world name or world YAML path")
     p.add_argument("--minutes", type=float, default=15.0, help="wall-clock budget")
     p.add_argument("--max-env-steps", type=int, default=None)
@@ -266,6 +297,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/policy-run")
     p.set_defaults(func=_cmd_policy_run)
+
+    p = sub.add_parser("serve", help="run one service (the container entry point)")
+    from .launch import add_serve_arguments
+
+    add_serve_arguments(p)
+    p.set_defaults(func=lambda a: __import__("curlnav.launch", fromlist=["serve"]).serve(a))
+
+    p = sub.add_parser("pull", help="download a policy artefact from a learner")
+    p.add_argument("--from", dest="source", required=True, help="learner URL, e.g. http://localhost:8081")
+    p.add_argument("--version", default="latest")
+    p.add_argument("--out", default="policy")
+    p.set_defaults(func=_cmd_pull)
 
     worlds = sub.add_parser("worlds", help="generate, draw and rank worlds")
     worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)

@@ -93,7 +93,7 @@ class TensorBatch:
     @staticmethod
     def from_sample(sample, device: torch.device, weights: np.ndarray | None = None) -> "TensorBatch":
         def t(x):
-            return torch.as_tensor(x, dtype=torch.float32, device=device)
+            return torch.tensor(x, dtype=torch.float32, device=device)  # a copy: decoded arrays are read-only
 
         return TensorBatch(t(sample.obs), t(sample.action), t(sample.reward), t(sample.discount), t(sample.next_obs),
                            None if weights is None else t(weights))

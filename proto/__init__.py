@@ -1,1 +1,1 @@
-"""curlnav proto: see README."""
+"""curlnav proto: message schemas, msgpack codec, Zenoh key expressions (topology.py)."""

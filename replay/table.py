@@ -213,17 +213,18 @@ class ReplayTable:
         if t and (np.any(batch.discount < 0) or np.any(batch.discount > 1)):
             raise self._reject("range", "discount outside [0, 1]")
 
-    def insert(self, batch: FrameBatch, stream: str = "0", timeout: float | None = None) -> int:
+    def insert(self, batch: FrameBatch, stream: str = "0", timeout: float | None = None, force: bool = False) -> int:
         """Add frames and transitions from one writer ``stream``; returns transitions added.
 
         Blocks while the rate limiter refuses inserts (``timeout`` seconds at most, then
-        ``RateLimiterTimeout``; ``timeout=0`` never waits). Transitions that refer to frames
+        ``RateLimiterTimeout``; ``timeout=0`` never waits; ``force`` skips the limiter, for data
+        already accepted upstream, at shutdown). Transitions that refer to frames
         the table does not hold are dropped and counted as ``unknown_frame``.
         """
         with self._cond:
             self.validate(batch)
             t = batch.num_transitions
-            if t:
+            if t and not force:
                 self._wait(lambda: self.rate_limiter.can_insert(self.size, t), timeout, "insert")
             ids = self._streams.setdefault(stream, OrderedDict())
             fc = self.frame_capacity

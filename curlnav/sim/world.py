@@ -393,7 +393,7 @@ def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm")
         out = []
         for obj in items:
             d = dataclasses.asdict(obj)
-            out.append({k: v for k, v in d.items() if v is not None})
+            out.append({k: (v.item() if isinstance(v, np.generic) else v) for k, v in d.items() if v is not None})
         return out
 
     meta: dict[str, Any] = {
@@ -409,9 +409,9 @@ def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm")
         "doors": as_dicts(world.doors),
         "boxes": as_dicts(world.boxes),
         "pairs": as_dicts(world.pairs),
-        "ball_regions": [[r.x_min, r.y_min, r.x_max, r.y_max] for r in world.ball_regions],
+        "ball_regions": [[float(r.x_min), float(r.y_min), float(r.x_max), float(r.y_max)] for r in world.ball_regions],
     }
     if world.random_pairs is not None:
-        meta["random_pairs"] = dataclasses.asdict(world.random_pairs)
+        meta["random_pairs"] = {k: float(v) for k, v in dataclasses.asdict(world.random_pairs).items()}
     path.write_text(yaml.safe_dump(meta, sort_keys=False))
     return path

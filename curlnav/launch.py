@@ -1,0 +1,265 @@
+"""Run the services: one role per process (``curlnav serve ROLE``, the container entry point), or
+all of them as local processes (``curlnav train``, the embedded default)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+ROLES = ("router", "replay", "learner", "scheduler", "actor")
+
+
+def env_default(name: str, default):
+    """Configuration from ``CURLNAV_<NAME>`` environment variables (containers) or a default."""
+    value = os.environ.get(f"CURLNAV_{name.upper()}")
+    if value is None:
+        return default
+    return type(default)(value) if default is not None and not isinstance(default, bool) else value
+
+
+def add_serve_arguments(p) -> None:
+    p.add_argument("role", choices=ROLES)
+    p.add_argument("--run", default=env_default("run", "default"), help="run name: the Zenoh key prefix")
+    p.add_argument("--router", default=env_default("router", "tcp/127.0.0.1:7447"), help="Zenoh router endpoint")
+    p.add_argument("--listen", default=env_default("listen", "tcp/0.0.0.0:7447"), help="router: listen endpoint")
+    p.add_argument("--data-dir", default=env_default("data_dir", "runs/service"), help="state folder (per role below it)")
+    p.add_argument("--http-port", type=int, default=env_default("http_port", 0))
+    p.add_argument("--world", default=env_default("world", "open-room"), help="default world")
+    p.add_argument("--curriculum", default=env_default("curriculum", ""), help="scheduler: curriculum YAML")
+    p.add_argument("--admin-token", default=env_default("admin_token", ""), help="scheduler: admin bearer token")
+    p.add_argument("--preset", default=env_default("preset", "default"), choices=["default", "paper"])
+    p.add_argument("--actor-id", default=env_default("actor_id", ""), help="actor: id (default host-pid)")
+    p.add_argument("--sigma", type=float, default=env_default("sigma", 0.3), help="actor: exploration sigma")
+    p.add_argument("--seed", type=int, default=env_default("seed", 0))
+    p.add_argument("--min-size", type=int, default=env_default("min_size", 2000), help="replay: min size to sample")
+    p.add_argument("--samples-per-insert", type=float, default=env_default("samples_per_insert", 64.0))
+    p.add_argument("--publish-every", type=int, default=env_default("publish_every", 50), help="learner: updates per broadcast")
+    p.add_argument("--export-every-s", type=float, default=env_default("export_every_s", 60.0))
+    p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 60.0))
+
+
+def serve(args) -> int:
+    """Run one service until SIGTERM/SIGINT. Bad configuration exits with a one-line reason."""
+    from curlnav.transport import run_router, stop_on_signals
+
+    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {args.role} %(levelname)s %(message)s")
+    stop = threading.Event()
+    stop_on_signals(stop)
+    data = Path(args.data_dir)
+    if args.role == "router":
+        logging.info("router listening on %s", args.listen)
+        run_router(args.listen, stop)
+        return 0
+    if args.role == "replay":
+        from replay.service import ReplayService, ReplayServiceConfig
+
+        service = ReplayService(ReplayServiceConfig(run=args.run, router=args.router, data_dir=str(data / "replay"),
+                                                    http_port=args.http_port, min_size_to_sample=args.min_size,
+                                                    samples_per_insert=args.samples_per_insert))
+    elif args.role == "learner":
+        from learner.service import LearnerService, LearnerServiceConfig
+
+        service = LearnerService(LearnerServiceConfig(run=args.run, router=args.router, data_dir=str(data / "learner"),
+                                                      http_port=args.http_port, preset=args.preset,
+                                                      publish_every=args.publish_every,
+                                                      export_every_s=args.export_every_s,
+                                                      checkpoint_every_s=args.checkpoint_every_s, worlds=(args.world,)))
+    elif args.role == "scheduler":
+        from scheduler.service import SchedulerService, SchedulerServiceConfig
+        from curlnav.sim import get_world
+
+        get_world(args.world)  # an unknown default world fails here, with its name
+        service = SchedulerService(SchedulerServiceConfig(run=args.run, router=args.router,
+                                                          data_dir=str(data / "scheduler"), curriculum=args.curriculum,
+                                                          default_world=args.world, http_port=args.http_port or 8080,
+                                                          admin_token=args.admin_token))
+        for stage in service.core.curriculum.stages:
+            for world in stage.worlds:
+                get_world(world)
+    else:
+        from actor.service import ActorService, ActorServiceConfig
+        from curlnav.sim import get_world
+
+        get_world(args.world)
+        actor_id = args.actor_id or f"{socket.gethostname()}-{os.getpid()}"
+        service = ActorService(ActorServiceConfig(actor_id=actor_id, run=args.run, router=args.router,
+                                                  http_port=args.http_port, sigma=args.sigma,
+                                                  default_world=args.world, seed=args.seed,
+                                                  data_dir=str(data / "actors" / actor_id)))
+    service.stop = stop
+    service.run()
+    return 0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def http_json(url: str, timeout: float = 2.0):
+    with urllib.request.urlopen(url, timeout=timeout) as response:
+        return json.loads(response.read())
+
+
+class LocalCluster:
+    """Router, replay, learner, scheduler and N actors as local processes (one run folder)."""
+
+    def __init__(self, run_dir: str | Path, actors: int = 2, world: str = "open-room", curriculum: str = "",
+                 run: str = "local", extra: dict[str, list[str]] | None = None, admin_token: str = "") -> None:
+        self.run_dir = Path(run_dir)
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        self.router_port = free_port()
+        self.scheduler_port = free_port()
+        self.router = f"tcp/127.0.0.1:{self.router_port}"
+        self.world, self.curriculum, self.run, self.actors = world, curriculum, run, actors
+        self.extra = extra or {}
+        self.admin_token = admin_token
+        self.processes: dict[str, subprocess.Popen] = {}
+
+    def _spawn(self, name: str, role: str, *more: str) -> subprocess.Popen:
+        cmd = [sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run, "--router", self.router,
+               "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir), "--world", self.world,
+               *self.extra.get(role, []), *more]
+        log = open(self.run_dir / "logs" / f"{name}.log", "ab")
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        self.processes[name] = proc
+        return proc
+
+    def start(self) -> None:
+        self._spawn("router", "router")
+        self._spawn("replay", "replay")
+        self._spawn("learner", "learner")
+        sched = ["--http-port", str(self.scheduler_port)]
+        if self.curriculum:
+            sched += ["--curriculum", self.curriculum]
+        if self.admin_token:
+            sched += ["--admin-token", self.admin_token]
+        self._spawn("scheduler", "scheduler", *sched)
+        for i in range(self.actors):
+            self.start_actor(i)
+
+    def start_actor(self, i: int) -> subprocess.Popen:
+        return self._spawn(f"actor-{i}", "actor", "--actor-id", f"actor-{i}", "--seed", str(i),
+                           "--sigma", str(round(0.2 + 0.2 * (i % 3), 2)))
+
+    @property
+    def status_url(self) -> str:
+        return f"http://127.0.0.1:{self.scheduler_port}/status"
+
+    def status(self) -> dict | None:
+        try:
+            return http_json(self.status_url)
+        except OSError:
+            return None
+
+    def learner_port(self) -> int | None:
+        path = self.run_dir / "learner" / "http_port"
+        return int(path.read_text()) if path.exists() else None
+
+    def dead(self) -> list[str]:
+        return [name for name, p in self.processes.items() if p.poll() is not None]
+
+    def stop_process(self, name: str, timeout: float = 30.0) -> None:
+        proc = self.processes.pop(name)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+
+    def kill_process(self, name: str) -> None:
+        proc = self.processes.pop(name)
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+    def stop(self) -> None:
+        order = [n for n in self.processes if n.startswith("actor")] + ["learner", "replay", "scheduler", "router"]
+        for name in order:
+            if name in self.processes:
+                self.stop_process(name)
+
+    def __enter__(self) -> "LocalCluster":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str, curriculum: str,
+                   eval_every_s: float = 120.0, eval_episodes: int = 50, stop_at_success: float | None = None) -> dict:
+    """``curlnav train``: the services as local processes, progress every 5 s, evaluation of the
+    learner's latest artefact on held-out pairs, clean shutdown on Ctrl-C or at the budget."""
+    from curlnav.evaluate import evaluate, held_out_pairs
+    from curlnav.policy import PolicyArtefact
+
+    run_dir = Path(run_dir)
+    cluster = LocalCluster(run_dir, actors=actors, world=world, curriculum=curriculum)
+    evals: list[dict] = []
+    pairs = held_out_pairs(world, eval_episodes) if not curriculum else None
+    start = time.monotonic()
+    cluster.start()
+    print(f"services started: router {cluster.router}, scheduler {cluster.status_url}, logs in {run_dir / 'logs'}")
+    last_eval = time.monotonic()
+    stop_reason = "time budget"
+    try:
+        while time.monotonic() - start < minutes * 60:
+            time.sleep(5.0)
+            dead = cluster.dead()
+            if dead:
+                stop_reason = f"service exited: {', '.join(dead)} (see {run_dir / 'logs'})"
+                break
+            s = cluster.status()
+            if s:
+                rate = s["window_success_rate"]
+                replay, learner = s["replay"], s["learner"]
+                print(f"[{(time.monotonic() - start) / 60:5.1f} min] stage {s['stage']} sub-step {s['substep']} "
+                      f"episodes {s['episodes']} success {'-' if rate is None else f'{rate:.0%}'} "
+                      f"env steps/s {replay.get('insert_rate') or 0:.0f} updates/s {learner.get('updates_per_s') or 0:.1f} "
+                      f"learner v{learner.get('version')} replay {replay.get('size')} actors {len(s['live_actors'])}",
+                      flush=True)
+            port = cluster.learner_port()
+            if pairs and port and time.monotonic() - last_eval >= eval_every_s:
+                last_eval = time.monotonic()
+                folder = _download_latest(port, run_dir / "eval-policy")
+                if folder:
+                    result = evaluate(PolicyArtefact(folder), world, pairs)
+                    row = {"wall_s": time.monotonic() - start, "version": PolicyArtefact(folder).version,
+                           **{k: getattr(result, k) for k in ("success_rate", "collisions_per_episode", "mean_time_to_goal_s")}}
+                    evals.append(row)
+                    print(f"[eval {row['wall_s'] / 60:5.1f} min, policy v{row['version']}] {result.line()}", flush=True)
+                    if stop_at_success is not None and result.success_rate >= stop_at_success:
+                        stop_reason = f"held-out success {result.success_rate:.0%}"
+                        break
+    except KeyboardInterrupt:
+        stop_reason = "interrupted"
+    finally:
+        print("stopping services (checkpoints and replay are saved)...", flush=True)
+        cluster.stop()
+    summary = {"stop_reason": stop_reason, "wall_s": time.monotonic() - start, "evals": evals,
+               "first_eval_reaching_80": next((e for e in evals if e["success_rate"] >= 0.8), None),
+               "run_dir": str(run_dir)}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _download_latest(port: int, out: Path) -> Path | None:
+    """Fetch the learner's latest artefact over HTTP into ``out`` (sha256 checked on load)."""
+    from curlnav.pull import pull_policy
+
+    try:
+        return pull_policy(f"http://127.0.0.1:{port}", out)
+    except (OSError, ValueError):
+        return None

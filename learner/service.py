@@ -1,0 +1,206 @@
+"""The learner service: ``sgd_step`` fed by the replay service over Zenoh.
+
+Pulls sampled batches (``replay/sample`` queries; a refusal from the rate limiter just means
+"wait"), updates, publishes versioned ``Weights`` every ``publish_every`` updates and answers
+``weights/latest`` for late joiners, checkpoints and resumes, exports policy artefacts and
+serves them over HTTP: ``GET /policy/latest``, ``GET /policy/<version>`` (JSON with files and
+sha256), ``GET /policy/<version>/<file>``, ``/healthz``, ``/metrics``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from prometheus_client import CollectorRegistry, Counter, Gauge
+from safetensors.torch import save as safetensors_bytes
+
+from curlnav.layout import ObservationLayout
+from curlnav.sim import EnvConfig
+from curlnav.transport import HttpServer, RateMeter, json_response, open_session, reliable_publisher
+from proto.codec import ProtoError
+from proto.messages import SampledBatch, SampleRequest, ServiceStatus, Weights
+from proto.topology import Topology
+
+from .artefact import export_policy
+from .config import D4PGConfig
+from .d4pg import TensorBatch, init_state, load_checkpoint, save_checkpoint, sgd_step
+
+log = logging.getLogger("curlnav.learner")
+
+
+@dataclass(frozen=True)
+class LearnerServiceConfig:
+    run: str = "default"
+    router: str = "tcp/127.0.0.1:7447"
+    data_dir: str = "runs/service/learner"
+    http_port: int = 0
+    preset: str = "default"
+    batch_size: int = 256
+    publish_every: int = 50  # updates between weight broadcasts
+    checkpoint_every_s: float = 120.0
+    export_every_s: float = 120.0
+    keep_artefacts: int = 5
+    torch_threads: int = 1
+    worlds: tuple[str, ...] = ("open-room",)
+
+
+def weights_message(state, version: int) -> Weights:
+    tensors = {k: v.detach().cpu().contiguous() for k, v in state.actor.state_dict().items()}
+    return Weights(version, state.steps, safetensors_bytes(tensors), state.config.to_dict())
+
+
+class LearnerService:
+    def __init__(self, cfg: LearnerServiceConfig, layout: ObservationLayout | None = None) -> None:
+        self.cfg = cfg
+        self.topology = Topology(cfg.run)
+        self.layout = layout or ObservationLayout()
+        self.data_dir = Path(cfg.data_dir)
+        (self.data_dir / "artefacts").mkdir(parents=True, exist_ok=True)
+        torch.set_num_threads(cfg.torch_threads)
+        ckpt = self.data_dir / "latest.safetensors"
+        if ckpt.exists():
+            self.state, extra = load_checkpoint(ckpt)
+            self.version = int(extra.get("version", 0))
+            log.info("resumed from %s at %d updates, weights version %d", ckpt, self.state.steps, self.version)
+        else:
+            self.state = init_state(D4PGConfig.named(cfg.preset, batch_size=cfg.batch_size), self.layout)
+            self.version = 0
+        self.registry = CollectorRegistry()
+        self.m_updates = Counter("learner_updates", "SGD steps", registry=self.registry)
+        self.m_version = Gauge("learner_weights_version", "latest published weights version", registry=self.registry)
+        self.m_rejected = Counter("learner_messages_rejected", "refused replies", ["reason"], registry=self.registry)
+        self.m_loss = Gauge("learner_critic_loss", "last critic loss", registry=self.registry)
+        self.m_version.set_function(lambda: self.version)
+        self.update_rate = RateMeter()
+        self.latest_weights: bytes = weights_message(self.state, self.version).encode()
+        self.metrics: dict[str, float] = {}
+        self.stop = threading.Event()
+
+    # -- pure parts ----------------------------------------------------------------------------
+    def learn_from(self, payload: bytes) -> dict[str, float]:
+        batch = SampledBatch.decode(payload)
+        if batch.obs.shape[1] != self.layout.size:
+            raise ProtoError("shape", f"observations of {batch.obs.shape[1]} values, expected {self.layout.size}")
+        tensors = TensorBatch.from_sample(batch, self.state.device)
+        self.state, self.metrics, _ = sgd_step(self.state, tensors)
+        self.m_updates.inc()
+        self.update_rate.add()
+        self.m_loss.set(self.metrics["losses/critic"])
+        return self.metrics
+
+    def publish_version(self) -> bytes:
+        self.version += 1
+        self.latest_weights = weights_message(self.state, self.version).encode()
+        return self.latest_weights
+
+    def checkpoint(self) -> None:
+        save_checkpoint(self.state, self.data_dir / "latest.safetensors", extra={"version": self.version})
+
+    def export(self) -> Path:
+        folder = self.data_dir / "artefacts" / f"v{self.version}"
+        export_policy(self.state, folder, EnvConfig(), worlds=list(self.cfg.worlds), version=self.version)
+        versions = sorted(self.artefact_versions())
+        for old in versions[:-self.cfg.keep_artefacts]:
+            shutil.rmtree(self.data_dir / "artefacts" / f"v{old}", ignore_errors=True)
+        return folder
+
+    def artefact_versions(self) -> list[int]:
+        out = []
+        for p in (self.data_dir / "artefacts").glob("v*"):
+            if p.is_dir() and p.name[1:].isdigit() and (p / "metadata.json").exists():
+                out.append(int(p.name[1:]))
+        return out
+
+    def status(self) -> dict:
+        return {"version": self.version, "updates": self.state.steps, "updates_per_s": self.update_rate.rate(),
+                "critic_loss": self.metrics.get("losses/critic", 0.0)}
+
+    # -- HTTP ------------------------------------------------------------------------------------
+    def _policy(self, request) -> tuple[int, str, bytes]:
+        parts = request.path.strip("/").split("/")  # policy, <version|latest>[, file]
+        versions = self.artefact_versions()
+        if len(parts) < 2:
+            return json_response({"error": "use /policy/latest or /policy/<version>"}, 404)
+        if parts[1] == "latest":
+            if not versions:
+                return json_response({"error": "no policy exported yet"}, 404)
+            version = max(versions)
+        elif re.fullmatch(r"v?\d{1,12}", parts[1]):
+            version = int(parts[1].lstrip("v"))
+        else:
+            return json_response({"error": f"bad version {parts[1]!r}"}, 400)
+        folder = self.data_dir / "artefacts" / f"v{version}"
+        if version not in versions:
+            return json_response({"error": f"no policy version {version}", "available": sorted(versions)}, 404)
+        meta = json.loads((folder / "metadata.json").read_text())
+        if len(parts) == 2:
+            files = {name: {"sha256": sha, "url": f"/policy/{version}/{name}"} for name, sha in meta["files"].items()}
+            files["metadata.json"] = {"url": f"/policy/{version}/metadata.json"}
+            return json_response({"version": version, "files": files, "metadata": meta})
+        name = parts[2]
+        if len(parts) != 3 or name not in set(meta["files"]) | {"metadata.json"}:
+            return json_response({"error": f"no file {'/'.join(parts[2:])!r} in version {version}"}, 404)
+        return 200, "application/octet-stream", (folder / name).read_bytes()
+
+    # -- shell -----------------------------------------------------------------------------------
+    def run(self) -> None:
+        cfg = self.cfg
+        topo = self.topology
+        session = open_session(cfg.router)
+        weights_pub = reliable_publisher(session, topo.weights)
+        status_pub = session.declare_publisher(topo.status("learner"))
+        token = session.liveliness().declare_token(topo.alive("learner", "0"))
+        latest_q = session.declare_queryable(topo.weights_latest,
+                                             lambda q: (q.reply(topo.weights_latest, self.latest_weights)))
+        http = HttpServer("0.0.0.0", cfg.http_port, {
+            ("GET", "/healthz"): lambda r: json_response({"ok": True, **self.status()}),
+            ("GET", "/policy/"): self._policy,
+        }, registry=self.registry)
+        (self.data_dir / "http_port").write_text(str(http.port))
+        if not self.artefact_versions():
+            self.export()
+        weights_pub.put(self.latest_weights)
+        log.info("learner up: run %s, router %s, http port %d, version %d", cfg.run, cfg.router, http.port, self.version)
+        request = SampleRequest(cfg.batch_size, timeout_s=0.5).encode()
+        last_status = last_ckpt = last_export = time.monotonic()
+        try:
+            while not self.stop.is_set():
+                got = False
+                for reply in session.get(topo.sample, payload=request, timeout=5.0):
+                    if reply.ok is None:
+                        continue  # rate limited or replay not ready: ask again
+                    try:
+                        self.learn_from(reply.ok.payload.to_bytes())
+                        got = True
+                    except ProtoError as exc:
+                        self.m_rejected.labels(exc.reason).inc()
+                if got and self.state.steps % cfg.publish_every == 0:
+                    weights_pub.put(self.publish_version())
+                if not got:
+                    self.stop.wait(0.05)
+                now = time.monotonic()
+                if now - last_status >= 1.0:
+                    status_pub.put(ServiceStatus("learner", self.status()).encode())
+                    last_status = now
+                if now - last_ckpt >= cfg.checkpoint_every_s:
+                    self.checkpoint()
+                    last_ckpt = now
+                if now - last_export >= cfg.export_every_s:
+                    self.export()
+                    last_export = now
+        finally:
+            self.checkpoint()
+            self.export()
+            token.undeclare()
+            latest_q.undeclare()
+            http.close()
+            session.close()
+            log.info("learner stopped at %d updates, version %d", self.state.steps, self.version)

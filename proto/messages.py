@@ -1,0 +1,256 @@
+"""Every message curlnav services exchange, as typed dataclasses with ``encode``/``decode``.
+
+All carry ``kind`` and ``v`` (schema version, 1 for all today). Units: metres, seconds, radians.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+
+from replay.nstep import FrameBatch
+
+from .codec import ProtoError, check_header, dumps, field, loads, pack_array, unpack_array
+
+VERSION = 1
+MAX_BEAMS = 4096
+MAX_ITEMS = 65_536  # frames or transitions in one batch
+
+
+@dataclass
+class TransitionBatch:
+    """actor -> replay: frames and n-step transitions of one actor (its ``stream``).
+
+    Arrays as ``replay.nstep.FrameBatch``: frames ``local_id``, ``prev_id`` (int64),
+    ``ranges`` (float16, m, (F, beams)), ``labels`` (uint8, (F, beams)), ``goal`` (float32, (F, 3));
+    transitions ``obs_id``, ``next_id`` (int64), ``action`` (float32, (T, 3)), ``reward``,
+    ``discount`` (float32, (T,)). ``seq`` numbers the actor's batches (gaps reveal loss)."""
+
+    actor_id: str
+    seq: int
+    weights_version: int
+    batch: FrameBatch
+    KIND = "transition_batch"
+
+    def encode(self) -> bytes:
+        b = self.batch
+        return dumps({"kind": self.KIND, "v": VERSION, "actor_id": self.actor_id, "seq": self.seq,
+                      "weights_version": self.weights_version,
+                      **{name: pack_array(getattr(b, name)) for name in FRAME_FIELDS}})
+
+    @staticmethod
+    def decode(data: bytes, beams: int | None = None) -> "TransitionBatch":
+        obj = loads(data)
+        kind = TransitionBatch.KIND
+        check_header(obj, kind, VERSION)
+        actor_id = field(obj, "actor_id", str, kind)
+        seq = field(obj, "seq", int, kind)
+        version = field(obj, "weights_version", int, kind)
+        f, t = _dim(obj, "local_id", 0), _dim(obj, "obs_id", 0)
+        if f > MAX_ITEMS or t > MAX_ITEMS:
+            raise ProtoError("shape", f"{f} frames / {t} transitions exceed {MAX_ITEMS}")
+        nb = _dim(obj, "ranges", 1)
+        if beams is not None and nb != beams:
+            raise ProtoError("shape", f"ranges have {nb} beams, this run uses {beams}")
+        if not 0 < nb <= MAX_BEAMS:
+            raise ProtoError("shape", f"bad beam count {nb}")
+        shapes = {"local_id": ("<i8", (f,)), "prev_id": ("<i8", (f,)), "ranges": ("<f2", (f, nb)),
+                  "labels": ("|u1", (f, nb)), "goal": ("<f4", (f, 3)), "obs_id": ("<i8", (t,)),
+                  "next_id": ("<i8", (t,)), "action": ("<f4", (t, 3)), "reward": ("<f4", (t,)),
+                  "discount": ("<f4", (t,))}
+        arrays = {name: unpack_array(obj.get(name), name, dt, shape) for name, (dt, shape) in shapes.items()}
+        if t and (arrays["discount"].min() < 0 or arrays["discount"].max() > 1):
+            raise ProtoError("range", "discount outside [0, 1]")
+        return TransitionBatch(actor_id, seq, version, FrameBatch(**arrays))
+
+
+def _dim(obj: dict, name: str, axis: int) -> int:
+    """Dimension ``axis`` of array field ``name``, checked to be a non-negative int."""
+    record = obj.get(name)
+    shape = record.get("shape") if isinstance(record, dict) else None
+    if not isinstance(shape, list) or len(shape) <= axis or not isinstance(shape[axis], int) or shape[axis] < 0:
+        raise ProtoError("shape", f"{name} has no valid shape")
+    return shape[axis]
+
+
+FRAME_FIELDS = ("local_id", "prev_id", "ranges", "labels", "goal", "obs_id", "next_id", "action", "reward", "discount")
+
+
+@dataclass
+class SampleRequest:
+    """learner -> replay (query payload): ``batch_size`` transitions, waiting at most
+    ``timeout_s`` on the rate limiter."""
+
+    batch_size: int
+    timeout_s: float = 1.0
+    KIND = "sample_request"
+
+    def encode(self) -> bytes:
+        return dumps({"kind": self.KIND, "v": VERSION, "batch_size": self.batch_size, "timeout_s": self.timeout_s})
+
+    @staticmethod
+    def decode(data: bytes) -> "SampleRequest":
+        obj = loads(data)
+        check_header(obj, SampleRequest.KIND, VERSION)
+        size = field(obj, "batch_size", int, SampleRequest.KIND)
+        timeout = float(field(obj, "timeout_s", (int, float), SampleRequest.KIND))
+        if not 1 <= size <= 8192 or not 0 <= timeout <= 60:
+            raise ProtoError("range", "batch_size must be 1..8192 and timeout_s 0..60")
+        return SampleRequest(size, timeout)
+
+
+@dataclass
+class SampledBatch:
+    """replay -> learner (query reply): stacked observations rebuilt from frames."""
+
+    obs: np.ndarray  # float32 (B, obs_size)
+    action: np.ndarray  # float32 (B, 3)
+    reward: np.ndarray  # float32 (B,)
+    discount: np.ndarray  # float32 (B,)
+    next_obs: np.ndarray  # float32 (B, obs_size)
+    keys: np.ndarray  # int64 (B,)
+    KIND = "sampled_batch"
+
+    def encode(self) -> bytes:
+        return dumps({"kind": self.KIND, "v": VERSION, **{n: pack_array(getattr(self, n)) for n in
+                                                          ("obs", "action", "reward", "discount", "next_obs", "keys")}})
+
+    @staticmethod
+    def decode(data: bytes) -> "SampledBatch":
+        obj = loads(data)
+        check_header(obj, SampledBatch.KIND, VERSION)
+        try:
+            b, size = obj["obs"]["shape"]
+        except (KeyError, TypeError, ValueError):
+            raise ProtoError("shape", "obs must be (B, obs_size)") from None
+        specs = {"obs": ("<f4", (b, size)), "action": ("<f4", (b, 3)), "reward": ("<f4", (b,)),
+                 "discount": ("<f4", (b,)), "next_obs": ("<f4", (b, size)), "keys": ("<i8", (b,))}
+        return SampledBatch(**{n: unpack_array(obj.get(n), n, dt, sh) for n, (dt, sh) in specs.items()})
+
+
+@dataclass
+class Weights:
+    """learner -> actors: the actor network's weights as a safetensors blob, with its version
+    (learner updates at export) and a JSON-able description of the network."""
+
+    version: int
+    learner_steps: int
+    safetensors: bytes
+    d4pg_config: dict
+    KIND = "weights"
+
+    def encode(self) -> bytes:
+        return dumps({"kind": self.KIND, "v": VERSION, "version": self.version, "learner_steps": self.learner_steps,
+                      "safetensors": self.safetensors, "d4pg_config": self.d4pg_config})
+
+    @staticmethod
+    def decode(data: bytes) -> "Weights":
+        obj = loads(data)
+        check_header(obj, Weights.KIND, VERSION)
+        blob = field(obj, "safetensors", bytes, Weights.KIND)
+        return Weights(field(obj, "version", int, Weights.KIND), field(obj, "learner_steps", int, Weights.KIND), blob,
+                       field(obj, "d4pg_config", dict, Weights.KIND))
+
+
+@dataclass
+class EpisodeReport:
+    """actor -> scheduler: one finished episode."""
+
+    actor_id: str
+    world: str
+    pair: str
+    success: bool
+    episode_return: float
+    base_collisions: int
+    end_effector_collisions: int
+    steps: int
+    weights_version: int
+    assignment_epoch: int
+    KIND = "episode_report"
+
+    def encode(self) -> bytes:
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return dumps({"kind": self.KIND, "v": VERSION, **d})
+
+    @staticmethod
+    def decode(data: bytes) -> "EpisodeReport":
+        obj = loads(data)
+        k = EpisodeReport.KIND
+        check_header(obj, k, VERSION)
+        return EpisodeReport(field(obj, "actor_id", str, k), field(obj, "world", str, k), field(obj, "pair", str, k),
+                             field(obj, "success", bool, k), float(field(obj, "episode_return", (int, float), k)),
+                             field(obj, "base_collisions", int, k), field(obj, "end_effector_collisions", int, k),
+                             field(obj, "steps", int, k), field(obj, "weights_version", int, k),
+                             field(obj, "assignment_epoch", int, k))
+
+
+@dataclass
+class AssignmentRequest:
+    """actor -> scheduler (query payload): which world and pair next?"""
+
+    actor_id: str
+    KIND = "assignment_request"
+
+    def encode(self) -> bytes:
+        return dumps({"kind": self.KIND, "v": VERSION, "actor_id": self.actor_id})
+
+    @staticmethod
+    def decode(data: bytes) -> "AssignmentRequest":
+        obj = loads(data)
+        check_header(obj, AssignmentRequest.KIND, VERSION)
+        actor_id = field(obj, "actor_id", str, AssignmentRequest.KIND)
+        if not 0 < len(actor_id) <= 128:
+            raise ProtoError("range", "actor_id must be 1..128 characters")
+        return AssignmentRequest(actor_id)
+
+
+@dataclass
+class Assignment:
+    """scheduler -> actor: the world (built-in name or YAML path visible to the actor) and the
+    pair (name, or "" for a random pair) to train on; ``epoch`` rises at every advance."""
+
+    actor_id: str
+    world: str
+    pair: str
+    stage: str
+    substep: int
+    epoch: int
+    KIND = "assignment"
+
+    def encode(self) -> bytes:
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return dumps({"kind": self.KIND, "v": VERSION, **d})
+
+    @staticmethod
+    def decode(data: bytes) -> "Assignment":
+        obj = loads(data)
+        k = Assignment.KIND
+        check_header(obj, k, VERSION)
+        return Assignment(field(obj, "actor_id", str, k), field(obj, "world", str, k), field(obj, "pair", str, k),
+                          field(obj, "stage", str, k), field(obj, "substep", int, k), field(obj, "epoch", int, k))
+
+
+@dataclass
+class ServiceStatus:
+    """replay or learner -> scheduler, every second: numbers for ``/status``."""
+
+    role: str
+    values: dict = dc_field(default_factory=dict)  # name -> number
+    KIND = "service_status"
+
+    def encode(self) -> bytes:
+        return dumps({"kind": self.KIND, "v": VERSION, "role": self.role, "values": self.values})
+
+    @staticmethod
+    def decode(data: bytes) -> "ServiceStatus":
+        obj = loads(data)
+        check_header(obj, ServiceStatus.KIND, VERSION)
+        values = field(obj, "values", dict, ServiceStatus.KIND)
+        clean = {}
+        for k, v in values.items():
+            if not isinstance(k, str) or isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ProtoError("field", f"service_status value {k!r} is not a finite number")
+            clean[k] = v
+        return ServiceStatus(field(obj, "role", str, ServiceStatus.KIND), clean)

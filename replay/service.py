@@ -1,0 +1,197 @@
+"""The replay service: ``ReplayTable`` behind Zenoh.
+
+Transition batches arrive on ``transitions/*`` (reliable, BLOCK); a bounded channel hands them
+to one insert thread, so when the table's rate limiter holds inserts back, the channel fills and
+Zenoh's blocking congestion control slows the actors down: backpressure, not loss. Sampling is a
+queryable (``replay/sample``) answered from its own thread. Malformed batches are counted by
+reason and dropped; accepted ones are never lost: the table is saved every ``persist_every_s``
+and on SIGTERM, and restored on start.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+from prometheus_client import CollectorRegistry, Counter, Gauge
+
+from curlnav.layout import ObservationLayout
+from curlnav.transport import HttpServer, RateMeter, json_response, open_session
+from learner.config import D4PGConfig
+from proto.codec import ProtoError
+from proto.messages import SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
+from proto.topology import Topology
+
+from .table import RateLimiterTimeout, ReplayInputError, ReplayTable, SampleToInsertRatio
+
+log = logging.getLogger("curlnav.replay")
+
+
+@dataclass(frozen=True)
+class ReplayServiceConfig:
+    run: str = "default"
+    router: str = "tcp/127.0.0.1:7447"
+    data_dir: str = "runs/service/replay"
+    http_port: int = 0  # 0: pick a free port; /metrics and /healthz
+    max_size: int = 200_000
+    min_size_to_sample: int = 2000
+    samples_per_insert: float = 64.0  # 0 disables rate limiting
+    error_buffer: float | None = None  # default: max(0.1 * min * spi, 2 * 256 + spi)
+    persist_every_s: float = 120.0
+    channel_capacity: int = 256  # batches waiting for the insert thread
+
+
+class ReplayService:
+    def __init__(self, cfg: ReplayServiceConfig, layout: ObservationLayout | None = None) -> None:
+        self.cfg = cfg
+        self.topology = Topology(cfg.run)
+        self.layout = layout or ObservationLayout()
+        self.data_dir = Path(cfg.data_dir)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        path = self.data_dir / "replay.npz"
+        limiter = self._limiter()
+        if path.exists():
+            self.table = ReplayTable.restore(path, limiter)
+            log.info("restored %d transitions from %s", self.table.size, path)
+        else:
+            self.table = ReplayTable(self.layout, cfg.max_size, limiter)
+        self.registry = CollectorRegistry()
+        self.m_in = Counter("replay_transitions_inserted", "transitions accepted", registry=self.registry)
+        self.m_batches = Counter("replay_batches_received", "transition batches received", registry=self.registry)
+        self.m_rejected = Counter("replay_messages_rejected", "refused messages", ["reason"], registry=self.registry)
+        self.m_sampled = Counter("replay_transitions_sampled", "transitions served to the learner", registry=self.registry)
+        self.m_size = Gauge("replay_size", "transitions held", registry=self.registry)
+        self.m_size.set_function(lambda: self.table.size)
+        self.insert_rate = RateMeter()
+        self.sample_rate = RateMeter()
+        self.last_seq: dict[str, int] = {}
+        self.seq_gaps = 0
+        self.stop = threading.Event()
+
+    def _limiter(self) -> SampleToInsertRatio:
+        cfg = self.cfg
+        if cfg.samples_per_insert <= 0:
+            return SampleToInsertRatio.unlimited(cfg.min_size_to_sample)
+        buffer = cfg.error_buffer or max(0.1 * cfg.min_size_to_sample * cfg.samples_per_insert,
+                                         2 * 512 + cfg.samples_per_insert)
+        return SampleToInsertRatio(cfg.samples_per_insert, cfg.min_size_to_sample, buffer)
+
+    # -- pure handlers (tested without a network) --------------------------------------------
+    def handle_batch(self, payload: bytes, timeout: float | None = None, force: bool = False) -> int:
+        """Decode and insert one batch; returns transitions added (0 when rejected)."""
+        self.m_batches.inc()
+        try:
+            msg = TransitionBatch.decode(payload, beams=self.layout.beams)
+            added = self.table.insert(msg.batch, stream=msg.actor_id, timeout=timeout, force=force)
+        except (ProtoError, ReplayInputError) as exc:
+            self.m_rejected.labels(exc.reason).inc()
+            return 0
+        last = self.last_seq.get(msg.actor_id)
+        if last is not None and msg.seq != last + 1:
+            self.seq_gaps += 1
+        self.last_seq[msg.actor_id] = msg.seq
+        self.m_in.inc(added)
+        self.insert_rate.add(added)
+        return added
+
+    def handle_sample(self, payload: bytes) -> bytes:
+        try:
+            request = SampleRequest.decode(payload)
+        except ProtoError as exc:
+            self.m_rejected.labels(exc.reason).inc()
+            raise
+        sample = self.table.sample(request.batch_size, timeout=request.timeout_s)
+        self.m_sampled.inc(request.batch_size)
+        self.sample_rate.add(request.batch_size)
+        return SampledBatch(sample.obs, sample.action, sample.reward, sample.discount, sample.next_obs,
+                            sample.keys).encode()
+
+    def status(self) -> dict:
+        info = self.table.info()
+        return {"size": info["size"], "inserted": info["total_inserted"], "sampled": info["total_sampled"],
+                "insert_rate": self.insert_rate.rate(), "sample_rate": self.sample_rate.rate(),
+                "rejected": sum(self.rejected().values()), "seq_gaps": self.seq_gaps}
+
+    def rejected(self) -> dict[str, float]:
+        out = {}
+        for metric in self.m_rejected.collect():
+            for s in metric.samples:
+                if s.name.endswith("_total"):
+                    out[s.labels["reason"]] = s.value
+        return out
+
+    def save(self) -> None:
+        self.table.save(self.data_dir / "replay.npz")
+
+    # -- shell -----------------------------------------------------------------------------------
+    def run(self) -> None:
+        cfg = self.cfg
+        topo = self.topology
+        session = open_session(cfg.router)
+        channel = zenoh.handlers.FifoChannel(cfg.channel_capacity)
+        subscriber = session.declare_subscriber(topo.transitions("*"), channel)
+        queryable = session.declare_queryable(topo.sample)
+        token = session.liveliness().declare_token(topo.alive("replay", "0"))
+        status_pub = session.declare_publisher(topo.status("replay"))
+        http = HttpServer("0.0.0.0", cfg.http_port, {("GET", "/healthz"): lambda r: json_response(self.status())},
+                          registry=self.registry)
+        (self.data_dir / "http_port").write_text(str(http.port))
+        log.info("replay service up: run %s, router %s, http port %d", cfg.run, cfg.router, http.port)
+
+        def insert_loop():
+            while not self.stop.is_set():
+                sample = subscriber.try_recv()
+                if sample is None:
+                    time.sleep(0.001)
+                    continue
+                payload = sample.payload.to_bytes()
+                while not self.stop.is_set():
+                    try:
+                        self.handle_batch(payload, timeout=0.5)
+                        break
+                    except RateLimiterTimeout:
+                        continue  # the learner has not caught up: hold the batch (and the channel)
+
+        def sample_loop():
+            while not self.stop.is_set():
+                query = queryable.try_recv()
+                if query is None:
+                    time.sleep(0.0005)
+                    continue
+                try:
+                    payload = query.payload.to_bytes() if query.payload is not None else b""
+                    query.reply(topo.sample, self.handle_sample(payload))
+                except RateLimiterTimeout:
+                    query.reply_err(b"rate_limited")
+                except ProtoError as exc:
+                    query.reply_err(str(exc).encode())
+                finally:
+                    query.drop()
+
+        threads = [threading.Thread(target=insert_loop, daemon=True), threading.Thread(target=sample_loop, daemon=True)]
+        for t in threads:
+            t.start()
+        last_save = time.monotonic()
+        try:
+            while not self.stop.wait(1.0):
+                status_pub.put(ServiceStatus("replay", self.status()).encode())
+                if time.monotonic() - last_save >= cfg.persist_every_s:
+                    self.save()
+                    last_save = time.monotonic()
+        finally:
+            for t in threads:
+                t.join(timeout=5)
+            # drain what was already accepted by Zenoh before saving
+            while (sample := subscriber.try_recv()) is not None:
+                self.handle_batch(sample.payload.to_bytes(), force=True)
+            self.save()
+            log.info("replay saved %d transitions", self.table.size)
+            token.undeclare()
+            subscriber.undeclare()
+            queryable.undeclare()
+            http.close()
+            session.close()

@@ -1,0 +1,228 @@
+"""The curriculum (Algorithm 1 of the paper) as a pure state machine, and its YAML file.
+
+A curriculum is a list of stages. A stage has worlds and, optionally, ordered sub-steps (start/
+goal pair names, the paper's p1..p4). Actors are assigned the current stage's worlds in turn
+and, with sub-steps, the current sub-step's pair; without them the world draws its own pairs.
+Episodes reported under the current assignment epoch fill a window; when the criterion holds
+(e.g. success >= 70 % over the last 100 episodes, the paper's C1; > 50 % over the last 50 for
+sub-steps, C2), the curriculum advances: next sub-step, else next stage. Every advance raises
+the epoch, so reports from episodes that started before it do not count toward the new step.
+
+```yaml
+name: s1+s2
+stages:
+  - name: S1
+    worlds: [barn-3x3-0.yaml]
+    advance: {success_rate: 0.7, window: 100, compare: ">="}
+  - name: S2
+    worlds: [t-maze-0.yaml]
+    substeps: [p1, p2, p3, p4]
+    substep_advance: {success_rate: 0.5, window: 50, compare: ">"}
+```
+
+``worlds: {ranking: ranking.json, category: easy}`` takes the worlds, in order, from the file
+written by ``curlnav worlds rank``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class CurriculumError(ValueError):
+    """The curriculum file is malformed; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class Criterion:
+    success_rate: float
+    window: int
+    compare: str = ">="
+
+    def holds(self, outcomes: deque) -> bool:
+        if len(outcomes) < self.window:
+            return False
+        rate = sum(outcomes) / len(outcomes)
+        return rate >= self.success_rate if self.compare == ">=" else rate > self.success_rate
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    worlds: tuple[str, ...]
+    advance: Criterion | None = None  # None: the last stage, or a stage that never ends
+    substeps: tuple[str, ...] = ()
+    substep_advance: Criterion | None = None
+
+
+@dataclass(frozen=True)
+class Curriculum:
+    name: str
+    stages: tuple[Stage, ...]
+
+    def to_dict(self) -> dict:
+        def crit(c):
+            return None if c is None else {"success_rate": c.success_rate, "window": c.window, "compare": c.compare}
+
+        return {"name": self.name, "stages": [{"name": s.name, "worlds": list(s.worlds), "advance": crit(s.advance),
+                                               "substeps": list(s.substeps), "substep_advance": crit(s.substep_advance)}
+                                              for s in self.stages]}
+
+
+def _criterion(path: Path, where: str, raw: Any) -> Criterion | None:
+    if raw is None:
+        return None
+    if not isinstance(raw, dict) or set(raw) - {"success_rate", "window", "compare"}:
+        raise CurriculumError(f"{path}: {where} must be a mapping of success_rate, window, compare")
+    try:
+        rate = float(raw["success_rate"])
+        window = int(raw["window"])
+    except (KeyError, TypeError, ValueError):
+        raise CurriculumError(f"{path}: {where} needs a numeric success_rate and an integer window") from None
+    compare = raw.get("compare", ">=")
+    if not 0 <= rate <= 1 or window < 1 or compare not in (">=", ">"):
+        raise CurriculumError(f"{path}: {where}: success_rate in [0, 1], window >= 1, compare '>=' or '>'")
+    return Criterion(rate, window, compare)
+
+
+def load_curriculum(path: str | Path) -> Curriculum:
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise CurriculumError(f"{path}: cannot read curriculum: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise CurriculumError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(raw, dict) or not isinstance(raw.get("stages"), list) or not raw["stages"]:
+        raise CurriculumError(f"{path}: a curriculum is a mapping with a non-empty 'stages' list")
+    stages = []
+    for i, s in enumerate(raw["stages"]):
+        where = f"stages[{i}]"
+        if not isinstance(s, dict):
+            raise CurriculumError(f"{path}: {where} must be a mapping")
+        unknown = set(s) - {"name", "worlds", "advance", "substeps", "substep_advance"}
+        if unknown:
+            raise CurriculumError(f"{path}: {where} has unknown keys {sorted(unknown)}")
+        worlds = s.get("worlds")
+        if isinstance(worlds, dict):
+            worlds = _worlds_from_ranking(path, where, worlds)
+        if not isinstance(worlds, list) or not worlds or not all(isinstance(w, str) for w in worlds):
+            raise CurriculumError(f"{path}: {where}.worlds must be a non-empty list of world names or files")
+        worlds = [str((path.parent / w)) if w.endswith((".yaml", ".yml")) and not Path(w).is_absolute() else w
+                  for w in worlds]
+        substeps = s.get("substeps") or []
+        if not isinstance(substeps, list) or not all(isinstance(p, str) for p in substeps):
+            raise CurriculumError(f"{path}: {where}.substeps must be a list of pair names")
+        stages.append(Stage(str(s.get("name", f"S{i + 1}")), tuple(worlds), _criterion(path, f"{where}.advance", s.get("advance")),
+                            tuple(substeps), _criterion(path, f"{where}.substep_advance", s.get("substep_advance"))))
+    return Curriculum(str(raw.get("name", path.stem)), tuple(stages))
+
+
+def _worlds_from_ranking(path: Path, where: str, spec: dict) -> list[str]:
+    ranking_path = path.parent / str(spec.get("ranking", ""))
+    try:
+        ranking = json.loads(ranking_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CurriculumError(f"{path}: {where}.worlds: cannot read ranking {ranking_path}: {exc}") from None
+    category = spec.get("category")
+    names = ranking["order"] if category is None else ranking.get(category, [])
+    files = spec.get("files", {})
+    return [files.get(n, n) for n in names]
+
+
+@dataclass
+class CurriculumState:
+    """Where the curriculum stands. ``record`` and ``assign`` are all a scheduler needs."""
+
+    curriculum: Curriculum
+    stage: int = 0
+    substep: int = 0
+    epoch: int = 0
+    episodes: int = 0
+    window: deque = field(default_factory=deque)
+    per_world: dict = field(default_factory=dict)  # "world/pair" -> [episodes, successes]
+    history: list = field(default_factory=list)  # advances: {epoch, stage, substep, episodes, reason}
+    _next_world: int = 0
+
+    @property
+    def current(self) -> Stage:
+        return self.curriculum.stages[self.stage]
+
+    @property
+    def criterion(self) -> Criterion | None:
+        stage = self.current
+        if stage.substeps and self.substep < len(stage.substeps) - 1:
+            return stage.substep_advance
+        return stage.advance
+
+    def assign(self) -> tuple[str, str]:
+        """The next (world, pair name or "") for an actor; worlds of the stage in turn."""
+        stage = self.current
+        world = stage.worlds[self._next_world % len(stage.worlds)]
+        self._next_world += 1
+        pair = stage.substeps[self.substep] if stage.substeps else ""
+        return world, pair
+
+    def record(self, world: str, pair: str, success: bool, epoch: int) -> bool:
+        """Count one episode; returns True if the curriculum advanced."""
+        self.episodes += 1
+        key = f"{world}/{pair}"
+        stats = self.per_world.setdefault(key, [0, 0])
+        stats[0] += 1
+        stats[1] += int(success)
+        if epoch != self.epoch:
+            return False  # started before the last advance
+        crit = self.criterion
+        if crit is None:
+            return False
+        self.window.append(bool(success))
+        while len(self.window) > crit.window:
+            self.window.popleft()
+        if crit.holds(self.window):
+            self.advance(f"success {sum(self.window) / len(self.window):.0%} over {len(self.window)} episodes")
+            return True
+        return False
+
+    def advance(self, reason: str = "forced") -> bool:
+        """Next sub-step, else next stage; False (and nothing changes) at the very end."""
+        stage = self.current
+        if stage.substeps and self.substep < len(stage.substeps) - 1:
+            self.substep += 1
+        elif self.stage < len(self.curriculum.stages) - 1:
+            self.stage += 1
+            self.substep = 0
+        else:
+            return False
+        self.epoch += 1
+        self.window.clear()
+        self.history.append({"epoch": self.epoch, "stage": self.current.name, "substep": self.substep,
+                             "episodes": self.episodes, "reason": reason})
+        return True
+
+    def success_rate(self) -> float | None:
+        return sum(self.window) / len(self.window) if self.window else None
+
+    def to_dict(self) -> dict:
+        return {"stage": self.stage, "substep": self.substep, "epoch": self.epoch, "episodes": self.episodes,
+                "window": [int(x) for x in self.window], "per_world": self.per_world, "history": self.history,
+                "next_world": self._next_world}
+
+    @staticmethod
+    def from_dict(curriculum: Curriculum, d: dict) -> "CurriculumState":
+        state = CurriculumState(curriculum)
+        stage = int(d.get("stage", 0))
+        if not 0 <= stage < len(curriculum.stages):
+            raise CurriculumError(f"saved stage {stage} does not exist in curriculum {curriculum.name!r}")
+        state.stage, state.substep, state.epoch = stage, int(d.get("substep", 0)), int(d.get("epoch", 0))
+        state.episodes = int(d.get("episodes", 0))
+        state.window = deque(bool(x) for x in d.get("window", []))
+        state.per_world = {k: list(v) for k, v in d.get("per_world", {}).items()}
+        state.history = list(d.get("history", []))
+        state._next_world = int(d.get("next_world", 0))
+        return state

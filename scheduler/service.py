@@ -1,0 +1,236 @@
+"""The scheduler service: the curriculum behind Zenoh and HTTP.
+
+Answers ``scheduler/assign`` queries, counts ``episodes/*`` reports, tracks live actors by
+their liveliness tokens (a killed actor leaves ``/status`` within a second), reads replay and
+learner status, persists its state after every advance and every 10 s, and resumes from it.
+
+HTTP: ``GET /status``, ``GET /curriculum``, ``GET /metrics``, ``GET /healthz``, and
+``POST /admin/advance`` with ``Authorization: Bearer <admin token>``.
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from prometheus_client import CollectorRegistry, Counter, Gauge
+
+from curlnav.transport import HttpServer, json_response, open_session
+from proto.codec import ProtoError
+from proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
+from proto.topology import Topology
+
+from .curriculum import Curriculum, CurriculumState, load_curriculum
+
+log = logging.getLogger("curlnav.scheduler")
+
+
+@dataclass(frozen=True)
+class SchedulerServiceConfig:
+    run: str = "default"
+    router: str = "tcp/127.0.0.1:7447"
+    data_dir: str = "runs/service/scheduler"
+    curriculum: str = ""  # YAML path; empty: one stage on the default world, no advance
+    default_world: str = "open-room"
+    http_host: str = "0.0.0.0"
+    http_port: int = 8080
+    admin_token: str = ""  # empty: the admin call is refused
+
+
+class SchedulerCore:
+    """Everything the scheduler decides, without a network: assignments, reports, status."""
+
+    def __init__(self, curriculum: Curriculum, state: CurriculumState | None = None) -> None:
+        self.curriculum = curriculum
+        self.state = state or CurriculumState(curriculum)
+        self.lock = threading.RLock()
+        self.actors: dict[str, dict] = {}  # live actors: id -> {assignment, last_report, episodes, joined}
+        self.services: dict[str, dict] = {}  # role -> last status values
+        self.registry = CollectorRegistry()
+        self.m_episodes = Counter("scheduler_episodes", "episodes reported", ["world", "pair", "outcome"],
+                                  registry=self.registry)
+        self.m_rejected = Counter("scheduler_messages_rejected", "refused messages", ["reason"], registry=self.registry)
+        self.m_advances = Counter("scheduler_advances", "curriculum advances", registry=self.registry)
+        self.m_actors = Gauge("scheduler_live_actors", "actors holding a liveliness token", registry=self.registry)
+        self.m_actors.set_function(lambda: len(self.actors))
+        self.m_lag = Gauge("scheduler_actor_policy_lag", "learner version minus the actor's weights version",
+                           ["actor"], registry=self.registry)
+
+    def assign(self, payload: bytes) -> bytes:
+        request = AssignmentRequest.decode(payload)
+        with self.lock:
+            world, pair = self.state.assign()
+            st = self.state
+            assignment = Assignment(request.actor_id, world, pair, st.current.name, st.substep, st.epoch)
+            entry = self.actors.setdefault(request.actor_id, {"episodes": 0, "last_report": None, "joined": time.time()})
+            entry["assignment"] = {"world": world, "pair": pair, "stage": st.current.name, "substep": st.substep,
+                                   "epoch": st.epoch}
+        return assignment.encode()
+
+    def report(self, payload: bytes) -> bool:
+        """Count an episode report; returns True if the curriculum advanced."""
+        try:
+            r = EpisodeReport.decode(payload)
+        except ProtoError as exc:
+            self.m_rejected.labels(exc.reason).inc()
+            return False
+        with self.lock:
+            self.m_episodes.labels(r.world, r.pair or "random", "success" if r.success else "failure").inc()
+            entry = self.actors.setdefault(r.actor_id, {"episodes": 0, "assignment": None, "joined": time.time()})
+            entry["episodes"] += 1
+            entry["last_report"] = {"world": r.world, "pair": r.pair, "success": r.success, "return": r.episode_return,
+                                    "collisions": r.base_collisions, "steps": r.steps,
+                                    "weights_version": r.weights_version, "time": time.time()}
+            learner_version = self.services.get("learner", {}).get("version")
+            if learner_version is not None:
+                self.m_lag.labels(r.actor_id).set(learner_version - r.weights_version)
+            advanced = self.state.record(r.world, r.pair, r.success, r.assignment_epoch)
+            if advanced:
+                self.m_advances.inc()
+            return advanced
+
+    def service_status(self, payload: bytes) -> None:
+        try:
+            s = ServiceStatus.decode(payload)
+        except ProtoError as exc:
+            self.m_rejected.labels(exc.reason).inc()
+            return
+        with self.lock:
+            self.services[s.role] = {**s.values, "time": time.time()}
+
+    def actor_joined(self, actor_id: str) -> None:
+        with self.lock:
+            self.actors.setdefault(actor_id, {"episodes": 0, "assignment": None, "last_report": None,
+                                              "joined": time.time()})
+
+    def actor_left(self, actor_id: str) -> None:
+        with self.lock:
+            self.actors.pop(actor_id, None)
+            try:
+                self.m_lag.remove(actor_id)
+            except KeyError:
+                pass
+
+    def force_advance(self) -> bool:
+        with self.lock:
+            advanced = self.state.advance("forced by admin")
+            if advanced:
+                self.m_advances.inc()
+            return advanced
+
+    def status(self) -> dict:
+        with self.lock:
+            st = self.state
+            rates = {k: {"episodes": v[0], "success_rate": v[1] / v[0] if v[0] else None} for k, v in st.per_world.items()}
+            learner = self.services.get("learner", {})
+            replay = self.services.get("replay", {})
+            return {
+                "curriculum": self.curriculum.name, "stage": st.current.name, "stage_index": st.stage,
+                "substep": st.substep, "substep_pair": st.current.substeps[st.substep] if st.current.substeps else None,
+                "epoch": st.epoch, "episodes": st.episodes, "window_success_rate": st.success_rate(),
+                "window_size": len(st.window), "criterion": None if st.criterion is None else vars(st.criterion),
+                "success_by_world_pair": rates, "advances": st.history,
+                "live_actors": {k: dict(v) for k, v in self.actors.items()},
+                "learner": {"version": learner.get("version"), "updates": learner.get("updates"),
+                            "updates_per_s": learner.get("updates_per_s")},
+                "replay": {"size": replay.get("size"), "insert_rate": replay.get("insert_rate"),
+                           "sample_rate": replay.get("sample_rate"), "rejected": replay.get("rejected")},
+                "rejected": {s.labels["reason"]: s.value for m in self.m_rejected.collect() for s in m.samples
+                             if s.name.endswith("_total")},
+            }
+
+
+class SchedulerService:
+    def __init__(self, cfg: SchedulerServiceConfig) -> None:
+        self.cfg = cfg
+        self.topology = Topology(cfg.run)
+        self.data_dir = Path(cfg.data_dir)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        if cfg.curriculum:
+            curriculum = load_curriculum(cfg.curriculum)
+        else:
+            from .curriculum import Stage
+
+            curriculum = Curriculum("no-curriculum", (Stage("train", (cfg.default_world,)),))
+        state_path = self.data_dir / "state.json"
+        state = None
+        if state_path.exists():
+            saved = json.loads(state_path.read_text())
+            if saved.get("curriculum") == curriculum.name:
+                state = CurriculumState.from_dict(curriculum, saved["state"])
+                log.info("resumed curriculum %s at stage %s", curriculum.name, state.current.name)
+        self.core = SchedulerCore(curriculum, state)
+        self.stop = threading.Event()
+
+    def save(self) -> None:
+        path = self.data_dir / "state.json"
+        tmp = path.with_suffix(".tmp")
+        with self.core.lock:
+            tmp.write_text(json.dumps({"curriculum": self.core.curriculum.name, "state": self.core.state.to_dict()}))
+        tmp.replace(path)
+
+    def _admin(self, request) -> tuple[int, str, bytes]:
+        token = self.cfg.admin_token
+        given = request.headers.get("Authorization", "")
+        if not token or not hmac.compare_digest(given.encode(), f"Bearer {token}".encode()):
+            return json_response({"error": "unauthorised: send Authorization: Bearer <admin token>"}, 401)
+        advanced = self.core.force_advance()
+        if advanced:
+            self.save()
+        return json_response({"advanced": advanced, "stage": self.core.state.current.name,
+                              "substep": self.core.state.substep, "epoch": self.core.state.epoch})
+
+    def run(self) -> None:
+        cfg = self.cfg
+        topo = self.topology
+        core = self.core
+        session = open_session(cfg.router)
+
+        def on_assign(query):
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                query.reply(topo.assign, core.assign(payload))
+            except ProtoError as exc:
+                core.m_rejected.labels(exc.reason).inc()
+                query.reply_err(str(exc).encode())
+
+        def on_report(sample):
+            if core.report(sample.payload.to_bytes()):
+                self.save()
+                log.info("curriculum advanced to %s, sub-step %d", core.state.current.name, core.state.substep)
+
+        def on_alive(sample):
+            parts = str(sample.key_expr).split("/")
+            if len(parts) >= 5 and parts[-2] == "actor":
+                if sample.kind == sample.kind.PUT:
+                    core.actor_joined(parts[-1])
+                else:
+                    core.actor_left(parts[-1])
+
+        queryable = session.declare_queryable(topo.assign, on_assign)
+        reports = session.declare_subscriber(topo.episodes("*"), on_report)
+        statuses = session.declare_subscriber(topo.status("*"), lambda s: core.service_status(s.payload.to_bytes()))
+        alive = session.liveliness().declare_subscriber(topo.alive("actor", "*"), on_alive, history=True)
+        token = session.liveliness().declare_token(topo.alive("scheduler", "0"))
+        http = HttpServer(cfg.http_host, cfg.http_port, {
+            ("GET", "/status"): lambda r: json_response(core.status()),
+            ("GET", "/curriculum"): lambda r: json_response({**core.curriculum.to_dict(), "state": core.state.to_dict()}),
+            ("GET", "/healthz"): lambda r: json_response({"ok": True}),
+            ("POST", "/admin/advance"): self._admin,
+        }, registry=core.registry)
+        (self.data_dir / "http_port").write_text(str(http.port))
+        log.info("scheduler up: run %s, curriculum %s, http port %d", cfg.run, core.curriculum.name, http.port)
+        try:
+            while not self.stop.wait(10.0):
+                self.save()
+        finally:
+            self.save()
+            for entity in (alive, reports, statuses, queryable, token):
+                entity.undeclare()
+            http.close()
+            session.close()
