@@ -68,8 +68,7 @@ class ActorCore:
         self.steps = 0
         self.episodes = 0
 
-    def load_weights(self, payload: bytes) -> int:
-        msg = Weights.decode(payload)
+    def load_weights(self, msg: Weights) -> int:
         if self.actor is None:
             self.actor = Actor(self.layout, D4PGConfig.from_dict(msg.d4pg_config))
             self.actor.eval()
@@ -106,24 +105,30 @@ class ActorService:
         self.m_rate = Gauge("actor_env_steps_per_second", "environment steps per second", registry=self.registry)
         self.step_rate = RateMeter()
         self.m_rate.set_function(self.step_rate.rate)
-        self._pending_weights: bytes | None = None
+        self._pending_weights: Weights | None = None
         self._lock = threading.Lock()
         self.stop = threading.Event()
 
     def _on_weights(self, sample) -> None:
+        """Validate and keep only the newest weights; the simulation loop loads them."""
+        try:
+            msg = Weights.decode(sample.payload.to_bytes())
+        except ProtoError as exc:
+            self.m_rejected.labels(exc.reason).inc()
+            return
         with self._lock:
-            self._pending_weights = sample.payload.to_bytes()
+            if self._pending_weights is None or msg.version >= self._pending_weights.version:
+                self._pending_weights = msg
 
     def _apply_weights(self) -> None:
         with self._lock:
-            payload, self._pending_weights = self._pending_weights, None
-        if payload is None:
+            msg, self._pending_weights = self._pending_weights, None
+        if msg is None or msg.version == self.core.weights_version:
             return
         try:
-            self.core.load_weights(payload)
-        except (ProtoError, RuntimeError, ValueError) as exc:
-            reason = exc.reason if isinstance(exc, ProtoError) else "bad_weights"
-            self.m_rejected.labels(reason).inc()
+            self.core.load_weights(msg)
+        except Exception:  # safetensors or torch refused the tensors: count it, keep the old weights
+            self.m_rejected.labels("bad_weights").inc()
 
     def _assignment(self, session) -> Assignment | None:
         request = AssignmentRequest(self.cfg.actor_id).encode()
@@ -150,8 +155,7 @@ class ActorService:
             (Path(cfg.data_dir) / "http_port").write_text(str(http.port))
         for reply in session.get(topo.weights_latest, timeout=5.0):
             if reply.ok is not None:
-                with self._lock:
-                    self._pending_weights = reply.ok.payload.to_bytes()
+                self._on_weights(reply.ok)
         log.info("actor %s up: run %s, router %s", cfg.actor_id, cfg.run, cfg.router)
         try:
             while not self.stop.is_set():

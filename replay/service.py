@@ -1,8 +1,9 @@
 """The replay service: ``ReplayTable`` behind Zenoh.
 
-Transition batches arrive on ``transitions/*`` (reliable, BLOCK); a bounded channel hands them
-to one insert thread, so when the table's rate limiter holds inserts back, the channel fills and
-Zenoh's blocking congestion control slows the actors down: backpressure, not loss. Sampling is a
+Transition batches arrive on ``transitions/*`` (reliable, BLOCK) on a Zenoh session of their
+own; a bounded channel hands them to one insert thread, so when the table's rate limiter holds
+inserts back, the channel fills and Zenoh's blocking congestion control slows the actors down:
+backpressure, not loss. Sampling is a
 queryable (``replay/sample``) answered from its own thread. Malformed batches are counted by
 reason and dropped; accepted ones are never lost: the table is saved every ``persist_every_s``
 and on SIGTERM, and restored on start.
@@ -132,8 +133,13 @@ class ReplayService:
         cfg = self.cfg
         topo = self.topology
         session = open_session(cfg.router)
+        # Transitions come in on a session of their own: when the limiter holds inserts back and
+        # the channel is full, that session's receive path blocks (backpressure to the actors
+        # through the router), while sampling queries keep flowing on the other one. With one
+        # session, a full channel would stall the queries too, and nothing would ever unblock.
+        ingest = open_session(cfg.router)
         channel = zenoh.handlers.FifoChannel(cfg.channel_capacity)
-        subscriber = session.declare_subscriber(topo.transitions("*"), channel)
+        subscriber = ingest.declare_subscriber(topo.transitions("*"), channel)
         queryable = session.declare_queryable(topo.sample)
         token = session.liveliness().declare_token(topo.alive("replay", "0"))
         status_pub = session.declare_publisher(topo.status("replay"))
@@ -194,4 +200,5 @@ class ReplayService:
             subscriber.undeclare()
             queryable.undeclare()
             http.close()
+            ingest.close()
             session.close()

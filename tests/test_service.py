@@ -1,0 +1,115 @@
+"""The distributed service as real processes on loopback: router, replay, learner, scheduler,
+actors. Every wait polls with a deadline; every process is stopped at the end."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.request
+
+import pytest
+
+from curlnav.launch import LocalCluster, http_json
+from curlnav.transport import open_session, reliable_publisher
+from proto.topology import Topology
+
+CURRICULUM = """
+name: tiny
+stages:
+  - name: S1
+    worlds: [open-room]
+    advance: {success_rate: 0.0, window: 4}
+  - name: S2
+    worlds: [door-corridor]
+    substeps: [through-door]
+"""
+
+
+def wait_for(what, check, timeout=120.0, interval=0.5):
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        try:
+            last = check()
+        except OSError:
+            last = None
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}; last value {last!r}")
+
+
+def metric(url: str, name: str) -> float:
+    text = urllib.request.urlopen(url, timeout=5).read().decode()
+    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name))
+
+
+@pytest.fixture
+def cluster(tmp_path):
+    (tmp_path / "tiny.yaml").write_text(CURRICULUM)
+    c = LocalCluster(tmp_path / "run", actors=2, curriculum=str(tmp_path / "tiny.yaml"), run="itest",
+                     admin_token="secret",
+                     extra={"replay": ["--min-size", "200", "--samples-per-insert", "8"],
+                            "learner": ["--publish-every", "5", "--export-every-s", "5"]})
+    c.start()
+    try:
+        yield c
+    finally:
+        c.stop()
+        assert not c.processes
+
+
+def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluster):
+    status = cluster.status
+    # transitions reach the replay, the learner's version rises, both actors report episodes
+    s = wait_for("episodes from both actors and learner version >= 2", lambda: (
+        (st := status()) and st["replay"]["size"] and (st["learner"]["version"] or 0) >= 2
+        and all(a.get("episodes", 0) > 0 for a in st["live_actors"].values()) and len(st["live_actors"]) == 2 and st),
+        timeout=180)
+    assert s["replay"]["size"] > 0 and set(s["live_actors"]) == {"actor-0", "actor-1"}
+    # actors pick up new weights
+    wait_for("actors using weights version >= 1", lambda: all(
+        (a.get("last_report") or {}).get("weights_version", -1) >= 1 for a in status()["live_actors"].values()),
+        timeout=120)
+    # the tiny criterion advances the curriculum and actors are reassigned
+    s = wait_for("advance to S2", lambda: (st := status()) and st["stage"] == "S2" and st, timeout=120)
+    assert s["advances"] and s["advances"][0]["stage"] == "S2"
+    wait_for("actors reassigned to door-corridor", lambda: all(
+        (a.get("assignment") or {}).get("world") == "door-corridor" for a in status()["live_actors"].values()),
+        timeout=120)
+    # the admin call needs its token
+    req = urllib.request.Request(cluster.status_url.replace("/status", "/admin/advance"), method="POST", data=b"")
+    with pytest.raises(urllib.error.HTTPError) as info:
+        urllib.request.urlopen(req, timeout=5)
+    assert info.value.code == 401
+    # 1000 malformed messages on each input key: counted, nobody dies
+    topo = Topology("itest")
+    session = open_session(cluster.router)
+    try:
+        publishers = [reliable_publisher(session, k) for k in
+                      (topo.transitions("evil"), topo.episodes("evil"), topo.status("evil"), topo.weights)]
+        for i in range(1000):
+            for pub in publishers:
+                pub.put(b"\x93garbage" + bytes([i % 256]))
+        for i in range(1000):
+            for key in (topo.assign, topo.sample):
+                for _ in session.get(key, payload=b"\xc1", timeout=5.0):
+                    pass
+    finally:
+        session.close()
+    learner_port = cluster.learner_port()
+    wait_for("replay rejections counted", lambda: (status()["replay"]["rejected"] or 0) >= 2000, timeout=60)
+    wait_for("scheduler rejections counted", lambda: sum(status()["rejected"].values()) >= 3000, timeout=60)
+    actor_port = int((cluster.run_dir / "actors" / "actor-0" / "http_port").read_text())
+    wait_for("actor weight rejections counted", lambda: metric(
+        f"http://127.0.0.1:{actor_port}/metrics", "actor_messages_rejected_total") >= 1000, timeout=60)
+    assert cluster.dead() == []
+    version = status()["learner"]["version"]
+    wait_for("learning goes on", lambda: status()["learner"]["version"] > version, timeout=120)
+    # policy artefacts are served with their checksums
+    listing = http_json(f"http://127.0.0.1:{learner_port}/policy/latest")
+    assert listing["version"] >= 1 and "actor.onnx" in listing["files"] and listing["files"]["actor.onnx"]["sha256"]
+    # a killed actor leaves /status
+    cluster.kill_process("actor-1")
+    wait_for("actor-1 gone from /status", lambda: set(status()["live_actors"]) == {"actor-0"}, timeout=30)
+    assert cluster.dead() == []
