@@ -245,6 +245,13 @@ def _cmd_pull(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_transport(args: argparse.Namespace) -> int:
+    from .bench_transport import run_transport_bench
+
+    run_transport_bench(publishers=args.publishers, batches=args.batches)
+    return 0
+
+
 def _cmd_bench_metrics(args: argparse.Namespace) -> int:
     from .worlds.bench import run_metrics_bench
 
@@ -341,6 +348,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=_cmd_bench_learner)
+    p = bench_sub.add_parser("transport", help="replay service throughput from 4 publishers, sampling, weight latency")
+    p.add_argument("--publishers", type=int, default=4)
+    p.add_argument("--batches", type=int, default=400, help="batches of 64 transitions per publisher")
+    p.set_defaults(func=_cmd_bench_transport)
     p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
     p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
     p.set_defaults(func=_cmd_bench_metrics)

@@ -45,6 +45,7 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--publish-every", type=int, default=env_default("publish_every", 50), help="learner: updates per broadcast")
     p.add_argument("--export-every-s", type=float, default=env_default("export_every_s", 60.0))
     p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 60.0))
+    p.add_argument("--threads", type=int, default=env_default("threads", 2), help="learner: torch threads")
 
 
 def serve(args) -> int:
@@ -72,7 +73,8 @@ def serve(args) -> int:
                                                       http_port=args.http_port, preset=args.preset,
                                                       publish_every=args.publish_every,
                                                       export_every_s=args.export_every_s,
-                                                      checkpoint_every_s=args.checkpoint_every_s, worlds=(args.world,)))
+                                                      checkpoint_every_s=args.checkpoint_every_s, worlds=(args.world,),
+                                                      torch_threads=args.threads))
     elif args.role == "scheduler":
         from scheduler.service import SchedulerService, SchedulerServiceConfig
         from curlnav.sim import get_world

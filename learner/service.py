@@ -48,7 +48,7 @@ class LearnerServiceConfig:
     checkpoint_every_s: float = 120.0
     export_every_s: float = 120.0
     keep_artefacts: int = 5
-    torch_threads: int = 1
+    torch_threads: int = 2
     worlds: tuple[str, ...] = ("open-room",)
 
 

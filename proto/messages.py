@@ -103,13 +103,15 @@ class SampleRequest:
 
 @dataclass
 class SampledBatch:
-    """replay -> learner (query reply): stacked observations rebuilt from frames."""
+    """replay -> learner (query reply): stacked observations rebuilt from frames, as float16
+    (ranges are stored as float16 anyway and labels are 0/1; goal frames keep 3 significant
+    digits), which halves the bytes per update."""
 
-    obs: np.ndarray  # float32 (B, obs_size)
+    obs: np.ndarray  # float16 (B, obs_size)
     action: np.ndarray  # float32 (B, 3)
     reward: np.ndarray  # float32 (B,)
     discount: np.ndarray  # float32 (B,)
-    next_obs: np.ndarray  # float32 (B, obs_size)
+    next_obs: np.ndarray  # float16 (B, obs_size)
     keys: np.ndarray  # int64 (B,)
     KIND = "sampled_batch"
 
@@ -125,8 +127,8 @@ class SampledBatch:
             b, size = obj["obs"]["shape"]
         except (KeyError, TypeError, ValueError):
             raise ProtoError("shape", "obs must be (B, obs_size)") from None
-        specs = {"obs": ("<f4", (b, size)), "action": ("<f4", (b, 3)), "reward": ("<f4", (b,)),
-                 "discount": ("<f4", (b,)), "next_obs": ("<f4", (b, size)), "keys": ("<i8", (b,))}
+        specs = {"obs": ("<f2", (b, size)), "action": ("<f4", (b, 3)), "reward": ("<f4", (b,)),
+                 "discount": ("<f4", (b,)), "next_obs": ("<f2", (b, size)), "keys": ("<i8", (b,))}
         return SampledBatch(**{n: unpack_array(obj.get(n), n, dt, sh) for n, (dt, sh) in specs.items()})
 
 

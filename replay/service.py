@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import zenoh
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
@@ -108,8 +109,8 @@ class ReplayService:
         sample = self.table.sample(request.batch_size, timeout=request.timeout_s)
         self.m_sampled.inc(request.batch_size)
         self.sample_rate.add(request.batch_size)
-        return SampledBatch(sample.obs, sample.action, sample.reward, sample.discount, sample.next_obs,
-                            sample.keys).encode()
+        return SampledBatch(sample.obs.astype(np.float16), sample.action, sample.reward, sample.discount,
+                            sample.next_obs.astype(np.float16), sample.keys).encode()
 
     def status(self) -> dict:
         info = self.table.info()
