@@ -28,7 +28,7 @@ from learner.config import D4PGConfig
 from learner.d4pg import act
 from learner.networks import Actor
 from proto.codec import ProtoError
-from proto.messages import Assignment, AssignmentRequest, EpisodeReport, TransitionBatch, Weights
+from proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
 from proto.topology import Topology
 from replay.nstep import NStepWriter
 
@@ -106,6 +106,7 @@ class ActorService:
         self.step_rate = RateMeter()
         self.m_rate.set_function(self.step_rate.rate)
         self._pending_weights: Weights | None = None
+        self._credit = (1_000_000, 0.0)  # (transitions the replay accepts now, when heard)
         self._lock = threading.Lock()
         self.stop = threading.Event()
 
@@ -119,6 +120,22 @@ class ActorService:
         with self._lock:
             if self._pending_weights is None or msg.version >= self._pending_weights.version:
                 self._pending_weights = msg
+
+    def _on_credit(self, sample) -> None:
+        try:
+            msg = ServiceStatus.decode(sample.payload.to_bytes())
+            self._credit = (int(msg.values.get("allowed", 0)), time.monotonic())
+        except ProtoError as exc:
+            self.m_rejected.labels(exc.reason).inc()
+
+    def _wait_for_credit(self) -> None:
+        """Pause (sleeping, not spinning) while the replay's limiter holds inserts back. A stale
+        credit (replay silent for a second) does not hold the actor: the blocking put does."""
+        while not self.stop.is_set():
+            allowed, heard = self._credit
+            if allowed > 0 or time.monotonic() - heard > 1.0:
+                return
+            self.stop.wait(0.005)
 
     def _apply_weights(self) -> None:
         with self._lock:
@@ -148,6 +165,7 @@ class ActorService:
         transitions = reliable_publisher(session, topo.transitions(cfg.actor_id))
         episodes = reliable_publisher(session, topo.episodes(cfg.actor_id))
         weights_sub = session.declare_subscriber(topo.weights, self._on_weights)
+        credit_sub = session.declare_subscriber(topo.credit, self._on_credit)
         token = session.liveliness().declare_token(topo.alive("actor", cfg.actor_id))
         http = HttpServer("0.0.0.0", cfg.http_port, {}, registry=self.registry)
         if cfg.data_dir:
@@ -174,6 +192,8 @@ class ActorService:
                 core.writer.first(obs)
                 episode_return, version_used = 0.0, core.weights_version
                 while not self.stop.is_set():
+                    if core.steps % cfg.batch_steps == 0:
+                        self._wait_for_credit()
                     action = core.action(obs)
                     obs, reward, terminated, truncated, info = core.env.step(action)
                     core.writer.step(action, reward, obs, terminated, truncated)
@@ -186,6 +206,8 @@ class ActorService:
                         payload = core.batch()
                         if payload is not None:
                             transitions.put(payload)
+                            allowed, heard = self._credit
+                            self._credit = (allowed - cfg.batch_steps, heard)  # spend it until the next word
                     if done:
                         break
                     if core.steps % 50 == 0:
@@ -200,6 +222,7 @@ class ActorService:
                                            assignment.epoch if assignment else -1).encode())
         finally:
             token.undeclare()
+            credit_sub.undeclare()
             weights_sub.undeclare()
             http.close()
             session.close()

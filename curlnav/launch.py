@@ -45,7 +45,7 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--publish-every", type=int, default=env_default("publish_every", 50), help="learner: updates per broadcast")
     p.add_argument("--export-every-s", type=float, default=env_default("export_every_s", 60.0))
     p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 60.0))
-    p.add_argument("--threads", type=int, default=env_default("threads", 2), help="learner: torch threads")
+    p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
 
 
 def serve(args) -> int:
@@ -225,7 +225,7 @@ def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str,
                 break
             s = cluster.status()
             if s:
-                rate = s["window_success_rate"]
+                rate = s["success_last_100"]
                 replay, learner = s["replay"], s["learner"]
                 print(f"[{(time.monotonic() - start) / 60:5.1f} min] stage {s['stage']} sub-step {s['substep']} "
                       f"episodes {s['episodes']} success {'-' if rate is None else f'{rate:.0%}'} "

@@ -10,6 +10,7 @@ All keys live under ``curlnav/<run>/`` so that several runs can share one router
     learner  --put  Weights         (reliable, BLOCK)-->  weights                  --> actors
     actor    --get  (empty) -> Weights               -->  weights/latest           <-- learner (queryable, late joiners)
     replay   --put  ServiceStatus   (every 1 s)      -->  status/replay            --> scheduler
+    replay   --put  ServiceStatus   (every 20 ms)    -->  replay/credit            --> actors (insert credit: pace, don't block)
     learner  --put  ServiceStatus   (every 1 s)      -->  status/learner           --> scheduler
     every service --token (liveliness)               -->  alive/<role>/<id>        --> scheduler
 
@@ -51,6 +52,10 @@ class Topology:
     @property
     def sample(self) -> str:
         return f"{self.prefix}/replay/sample"
+
+    @property
+    def credit(self) -> str:
+        return f"{self.prefix}/replay/credit"
 
     @property
     def weights(self) -> str:

@@ -1,9 +1,10 @@
 """The replay service: ``ReplayTable`` behind Zenoh.
 
 Transition batches arrive on ``transitions/*`` (reliable, BLOCK) on a Zenoh session of their
-own; a bounded channel hands them to one insert thread, so when the table's rate limiter holds
-inserts back, the channel fills and Zenoh's blocking congestion control slows the actors down:
-backpressure, not loss. Sampling is a
+own and wait in a deque for one insert thread. Backpressure is explicit: every 20 ms the service
+publishes an insert credit (what the rate limiter accepts now, minus the backlog) and actors pause
+while it is exhausted. Zenoh's blocking puts remain the safety net, but they never have to block
+for long (a put blocked for seconds makes Zenoh take the link down). Sampling is a
 queryable (``replay/sample``) answered from its own thread. Malformed batches are counted by
 reason and dropped; accepted ones are never lost: the table is saved every ``persist_every_s``
 and on SIGTERM, and restored on start.
@@ -14,6 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,7 +46,6 @@ class ReplayServiceConfig:
     samples_per_insert: float = 64.0  # 0 disables rate limiting
     error_buffer: float | None = None  # default: max(0.1 * min * spi, 2 * 256 + spi)
     persist_every_s: float = 120.0
-    channel_capacity: int = 256  # batches waiting for the insert thread
 
 
 class ReplayService:
@@ -70,6 +71,8 @@ class ReplayService:
         self.m_size.set_function(lambda: self.table.size)
         self.insert_rate = RateMeter()
         self.sample_rate = RateMeter()
+        self.backlog: deque[bytes] = deque()  # received batches not yet inserted
+        self.mean_batch = 32.0  # transitions per batch, running mean, to size the backlog
         self.last_seq: dict[str, int] = {}
         self.seq_gaps = 0
         self.stop = threading.Event()
@@ -98,6 +101,7 @@ class ReplayService:
         self.last_seq[msg.actor_id] = msg.seq
         self.m_in.inc(added)
         self.insert_rate.add(added)
+        self.mean_batch = 0.9 * self.mean_batch + 0.1 * msg.batch.num_transitions
         return added
 
     def handle_sample(self, payload: bytes) -> bytes:
@@ -111,6 +115,15 @@ class ReplayService:
         self.sample_rate.add(request.batch_size)
         return SampledBatch(sample.obs.astype(np.float16), sample.action, sample.reward, sample.discount,
                             sample.next_obs.astype(np.float16), sample.keys).encode()
+
+    def insert_credit(self) -> int:
+        """Transitions the limiter would accept now (actors pace themselves on it instead of
+        spinning in a blocked put); large when the table is still filling."""
+        limiter = self.table.rate_limiter
+        backlog = len(self.backlog) * self.mean_batch
+        if self.table.size < limiter.min_size_to_sample or limiter.window[1] > 1e15:
+            return int(max(limiter.min_size_to_sample - self.table.size, 0) + 100_000 - backlog)
+        return int((limiter.window[1] - limiter.error) // limiter.samples_per_insert - backlog)
 
     def status(self) -> dict:
         info = self.table.info()
@@ -139,8 +152,10 @@ class ReplayService:
         # through the router), while sampling queries keep flowing on the other one. With one
         # session, a full channel would stall the queries too, and nothing would ever unblock.
         ingest = open_session(cfg.router)
-        channel = zenoh.handlers.FifoChannel(cfg.channel_capacity)
-        subscriber = ingest.declare_subscriber(topo.transitions("*"), channel)
+        # The subscriber callback only appends to a deque: it never blocks Zenoh (a long block
+        # makes Zenoh close the link and lose data). Actors pace themselves on the insert credit
+        # published below, which counts this backlog, so the deque stays short.
+        subscriber = ingest.declare_subscriber(topo.transitions("*"), lambda s: self.backlog.append(s.payload.to_bytes()))
         queryable = session.declare_queryable(topo.sample)
         token = session.liveliness().declare_token(topo.alive("replay", "0"))
         status_pub = session.declare_publisher(topo.status("replay"))
@@ -151,11 +166,10 @@ class ReplayService:
 
         def insert_loop():
             while not self.stop.is_set():
-                sample = subscriber.try_recv()
-                if sample is None:
+                if not self.backlog:
                     time.sleep(0.001)
                     continue
-                payload = sample.payload.to_bytes()
+                payload = self.backlog.popleft()
                 while not self.stop.is_set():
                     try:
                         self.handle_batch(payload, timeout=0.5)
@@ -182,9 +196,14 @@ class ReplayService:
         threads = [threading.Thread(target=insert_loop, daemon=True), threading.Thread(target=sample_loop, daemon=True)]
         for t in threads:
             t.start()
-        last_save = time.monotonic()
+        credit_pub = session.declare_publisher(topo.credit)
+        last_save = last_status = time.monotonic()
         try:
-            while not self.stop.wait(1.0):
+            while not self.stop.wait(0.02):
+                credit_pub.put(ServiceStatus("replay-credit", {"allowed": self.insert_credit()}).encode())
+                if time.monotonic() - last_status < 1.0:
+                    continue
+                last_status = time.monotonic()
                 status_pub.put(ServiceStatus("replay", self.status()).encode())
                 if time.monotonic() - last_save >= cfg.persist_every_s:
                     self.save()
@@ -192,13 +211,13 @@ class ReplayService:
         finally:
             for t in threads:
                 t.join(timeout=5)
-            # drain what was already accepted by Zenoh before saving
-            while (sample := subscriber.try_recv()) is not None:
-                self.handle_batch(sample.payload.to_bytes(), force=True)
+            subscriber.undeclare()
+            # insert what Zenoh already delivered before saving: accepted data is never lost
+            while self.backlog:
+                self.handle_batch(self.backlog.popleft(), force=True)
             self.save()
             log.info("replay saved %d transitions", self.table.size)
             token.undeclare()
-            subscriber.undeclare()
             queryable.undeclare()
             http.close()
             ingest.close()

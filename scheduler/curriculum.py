@@ -148,6 +148,7 @@ class CurriculumState:
     window: deque = field(default_factory=deque)
     per_world: dict = field(default_factory=dict)  # "world/pair" -> [episodes, successes]
     history: list = field(default_factory=list)  # advances: {epoch, stage, substep, episodes, reason}
+    recent: deque = field(default_factory=lambda: deque(maxlen=100))  # last 100 outcomes, any epoch
     _next_world: int = 0
 
     @property
@@ -172,6 +173,7 @@ class CurriculumState:
     def record(self, world: str, pair: str, success: bool, epoch: int) -> bool:
         """Count one episode; returns True if the curriculum advanced."""
         self.episodes += 1
+        self.recent.append(bool(success))
         key = f"{world}/{pair}"
         stats = self.per_world.setdefault(key, [0, 0])
         stats[0] += 1

@@ -133,6 +133,7 @@ class SchedulerCore:
                 "curriculum": self.curriculum.name, "stage": st.current.name, "stage_index": st.stage,
                 "substep": st.substep, "substep_pair": st.current.substeps[st.substep] if st.current.substeps else None,
                 "epoch": st.epoch, "episodes": st.episodes, "window_success_rate": st.success_rate(),
+                "success_last_100": sum(st.recent) / len(st.recent) if st.recent else None,
                 "window_size": len(st.window), "criterion": None if st.criterion is None else vars(st.criterion),
                 "success_by_world_pair": rates, "advances": st.history,
                 "live_actors": {k: dict(v) for k, v in self.actors.items()},
