@@ -7,37 +7,40 @@ import sys
 from pathlib import Path
 
 
-def _cmd_rollout(args: argparse.Namespace) -> int:
-    """Drive the goal-seeking controller for one episode and draw it."""
-    import numpy as np
-
-    from .sim import EnvConfig, NamoEnv
-    from .sim.controllers import GoalSeekingController
+def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: str) -> int:
+    """One episode of ``policy`` (observation -> action) in ``world``, drawn to a PNG in ``out``."""
+    from .sim import NamoEnv
     from .sim.render import save_env_picture
 
-    cfg = EnvConfig(max_episode_steps=args.steps, end_on_base_collision=False)
-    env = NamoEnv(args.world, cfg)
-    options = {"pair": args.pair} if args.pair is not None else None
-    obs, info = env.reset(seed=args.seed, options=options)
-    controller = GoalSeekingController(cfg)
+    env = NamoEnv(world, cfg)
+    obs, info = env.reset(seed=seed, options={"pair": pair} if pair is not None else None)
     total = 0.0
     while True:
-        obs, reward, terminated, truncated, info = env.step(controller.act(obs))
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
         total += reward
         if terminated or truncated:
             break
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    picture = out / f"rollout-{env.world.name}-{info['pair']}.png"
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    picture = folder / f"{label}-{env.world.name}-{info['pair']}.png"
     outcome = "reached the goal" if info["is_success"] else ("timed out" if truncated else "stopped")
-    save_env_picture(env, picture, title=f"{env.world.name} / {info['pair']}: {outcome} after {info['steps']} steps, "
-                                          f"return {total:.1f}, base collisions {info['base_collisions']}")
-    print(f"world {env.world.name}, pair {info['pair']}: {outcome} after {info['steps']} steps "
-          f"({info['steps'] * cfg.control_period:.1f} s simulated), return {total:.1f}, "
-          f"base collisions {info['base_collisions']}, end-effector collisions {info['end_effector_collisions']}")
+    summary = (f"{label} on {env.world.name}/{info['pair']}: {outcome} after {info['steps']} steps "
+               f"({info['steps'] * cfg.control_period:.1f} s simulated), return {total:.1f}, "
+               f"base collisions {info['base_collisions']}, end-effector collisions {info['end_effector_collisions']}")
+    save_env_picture(env, picture, title=summary.replace(" after", "\nafter", 1))
+    print(summary)
     print(f"picture: {picture}")
     env.close()
     return 0
+
+
+def _cmd_rollout(args: argparse.Namespace) -> int:
+    """Drive the goal-seeking controller for one episode and draw it."""
+    from .sim import EnvConfig
+    from .sim.controllers import GoalSeekingController
+
+    cfg = EnvConfig(max_episode_steps=args.steps, end_on_base_collision=False)
+    return _drive_and_draw(GoalSeekingController(cfg).act, args.world, args.pair, args.seed, cfg, args.out, "rollout")
 
 
 def _cmd_bench_env(args: argparse.Namespace) -> int:
@@ -121,31 +124,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_policy_run(args: argparse.Namespace) -> int:
-    from .policy import PolicyArtefact
-    from .sim import NamoEnv
     from .evaluate import evaluation_config
-    from .sim.render import save_env_picture
+    from .policy import PolicyArtefact
 
     policy = PolicyArtefact(args.artefact)
-    cfg = evaluation_config()
-    env = NamoEnv(args.world, cfg)
-    options = {"pair": args.pair} if args.pair is not None else None
-    obs, info = env.reset(seed=args.seed, options=options)
-    while True:
-        obs, _, terminated, truncated, info = env.step(policy(obs))
-        if terminated or truncated:
-            break
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    picture = out / f"policy-v{policy.version}-{env.world.name}-{info['pair']}.png"
-    outcome = "reached the goal" if info["is_success"] else "did not reach the goal"
-    save_env_picture(env, picture, title=f"policy v{policy.version} on {env.world.name}/{info['pair']}: {outcome} "
-                                          f"in {info['steps'] * cfg.control_period:.1f} s, {info['base_collisions']} collisions")
-    print(f"policy v{policy.version} on {env.world.name}/{info['pair']}: {outcome} after {info['steps']} steps "
-          f"({info['steps'] * cfg.control_period:.1f} s), base collisions {info['base_collisions']}")
-    print(f"picture: {picture}")
-    env.close()
-    return 0
+    return _drive_and_draw(policy, args.world, args.pair, args.seed, evaluation_config(), args.out,
+                           f"policy-v{policy.version}")
 
 
 def _cmd_bench_learner(args: argparse.Namespace) -> int:
@@ -365,11 +349,12 @@ def main(argv: list[str] | None = None) -> int:
         args.pair = int(args.pair)
     from .policy import ArtefactError
     from .sim.world import WorldError
+    from .transport import RouterUnreachable
     from .worlds.metrics import MetricsError
 
     try:
         return int(args.func(args) or 0)
-    except (WorldError, KeyError, ArtefactError, MetricsError, ValueError) as exc:
+    except (WorldError, KeyError, ArtefactError, MetricsError, ValueError, RouterUnreachable) as exc:
         print(f"curlnav: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

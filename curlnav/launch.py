@@ -46,12 +46,16 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--export-every-s", type=float, default=env_default("export_every_s", 60.0))
     p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 60.0))
     p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
+    p.add_argument("--router-timeout-s", type=float, default=env_default("router_timeout_s", 60.0),
+                   help="give up (exit 2) when the router does not answer within this at start; -1 waits forever")
 
 
 def serve(args) -> int:
     """Run one service until SIGTERM/SIGINT. Bad configuration exits with a one-line reason."""
+    import curlnav.transport as transport
     from curlnav.transport import run_router, stop_on_signals
 
+    transport.ROUTER_TIMEOUT_S = args.router_timeout_s
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {args.role} %(levelname)s %(message)s")
     stop = threading.Event()
     stop_on_signals(stop)
@@ -212,6 +216,11 @@ def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str,
     evals: list[dict] = []
     pairs = held_out_pairs(world, eval_episodes) if not curriculum else None
     start = time.monotonic()
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt  # SIGTERM stops the run as cleanly as Ctrl-C
+
+    signal.signal(signal.SIGTERM, on_term)
     cluster.start()
     print(f"services started: router {cluster.router}, scheduler {cluster.status_url}, logs in {run_dir / 'logs'}")
     last_eval = time.monotonic()

@@ -18,22 +18,34 @@ from prometheus_client.exposition import CONTENT_TYPE_LATEST
 log = logging.getLogger("curlnav")
 
 
-def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None) -> zenoh.Config:
-    """Multicast scouting off (Docker networks carry none); clients retry their router forever,
-    so services can start in any order."""
+class RouterUnreachable(ConnectionError):
+    """The Zenoh router did not answer within the start-up deadline."""
+
+
+def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
+                 connect_timeout_s: float = -1) -> zenoh.Config:
+    """Multicast scouting off (Docker networks carry none). Clients wait ``connect_timeout_s``
+    for their router at start (-1: forever), so services can start in any order."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
-        conf.insert_json5("connect/timeout_ms", "-1")
+        conf.insert_json5("connect/timeout_ms", str(-1 if connect_timeout_s < 0 else int(connect_timeout_s * 1000)))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     return conf
 
 
-def open_session(router: str) -> zenoh.Session:
-    return zenoh.open(zenoh_config("client", connect=[router]))
+ROUTER_TIMEOUT_S = -1.0  # set by `curlnav serve --router-timeout-s`
+
+
+def open_session(router: str, connect_timeout_s: float | None = None) -> zenoh.Session:
+    timeout = ROUTER_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
+    try:
+        return zenoh.open(zenoh_config("client", connect=[router], connect_timeout_s=timeout))
+    except zenoh.ZError as exc:
+        raise RouterUnreachable(f"cannot reach the Zenoh router at {router} within {timeout:.0f} s: {exc}") from None
 
 
 def run_router(listen: str, stop: threading.Event, connect: list[str] | None = None) -> None:

@@ -1,0 +1,99 @@
+#!/usr/bin/env bash
+# The container smoke test, step by step; a user can run it too (needs a Docker engine, Compose
+# 1.29 `docker-compose` or v2 `docker compose`, and curl; CURLNAV_CLI: a host curlnav command).
+#
+#   build -> up with 3 actors -> /status shows 3 actors with episodes and learner version >= 1
+#   -> stop one actor container, it leaves /status -> restart the learner, its version does not
+#   go back -> pull the latest policy and run it -> bad configuration exits with one line
+#   -> down -v -> the same services on a single-node swarm (docker stack deploy) -> clean up.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export COMPOSE_PROJECT_NAME=${COMPOSE_PROJECT_NAME:-curlnavsmoke}
+export BASE_IMAGE=${BASE_IMAGE:-curlnav-base:bookworm}
+export CURLNAV_MIN_SIZE=300 CURLNAV_CHECKPOINT_EVERY_S=10 CURLNAV_EXPORT_EVERY_S=10
+export CURLNAV_STATUS_PORT=${CURLNAV_STATUS_PORT:-18080} CURLNAV_LEARNER_PORT=${CURLNAV_LEARNER_PORT:-18081}
+CLI=${CURLNAV_CLI:-.venv/bin/curlnav}
+PY=${CURLNAV_PY:-.venv/bin/python}
+STATUS=http://127.0.0.1:$CURLNAV_STATUS_PORT/status
+LEARNER=http://127.0.0.1:$CURLNAV_LEARNER_PORT
+if docker compose version >/dev/null 2>&1; then DC=(docker compose); else DC=(docker-compose); fi
+start=$(date +%s)
+step() { printf '\n[smoke %4ss] %s\n' "$(( $(date +%s) - start ))" "$*"; }
+# wait_for DESCRIPTION SECONDS PYTHON-EXPRESSION-ON-status
+wait_for() {
+  local what=$1 limit=$2 expr=$3 deadline=$(( $(date +%s) + $2 ))
+  while true; do
+    if "$PY" - "$STATUS" "$expr" <<'EOF' 2>/dev/null; then return 0; fi
+import json, sys, urllib.request
+status = json.load(urllib.request.urlopen(sys.argv[1], timeout=3))
+actors = status["live_actors"]
+sys.exit(0 if eval(sys.argv[2]) else 1)
+EOF
+    if [ "$(date +%s)" -ge "$deadline" ]; then
+      echo "TIMEOUT after ${limit}s waiting for: $what"; curl -s "$STATUS" | head -c 3000 || true
+      "${DC[@]}" ps || true; "${DC[@]}" logs --tail 30 || true
+      return 1
+    fi
+    sleep 2
+  done
+}
+cleanup() {
+  "${DC[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
+  docker stack rm curlnav >/dev/null 2>&1 || true
+  docker swarm leave --force >/dev/null 2>&1 || true
+}
+trap cleanup EXIT
+
+step "base image $BASE_IMAGE and wheelhouse"
+[ "$BASE_IMAGE" = curlnav-base:bookworm ] && bash scripts/make-base-image.sh "$BASE_IMAGE"
+ls wheelhouse/*.whl >/dev/null 2>&1 || bash scripts/make-wheelhouse.sh
+
+step "build (${DC[*]} build)"
+"${DC[@]}" build --build-arg BASE_IMAGE="$BASE_IMAGE" router
+docker image ls curlnav:latest
+
+step "up with 3 actors"
+"${DC[@]}" up -d --scale actor=3
+wait_for "3 live actors, each with episodes, learner version >= 1" 420 \
+  'len(actors) == 3 and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'
+curl -s "$STATUS" | "$PY" -c 'import json,sys; s=json.load(sys.stdin); print("status:", {k: s[k] for k in ("stage", "episodes", "learner", "replay")}, "actors:", sorted(s["live_actors"]))'
+
+step "stop one actor container; it leaves /status"
+victim=$("${DC[@]}" ps -q actor | head -n1)
+docker stop "$victim" >/dev/null
+wait_for "2 live actors" 60 'len(actors) == 2'
+
+step "restart the learner; training resumes from its checkpoint"
+before=$(curl -s "$LEARNER/healthz" | "$PY" -c 'import json,sys; print(json.load(sys.stdin)["version"])')
+"${DC[@]}" restart learner
+sleep 3
+wait_for "learner back at version >= $before" 180 "(status['learner']['version'] or -1) >= $before"
+after=$(curl -s "$LEARNER/healthz" | "$PY" -c 'import json,sys; print(json.load(sys.stdin)["version"])')
+echo "learner version before restart $before, after $after"
+[ "$after" -ge "$before" ]
+
+step "pull the latest policy (curlnav pull, and the same with curl) and run it"
+curl -sf "$LEARNER/policy/latest" | "$PY" -c 'import json,sys; d=json.load(sys.stdin); print("policy", d["version"], {k: v.get("sha256", "")[:12] for k, v in d["files"].items()})'
+rm -rf /tmp/curlnav-smoke-policy
+"$CLI" pull --from "$LEARNER" --out /tmp/curlnav-smoke-policy
+"$CLI" policy run /tmp/curlnav-smoke-policy --world open-room --pair across --out /tmp/curlnav-smoke-pics
+
+step "bad configuration: one line in the logs, no hang"
+set +e
+docker run --rm --network "${COMPOSE_PROJECT_NAME}_default" -e CURLNAV_ROUTER=tcp/router:7447 curlnav:latest actor --world atlantis 2>&1 | tail -n 2
+docker run --rm curlnav:latest scheduler --curriculum /nonexistent.yaml 2>&1 | tail -n 1
+timeout 60 docker run --rm -e CURLNAV_ROUTER_TIMEOUT_S=5 curlnav:latest replay --router tcp/127.0.0.1:7447 2>&1 | tail -n 1
+set -e
+
+step "down -v"
+"${DC[@]}" down -v --remove-orphans
+
+step "the same services on a single-node swarm (docker stack deploy -c docker-stack.yml)"
+docker swarm init --advertise-addr 127.0.0.1 >/dev/null
+CURLNAV_CURRICULA=$PWD/scheduler/curricula docker stack deploy -c docker-stack.yml curlnav
+wait_for "swarm: 2 live actors with episodes, learner version >= 1" 420 \
+  'len(actors) == 2 and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'
+docker stack rm curlnav
+docker swarm leave --force >/dev/null
+
+step "smoke test passed"
