@@ -43,6 +43,7 @@ cleanup() {
   docker swarm leave --force >/dev/null 2>&1 || true
 }
 trap cleanup EXIT
+cleanup  # leftovers of an interrupted run (a compose project, a stack, a swarm)
 
 step "base image $BASE_IMAGE and wheelhouse"
 [ "$BASE_IMAGE" = curlnav-base:bookworm ] && bash scripts/make-base-image.sh "$BASE_IMAGE"

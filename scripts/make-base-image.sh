@@ -8,7 +8,7 @@ if docker image inspect "$IMAGE" >/dev/null 2>&1; then
   echo "[base] $IMAGE exists"; exit 0
 fi
 MIRROR=${DEBIAN_MIRROR:-$( (grep -h '^URIs:' /etc/apt/sources.list.d/*.sources 2>/dev/null | awk '{print $2}'; \
-  grep -hE '^deb ' /etc/apt/sources.list 2>/dev/null | awk '{print $2}') | grep -m1 debian)}
+  grep -hE '^deb ' /etc/apt/sources.list 2>/dev/null | awk '{print $2}') | grep -m1 debian || true)}
 MIRROR=${MIRROR:-http://deb.debian.org/debian}
 ROOT=$(mktemp -d)
 trap 'rm -rf "$ROOT"' EXIT

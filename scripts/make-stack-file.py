@@ -1,7 +1,8 @@
 """Write docker-stack.yml (for `docker stack deploy`) from docker-compose.yml.
 
 Swarm validates the file against the Compose v3 schema: it needs a `version`, takes
-`depends_on` only as a list and ignores `build` and `restart`. Services need no start order:
+`depends_on` only as a list and ignores `build` and `restart`. Services use DNS round robin and
+host-mode ports (see below). Services need no start order:
 every curlnav service waits for its router. Run: python scripts/make-stack-file.py
 """
 
@@ -21,6 +22,16 @@ for name, service in compose["services"].items():
     service.pop("stop_grace_period", None)
     deploy = dict(service.get("deploy", {}))
     deploy.setdefault("restart_policy", {"condition": "on-failure", "max_attempts": 3})
+    # DNS round robin, not a virtual IP: services reach each other's containers directly (the
+    # VIP's IPVS load balancer is not available on every kernel); published ports bind on the
+    # node that runs the task (host mode) for the same reason.
+    deploy["endpoint_mode"] = "dnsrr"
+    if "ports" in service:
+        long_ports = []
+        for spec in service["ports"]:
+            published, target = spec.rsplit(":", 1)
+            long_ports.append({"target": int(target), "published": published, "protocol": "tcp", "mode": "host"})
+        service["ports"] = long_ports
     service["deploy"] = deploy
     stack["services"][name] = service
 header = ("# Generated from docker-compose.yml by scripts/make-stack-file.py: the same services for\n"
