@@ -31,6 +31,8 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--run", default=env_default("run", "default"), help="run name: the Zenoh key prefix")
     p.add_argument("--router", default=env_default("router", "tcp/127.0.0.1:7447"), help="Zenoh router endpoint")
     p.add_argument("--listen", default=env_default("listen", "tcp/0.0.0.0:7447"), help="router: listen endpoint")
+    p.add_argument("--connect", default=env_default("connect", ""),
+                   help="router: other routers to join, comma-separated endpoints (multi-host)")
     p.add_argument("--data-dir", default=env_default("data_dir", "runs/service"), help="state folder (per role below it)")
     p.add_argument("--http-port", type=int, default=env_default("http_port", 0))
     p.add_argument("--world", default=env_default("world", "open-room"), help="default world")
@@ -61,8 +63,9 @@ def serve(args) -> int:
     stop_on_signals(stop)
     data = Path(args.data_dir)
     if args.role == "router":
-        logging.info("router listening on %s", args.listen)
-        run_router(args.listen, stop)
+        peers = [e.strip() for e in args.connect.split(",") if e.strip()]
+        logging.info("router listening on %s%s", args.listen, f", joining {peers}" if peers else "")
+        run_router(args.listen, stop, connect=peers or None)
         return 0
     if args.role == "replay":
         from replay.service import ReplayService, ReplayServiceConfig
