@@ -113,3 +113,21 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
     cluster.kill_process("actor-1")
     wait_for("actor-1 gone from /status", lambda: set(status()["live_actors"]) == {"actor-0"}, timeout=30)
     assert cluster.dead() == []
+
+
+def test_services_carry_on_after_the_router_restarts(tmp_path):
+    c = LocalCluster(tmp_path / "run", actors=1, run="restart",
+                     extra={"replay": ["--min-size", "200", "--samples-per-insert", "8"],
+                            "learner": ["--publish-every", "5"]})
+    c.start()
+    try:
+        before = wait_for("learning under way", lambda: (st := c.status()) and (st["learner"]["version"] or 0) >= 2
+                          and st["episodes"] > 0 and st, timeout=180)
+        c.kill_process("router")
+        c._spawn("router", "router")
+        wait_for("transitions, episodes and weights flowing again", lambda: (st := c.status())
+                 and st["episodes"] > before["episodes"] + 2 and st["learner"]["version"] > before["learner"]["version"] + 2
+                 and st["replay"]["size"] > before["replay"]["size"] and len(st["live_actors"]) == 1, timeout=180)
+        assert c.dead() == []
+    finally:
+        c.stop()
