@@ -9,7 +9,6 @@ batch sequence number is missing.
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import subprocess

@@ -61,7 +61,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
               f"curriculum {args.curriculum or 'none'}, {args.minutes} min")
         summary = train_embedded(run_dir, args.actors, args.minutes, args.world, args.curriculum,
                                  eval_every_s=args.eval_every_s, eval_episodes=args.eval_episodes,
-                                 stop_at_success=args.stop_at_success)
+                                 stop_at_success=args.stop_at_success, preset=args.preset)
         print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min")
         if summary["evals"]:
             last = summary["evals"][-1]

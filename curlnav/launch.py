@@ -208,14 +208,16 @@ class LocalCluster:
 
 
 def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str, curriculum: str,
-                   eval_every_s: float = 120.0, eval_episodes: int = 50, stop_at_success: float | None = None) -> dict:
+                   eval_every_s: float = 120.0, eval_episodes: int = 50, stop_at_success: float | None = None,
+                   preset: str = "default") -> dict:
     """``curlnav train``: the services as local processes, progress every 5 s, evaluation of the
     learner's latest artefact on held-out pairs, clean shutdown on Ctrl-C or at the budget."""
     from curlnav.evaluate import evaluate, held_out_pairs
     from curlnav.policy import PolicyArtefact
 
     run_dir = Path(run_dir)
-    cluster = LocalCluster(run_dir, actors=actors, world=world, curriculum=curriculum)
+    cluster = LocalCluster(run_dir, actors=actors, world=world, curriculum=curriculum,
+                           extra={"learner": ["--preset", preset]})
     evals: list[dict] = []
     pairs = held_out_pairs(world, eval_episodes) if not curriculum else None
     start = time.monotonic()

@@ -14,8 +14,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import math
-import os
 import time
 from collections import deque
 from dataclasses import dataclass

@@ -16,7 +16,7 @@ them to its own ids, so several writers can feed one table, in one process or ov
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -20,12 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import zenoh
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.layout import ObservationLayout
 from curlnav.transport import HttpServer, RateMeter, json_response, open_session
-from learner.config import D4PGConfig
 from proto.codec import ProtoError
 from proto.messages import SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
 from proto.topology import Topology

@@ -3,7 +3,6 @@ actors. Every wait polls with a deadline; every process is stopped at the end.""
 
 from __future__ import annotations
 
-import json
 import time
 import urllib.request
 

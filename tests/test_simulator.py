@@ -141,7 +141,6 @@ def test_lidar_reads_a_wall_at_a_known_distance_and_labels_a_ball(make_env):
 def test_observation_layout_is_as_documented(make_env):
     env = make_env(room_world(pairs=[StartGoal("c", 5.0, 5.0, math.pi / 2, 5.0, 8.0)]))
     obs, _ = env.reset(seed=0)
-    cfg = env.config
     assert obs.shape == (4 * 241 + 4 * 241 + 10 * 3,) == env.observation_space.shape
     assert obs.dtype == np.float32
     goal_block = obs[8 * 241:].reshape(10, 3)

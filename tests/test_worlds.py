@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from curlnav.sim import StartGoal, World, save_world
+from curlnav.sim import StartGoal, World
 from curlnav.worlds.bench import barn_parameter_grid
 from curlnav.worlds.generators import FAMILIES, barn_cellular_automaton, cspace, generate
 from curlnav.worlds.metrics import (GridGraph, MetricMaps, MetricsError, barn_metrics, characteristic_dimension_map,
