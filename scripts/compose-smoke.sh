@@ -60,7 +60,7 @@ wait_for "3 live actors, each with episodes, learner version >= 1" 420 \
 curl -s "$STATUS" | "$PY" -c 'import json,sys; s=json.load(sys.stdin); print("status:", {k: s[k] for k in ("stage", "episodes", "learner", "replay")}, "actors:", sorted(s["live_actors"]))'
 
 step "stop one actor container; it leaves /status"
-victim=$("${DC[@]}" ps -q actor | head -n1)
+victim=$("${DC[@]}" ps -q actor | sed -n 1p)  # sed reads all: no SIGPIPE under pipefail
 docker stop "$victim" >/dev/null
 wait_for "2 live actors" 60 'len(actors) == 2'
 
