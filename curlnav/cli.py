@@ -216,6 +216,12 @@ def _cmd_worlds_rank(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from .launch import serve
+
+    return serve(args)
+
+
 def _cmd_pull(args: argparse.Namespace) -> int:
     from .policy import PolicyArtefact
     from .pull import pull_policy
@@ -293,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .launch import add_serve_arguments
 
     add_serve_arguments(p)
-    p.set_defaults(func=lambda a: __import__("curlnav.launch", fromlist=["serve"]).serve(a))
+    p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("pull", help="download a policy artefact from a learner")
     p.add_argument("--from", dest="source", required=True, help="learner URL, e.g. http://localhost:8081")

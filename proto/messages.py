@@ -156,6 +156,22 @@ class Weights:
                        field(obj, "d4pg_config", dict, Weights.KIND))
 
 
+def _encode_flat(msg) -> bytes:
+    """A message whose fields are all scalars, as one msgpack map."""
+    return dumps({"kind": msg.KIND, "v": VERSION, **{name: getattr(msg, name) for name in msg.FIELD_TYPES}})
+
+
+def _decode_flat(cls, data: bytes):
+    """Check every field of ``cls.FIELD_TYPES`` (a float field also takes an int)."""
+    obj = loads(data)
+    check_header(obj, cls.KIND, VERSION)
+    values = {}
+    for name, kind in cls.FIELD_TYPES.items():
+        value = field(obj, name, (int, float) if kind is float else kind, cls.KIND)
+        values[name] = float(value) if kind is float else value
+    return cls(**values)
+
+
 @dataclass
 class EpisodeReport:
     """actor -> scheduler: one finished episode."""
@@ -172,20 +188,16 @@ class EpisodeReport:
     assignment_epoch: int
     KIND = "episode_report"
 
+    FIELD_TYPES = {"actor_id": str, "world": str, "pair": str, "success": bool, "episode_return": float,
+                   "base_collisions": int, "end_effector_collisions": int, "steps": int, "weights_version": int,
+                   "assignment_epoch": int}
+
     def encode(self) -> bytes:
-        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
-        return dumps({"kind": self.KIND, "v": VERSION, **d})
+        return _encode_flat(self)
 
     @staticmethod
     def decode(data: bytes) -> "EpisodeReport":
-        obj = loads(data)
-        k = EpisodeReport.KIND
-        check_header(obj, k, VERSION)
-        return EpisodeReport(field(obj, "actor_id", str, k), field(obj, "world", str, k), field(obj, "pair", str, k),
-                             field(obj, "success", bool, k), float(field(obj, "episode_return", (int, float), k)),
-                             field(obj, "base_collisions", int, k), field(obj, "end_effector_collisions", int, k),
-                             field(obj, "steps", int, k), field(obj, "weights_version", int, k),
-                             field(obj, "assignment_epoch", int, k))
+        return _decode_flat(EpisodeReport, data)
 
 
 @dataclass
@@ -221,17 +233,14 @@ class Assignment:
     epoch: int
     KIND = "assignment"
 
+    FIELD_TYPES = {"actor_id": str, "world": str, "pair": str, "stage": str, "substep": int, "epoch": int}
+
     def encode(self) -> bytes:
-        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
-        return dumps({"kind": self.KIND, "v": VERSION, **d})
+        return _encode_flat(self)
 
     @staticmethod
     def decode(data: bytes) -> "Assignment":
-        obj = loads(data)
-        k = Assignment.KIND
-        check_header(obj, k, VERSION)
-        return Assignment(field(obj, "actor_id", str, k), field(obj, "world", str, k), field(obj, "pair", str, k),
-                          field(obj, "stage", str, k), field(obj, "substep", int, k), field(obj, "epoch", int, k))
+        return _decode_flat(Assignment, data)
 
 
 @dataclass

@@ -14,6 +14,7 @@ from .builtin import get_world
 from .config import EnvConfig
 from .env import NamoEnv
 from .scene import RAY_MASK, Scene
+from .world import merge_cells_into_rectangles
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ def run_env_bench(steps: int = 5000, world: str = "bench-36m", cfg: EnvConfig | 
     print(f"machine: {platform.machine()} {platform.processor() or ''} cpus={os.cpu_count()} "
           f"python={platform.python_version()} pybullet={pb.getAPIVersion()} ({pinned})")
     print(f"world: {w.name} {w.size[0]:.0f} m x {w.size[1]:.0f} m, {int(w.occupancy.sum())} obstacle cells "
-          f"merged into {len(__import__('curlnav.sim.world', fromlist=['x']).merge_cells_into_rectangles(w.occupancy))} boxes, "
+          f"merged into {len(merge_cells_into_rectangles(w.occupancy))} boxes, "
           f"{len(w.balls)} balls, {len(w.doors)} doors")
     print(f"settings: control period {cfg.control_period} s, {cfg.physics_substeps} physics substeps, "
           f"{cfg.solver_iterations} solver iterations, {cfg.lidar_beams} beams, observation {cfg.observation_size} floats")

@@ -38,7 +38,7 @@ from scipy import ndimage
 
 from .builtin import get_world
 from .config import EnvConfig
-from .scene import Scene
+from .scene import Scene, connect
 from .world import StartGoal, World, WorldError
 
 
@@ -115,12 +115,9 @@ class NamoEnv(gym.Env):
             self.set_world(options["world"])
         world = self.world
         if self._scene is None:
-            if self._client is not None:
-                self._scene = Scene(world, self.config, client=self._client)
-            else:
-                self._scene = Scene(world, self.config)
-                self._client = self._scene.client
-                self._scene._owns_client = False
+            if self._client is None:
+                self._client = connect(self.config)  # kept across world switches, closed by close()
+            self._scene = Scene(world, self.config, client=self._client)
         pair = options.get("pair")
         if isinstance(pair, StartGoal):
             self.pair = pair

@@ -107,18 +107,22 @@ class ContactCounts:
     end_effector_movable: bool = False  # stick touching a ball, box or door (pushing)
 
 
+def connect(cfg: EnvConfig) -> int:
+    """A new PyBullet client (the GUI when ``cfg.gui``)."""
+    client = pb.connect(pb.GUI if cfg.gui else pb.DIRECT)
+    if client < 0:
+        raise RuntimeError("could not connect to PyBullet")
+    return client
+
+
 class Scene:
-    """Builds one world in its own PyBullet client and drives the robot in it."""
+    """Builds one world in a PyBullet client (its own unless one is given) and drives the robot in it."""
 
     def __init__(self, world: World, cfg: EnvConfig, client: int | None = None) -> None:
         self.cfg = cfg
         self.world = world
         self._owns_client = client is None
-        if client is None:
-            client = pb.connect(pb.GUI if cfg.gui else pb.DIRECT)
-            if client < 0:
-                raise RuntimeError("could not connect to PyBullet")
-        self.client = client
+        self.client = connect(cfg) if client is None else client
         self._tmp = tempfile.TemporaryDirectory(prefix="curlnav-urdf-")
         self._build()
         beams = cfg.lidar_beams
