@@ -136,6 +136,7 @@ class World:
     occupancy: np.ndarray  # bool, shape (rows, cols), row 0 = smallest y
     resolution: float  # m per cell
     origin: tuple[float, float] = (0.0, 0.0)  # map position of cell (0, 0)'s outer corner (m)
+    origin_yaw: float = 0.0  # rad; the grid's rotation in the map frame (ROS map_server origin[2])
     wall_height: float = 1.0  # m
     balls: tuple[Ball, ...] = ()
     doors: tuple[Door, ...] = ()
@@ -152,6 +153,8 @@ class World:
         object.__setattr__(self, "occupancy", occ.astype(bool))
         if not (math.isfinite(self.resolution) and self.resolution > 0):
             raise WorldError(f"{self.source}: resolution must be a positive number of metres, got {self.resolution}")
+        if not math.isfinite(self.origin_yaw):
+            raise WorldError(f"{self.source}: origin yaw must be a finite angle in radians, got {self.origin_yaw}")
         if not (math.isfinite(self.wall_height) and self.wall_height > 0):
             raise WorldError(f"{self.source}: wall_height must be positive, got {self.wall_height}")
         for i, ball in enumerate(self.balls):
@@ -175,26 +178,60 @@ class World:
                     raise WorldError(f"{self.source}: pair {pair.name!r} {label} ({px:.2f}, {py:.2f}) lies inside an obstacle")
 
     # -- geometry -------------------------------------------------------------------------
+    # Two frames: the *map* frame (poses, pairs, balls, doors, pictures, everything a user
+    # sees; the frame of ROS map_server) and the *grid* frame (metres along the grid's columns
+    # and rows from the outer corner of cell (0, 0)). With ``origin_yaw == 0`` the grid frame is
+    # the map frame shifted by ``origin``.
     @property
     def size(self) -> tuple[float, float]:
-        """Map extent ``(width, height)`` in metres."""
+        """Map extent ``(width, height)`` in metres along the grid's columns and rows."""
         rows, cols = self.occupancy.shape
         return cols * self.resolution, rows * self.resolution
 
     @property
-    def bounds(self) -> tuple[float, float, float, float]:
-        """``(x_min, y_min, x_max, y_max)`` of the map (m)."""
+    def rotated(self) -> bool:
+        """True when the grid is rotated in the map frame (``origin_yaw != 0``)."""
+        return self.origin_yaw != 0.0
+
+    def grid_from_map(self, x, y):
+        """Map-frame point(s) (m) to grid-frame point(s) (m from the corner of cell (0, 0)).
+        Accepts floats or numpy arrays of the same shape."""
+        dx, dy = x - self.origin[0], y - self.origin[1]
+        if not self.origin_yaw:
+            return dx, dy
+        c, s = math.cos(self.origin_yaw), math.sin(self.origin_yaw)
+        return c * dx + s * dy, -s * dx + c * dy
+
+    def map_from_grid(self, u, v):
+        """Grid-frame point(s) (m) to map-frame point(s) (m); inverse of ``grid_from_map``."""
+        if not self.origin_yaw:
+            return self.origin[0] + u, self.origin[1] + v
+        c, s = math.cos(self.origin_yaw), math.sin(self.origin_yaw)
+        return self.origin[0] + c * u - s * v, self.origin[1] + s * u + c * v
+
+    def corners(self) -> list[tuple[float, float]]:
+        """The map's four corners in the map frame (m), counter-clockwise from cell (0, 0)'s."""
         width, height = self.size
-        return self.origin[0], self.origin[1], self.origin[0] + width, self.origin[1] + height
+        return [self.map_from_grid(u, v) for u, v in ((0.0, 0.0), (width, 0.0), (width, height), (0.0, height))]
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(x_min, y_min, x_max, y_max)`` of the map in the map frame (m); for a rotated grid,
+        the axis-aligned box around it."""
+        if not self.origin_yaw:
+            width, height = self.size
+            return self.origin[0], self.origin[1], self.origin[0] + width, self.origin[1] + height
+        xs, ys = zip(*self.corners())
+        return min(xs), min(ys), max(xs), max(ys)
 
     def cell_of(self, x: float, y: float) -> tuple[int, int]:
         """The ``(iy, ix)`` cell containing map point ``(x, y)``; may lie outside the grid."""
-        return (int(math.floor((y - self.origin[1]) / self.resolution)),
-                int(math.floor((x - self.origin[0]) / self.resolution)))
+        u, v = self.grid_from_map(x, y)
+        return int(math.floor(v / self.resolution)), int(math.floor(u / self.resolution))
 
     def cell_centre(self, iy: int, ix: int) -> tuple[float, float]:
         """Map coordinates (m) of the centre of cell ``(iy, ix)``."""
-        return (self.origin[0] + (ix + 0.5) * self.resolution, self.origin[1] + (iy + 0.5) * self.resolution)
+        return self.map_from_grid((ix + 0.5) * self.resolution, (iy + 0.5) * self.resolution)
 
     def contains(self, x: float, y: float) -> bool:
         iy, ix = self.cell_of(x, y)
