@@ -53,6 +53,7 @@ def _cmd_bench_env(args: argparse.Namespace) -> int:
 def _cmd_train(args: argparse.Namespace) -> int:
     import time as _time
 
+    _check_world(args.world)
     if not args.serial:
         from .launch import train_embedded
 
@@ -102,6 +103,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _load_policy(path: str):
     """A policy callable from an artefact folder or a training checkpoint (.safetensors)."""
     p = Path(path)
+    if not p.exists():
+        raise ValueError(f"no policy at {path}: expected an artefact folder or a checkpoint .safetensors")
     if p.is_dir() or p.name == "metadata.json":
         from .policy import PolicyArtefact
 
@@ -116,6 +119,7 @@ def _load_policy(path: str):
 def _cmd_eval(args: argparse.Namespace) -> int:
     from .evaluate import evaluate, held_out_pairs
 
+    _check_world(args.world)
     policy = _load_policy(args.policy)
     pairs = held_out_pairs(args.world, args.episodes)
     result = evaluate(policy, args.world, pairs)
@@ -180,16 +184,17 @@ def _cmd_worlds_show(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
 
     from .sim.render import draw_world
-    from .worlds.rank import METRIC_RESOLUTION, measure, world_paths
+    from .worlds.rank import measure, measured_pairs, path_points, world_paths
 
     world = _world_from_spec(args.world)
+    pairs = measured_pairs(world)
     _, paths = world_paths(world)
     d = measure(world)
-    fig, ax = plt.subplots(figsize=(8, 8 * world.size[1] / max(world.size[0], 1e-9) + 0.6), dpi=110)
-    draw_world(ax, world, pairs=world.pairs)
+    x0, y0, x1, y1 = world.bounds
+    fig, ax = plt.subplots(figsize=(8, 8 * (y1 - y0) / max(x1 - x0, 1e-9) + 0.6), dpi=110)
+    draw_world(ax, world, pairs=pairs)
     for path in paths:
-        ax.plot((path[:, 1] + 0.5) * METRIC_RESOLUTION + world.origin[0],
-                (path[:, 0] + 0.5) * METRIC_RESOLUTION + world.origin[1], "-", lw=1, color="tab:green")
+        ax.plot(*path_points(world, path), "-", lw=1, color="tab:green")
     ax.set_title(f"{world.name}: Dist {d.distance:.2f}  Vis {d.visibility:.2f}  Disp {d.dispersion:.2f}  "
                  f"CD {d.characteristic_dimension:.2f}  Tor {d.tortuosity:.2f}", fontsize=9)
     out = Path(args.out or f"runs/worlds/{world.name}.png")
@@ -197,8 +202,33 @@ def _cmd_worlds_show(args: argparse.Namespace) -> int:
     fig.tight_layout()
     fig.savefig(out)
     plt.close(fig)
-    print(f"{world.name}: {world.size[0]:.1f} m x {world.size[1]:.1f} m, {len(world.pairs)} pairs; picture: {out}")
+    drawn = "" if world.pairs else " (seeded random: the map has none)"
+    print(f"{world.name}: {world.size[0]:.1f} m x {world.size[1]:.1f} m, {len(pairs)} pairs{drawn}; picture: {out}")
     return 0
+
+
+def _cmd_worlds_scatter_balls(args: argparse.Namespace) -> int:
+    from .sim import save_world
+    from .worlds.scatter import scatter_balls
+
+    world = _world_from_spec(args.world)
+    out = Path(args.out)
+    if out.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"--out must be a world YAML path (.yaml), got {args.out!r}")
+    task = scatter_balls(world, args.count, seed=args.seed, radius=args.radius, mass=args.mass, pairs=args.pairs)
+    path = save_world(task.with_changes(name=out.stem), out)
+    print(f"{path}: {len(task.balls) - len(world.balls)} balls on the shortest paths of {len(task.pairs)} pairs "
+          f"({', '.join(p.name for p in task.pairs)}) of {world.name}")
+    return 0
+
+
+def _check_world(spec: str) -> None:
+    """Fail fast, before any service or PyBullet scene starts: the world loads and, when it
+    draws random pairs, a pair is possible (one-line ``WorldError`` otherwise)."""
+    from .sim import get_world
+    from .sim.pairs import check_pairs_possible
+
+    check_pairs_possible(get_world(spec))
 
 
 def _cmd_worlds_rank(args: argparse.Namespace) -> int:
@@ -320,6 +350,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("world", help="built-in name, world YAML, or FAMILY:SEED")
     p.add_argument("--out", default=None, help="PNG path")
     p.set_defaults(func=_cmd_worlds_show)
+    p = worlds_sub.add_parser("scatter-balls", help="a NAMO task from any map: balls on the shortest paths of its pairs")
+    p.add_argument("world", help="built-in name, world YAML (e.g. a plain ROS SLAM map), or FAMILY:SEED")
+    p.add_argument("--count", type=int, default=6, help="balls to add")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random pairs (plain maps) and of the places")
+    p.add_argument("--pairs", type=int, default=3, help="random pairs to draw when the map has none")
+    p.add_argument("--radius", type=float, default=0.25, help="ball radius (m)")
+    p.add_argument("--mass", type=float, default=0.5, help="ball mass (kg)")
+    p.add_argument("--out", required=True, help="world YAML to write (its image is written beside it)")
+    p.set_defaults(func=_cmd_worlds_scatter_balls)
     p = worlds_sub.add_parser("rank", help="Table I and the MDS picture for a set of worlds")
     p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")
     p.add_argument("--out", default="runs/ranking")

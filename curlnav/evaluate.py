@@ -14,6 +14,7 @@ import numpy as np
 
 from .sim import EnvConfig, NamoEnv, StartGoal, World, get_world
 from .sim.env import pair_key
+from .sim.pairs import draws_random_pairs
 
 EVAL_SEED = 1_000_003  # seeds of held-out pairs live far from training seeds
 
@@ -39,12 +40,11 @@ def evaluation_config(base: EnvConfig | None = None) -> EnvConfig:
 
 
 def held_out_pairs(world: "str | World", count: int = 50, seed: int = EVAL_SEED) -> list[StartGoal]:
-    """``count`` evaluation pairs: random draws (from their own seeds) for worlds with
-    ``random_pairs``, else the world's own pairs in turn."""
+    """``count`` evaluation pairs: random draws (from their own seeds) for worlds that draw
+    random pairs (``random_pairs`` set, or no pairs of their own), else the world's own pairs in
+    turn."""
     world = get_world(world)
-    if world.random_pairs is None:
-        if not world.pairs:
-            raise ValueError(f"world {world.name!r} has no pairs to evaluate on")
+    if not draws_random_pairs(world):
         return [world.pairs[i % len(world.pairs)] for i in range(count)]
     env = NamoEnv(world)
     try:

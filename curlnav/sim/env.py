@@ -39,12 +39,20 @@ from scipy import ndimage
 from .builtin import get_world
 from .config import EnvConfig
 from .scene import Scene, connect
-from .world import StartGoal, World, WorldError
+from .pairs import PairSampler, check_pairs_possible, pair_key  # noqa: F401  (pair_key: public here too)
+from .world import StartGoal, World
 
 
-def pair_key(x: float, y: float, gx: float, gy: float) -> tuple[float, float, float, float]:
-    """A start/goal pair's identity for ``NamoEnv.excluded_pairs`` (positions rounded to 1 mm)."""
-    return (round(x, 3), round(y, 3), round(gx, 3), round(gy, 3))
+def _file_key(spec) -> tuple | None:
+    """``(path, mtime, size)`` of a world file spec, or None for built-ins and ``World`` objects."""
+    if isinstance(spec, World):
+        return None
+    path = os.fspath(spec)
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return None
+    return (os.path.abspath(path), stat.st_mtime_ns, stat.st_size)
 
 
 class NamoEnv(gym.Env):
@@ -66,8 +74,10 @@ class NamoEnv(gym.Env):
                                                 dtype=np.float32)
         self._scene: Scene | None = None
         self._client: int | None = None
-        self._cspace_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.world = get_world(world)
+        self._world_key = _file_key(world)
+        # no pair possible: one-line WorldError now, before any PyBullet scene is built
+        self._sampler: PairSampler | None = check_pairs_possible(self.world, self._footprint())
         self.pair: StartGoal | None = None
         self.trajectory: list[tuple[float, float]] = []
         self.last_hits: np.ndarray | None = None  # (beams, 2) world x, y of the last scan's end points
@@ -88,11 +98,17 @@ class NamoEnv(gym.Env):
         return self._steps
 
     def set_world(self, world: "str | os.PathLike | World") -> None:
-        """Switch worlds; the PyBullet scene is rebuilt on the next reset."""
+        """Switch worlds; the PyBullet scene is rebuilt on the next reset. The same world file
+        named again (unchanged on disk) keeps the current world and scene."""
+        key = _file_key(world)
+        if key is not None and key == self._world_key:
+            return
         new = get_world(world)
         if new is not self.world:
+            sampler = check_pairs_possible(new, self._footprint())
             self.world = new
-            self._cspace_cache = {}
+            self._sampler = sampler
+            self._world_key = key
             if self._scene is not None:
                 self._scene.close()
                 self._scene = None
@@ -103,8 +119,9 @@ class NamoEnv(gym.Env):
 
         ``options``: ``world`` (built-in name, YAML path or ``World``) and ``pair`` (index or
         name of one of the world's start/goal pairs, or a ``StartGoal``). Without a pair, one
-        is drawn: at random on the C-space grid if the world has ``random_pairs``, else among
-        its pairs. Unknown worlds and pairs raise ``WorldError`` / ``KeyError``.
+        is drawn: at random on the C-space grid if the world has ``random_pairs`` or no pairs of
+        its own (``curlnav.sim.pairs``), else among its pairs. Unknown worlds and pairs raise
+        ``WorldError`` / ``KeyError``.
         """
         super().reset(seed=seed)
         options = dict(options or {})
@@ -253,44 +270,18 @@ class NamoEnv(gym.Env):
             "steps": self._steps,
         }
 
-    def _cspace(self, clearance: float) -> tuple[np.ndarray, np.ndarray]:
-        """Free cells of the static map inflated by ``clearance`` (m), and their component labels."""
-        key = int(round(clearance * 1000))
-        if key not in self._cspace_cache:
-            world = self.world
-            dist = ndimage.distance_transform_edt(~world.occupancy) * world.resolution
-            free = dist > clearance
-            labels, _ = ndimage.label(free)
-            self._cspace_cache[key] = (free, labels)
-        return self._cspace_cache[key]
+    def _footprint(self) -> tuple[float, float]:
+        robot = self.config.robot
+        return robot.base_length, robot.base_width
 
     def _draw_pair(self) -> StartGoal:
+        """A pair for a reset without one: random (``PairSampler``, seeded by ``np_random``,
+        never one of ``excluded_pairs``) or one of the world's own pairs."""
         world = self.world
         rng = self.np_random
-        if world.random_pairs is None:
-            if not world.pairs:
-                raise WorldError(f"world {world.name!r} has no start/goal pairs and no random_pairs setting")
+        if self._sampler is None:
             return world.pairs[int(rng.integers(len(world.pairs)))]
-        spec = world.random_pairs
-        free, labels = self._cspace(spec.clearance)
-        cells = np.argwhere(free)
-        if len(cells) == 0:
-            raise WorldError(f"world {world.name!r}: no free C-space cell at clearance {spec.clearance} m")
-        for _ in range(1000):
-            sy, sx = cells[rng.integers(len(cells))]
-            same = cells[labels[cells[:, 0], cells[:, 1]] == labels[sy, sx]]
-            d = np.hypot(same[:, 0] - sy, same[:, 1] - sx) * world.resolution
-            far = same[d >= spec.min_distance]
-            if len(far) == 0:
-                continue
-            gy, gx = far[rng.integers(len(far))]
-            start = world.cell_centre(int(sy), int(sx))
-            goal = world.cell_centre(int(gy), int(gx))
-            if pair_key(start[0], start[1], goal[0], goal[1]) in self.excluded_pairs:
-                continue
-            yaw = float(rng.uniform(-math.pi, math.pi))
-            return StartGoal("random", start[0], start[1], yaw, goal[0], goal[1])
-        raise WorldError(f"world {world.name!r}: found no start/goal pair {spec.min_distance} m apart")
+        return self._sampler.draw(rng, self.excluded_pairs)
 
     def _place_balls(self, pair: StartGoal) -> list[tuple[float, float]]:
         world = self.world

@@ -12,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Polygon  # noqa: E402
+from matplotlib.transforms import Affine2D  # noqa: E402
 
 from .world import StartGoal, World  # noqa: E402
 
@@ -23,10 +24,14 @@ def draw_world(ax, world: World, pairs: Sequence[StartGoal] | None = None,
                ball_positions: Sequence[tuple[float, float]] | None = None,
                door_angles: Sequence[float] | None = None,
                box_poses: Sequence[tuple[float, float, float]] | None = None) -> None:
-    """Draw the static map, movable objects (at given or file positions) and start/goal pairs."""
+    """Draw the static map, movable objects (at given or file positions) and start/goal pairs,
+    all in the map frame; a rotated grid (``world.origin_yaw``) is drawn rotated."""
     x0, y0, x1, y1 = world.bounds
-    ax.imshow(world.occupancy, origin="lower", extent=(x0, x1, y0, y1), cmap="Greys", vmin=0, vmax=1.4,
-              interpolation="nearest")
+    width, height = world.size
+    image = ax.imshow(world.occupancy, origin="lower", extent=(0.0, width, 0.0, height), cmap="Greys", vmin=0,
+                      vmax=1.4, interpolation="nearest")
+    # grid frame -> map frame: rotate by origin_yaw about cell (0, 0)'s corner, then move it to origin
+    image.set_transform(Affine2D().rotate(world.origin_yaw).translate(*world.origin) + ax.transData)
     positions = ball_positions if ball_positions is not None else [(b.x, b.y) for b in world.balls]
     for ball, (bx, by) in zip(world.balls, positions):
         ax.add_patch(Circle((bx, by), ball.radius, color="tab:blue", alpha=0.8))
@@ -85,7 +90,8 @@ def draw_env(ax, env: "NamoEnv", title: str | None = None) -> None:
 
 def save_env_picture(env: "NamoEnv", path: str | os.PathLike, title: str | None = None) -> str:
     """Write a PNG of the environment's current state; returns the path."""
-    fig, ax = plt.subplots(figsize=(7, 7 * env.world.size[1] / max(env.world.size[0], 1e-9) + 0.5), dpi=110)
+    x0, y0, x1, y1 = env.world.bounds
+    fig, ax = plt.subplots(figsize=(7, 7 * (y1 - y0) / max(x1 - x0, 1e-9) + 0.5), dpi=110)
     draw_env(ax, env, title)
     fig.tight_layout()
     fig.savefig(path)

@@ -12,8 +12,30 @@ Conventions (all lengths in metres, angles in radians):
   (smallest y), so cell ``(iy, ix)`` has its centre at
   ``origin + ((ix + 0.5) * resolution, (iy + 0.5) * resolution)``. Image files store the top row
   first, as ROS does; loading and saving flip rows.
-- Map cells marked unknown in a ROS map (between the two thresholds) are loaded as obstacles:
-  the robot must not plan or drive through space nobody has seen.
+- ``origin: [x, y, yaw]`` is the map-frame pose of cell (0, 0)'s outer corner; a non-zero yaw
+  (3.14 and -1.57 are common in SLAM maps) rotates the grid about that point
+  (``World.origin_yaw``). Poses, pairs, balls, doors and pictures are always in the map frame.
+- Image values are read as ROS ``map_server`` reads them (the ROS 2 / Nav2 ``map_io`` rules, which
+  ROS 1's ``image_loader`` shares except where noted), giving each pixel the ``OccupancyGrid``
+  value 0 (free), 100 (occupied), 1..99 (a probability) or -1 (unknown). A pixel's *shade* is
+  the mean of its R, G, B channels scaled to [0, 1] (a grey image: the grey level), and
+  ``occ = shade`` if ``negate`` else ``1 - shade``. Then, by ``mode`` (default ``trinary``):
+
+  - ``trinary``: in an image with an alpha channel the alpha is averaged into the shade (as both
+    ROS versions do); ``occ > occupied_thresh`` is 100, ``occ < free_thresh`` is 0, else -1.
+  - ``scale``: alpha is not averaged in; a pixel that is not fully opaque is -1 (Nav2; ROS 1
+    calls only alpha 0 unknown, and only between the thresholds); else 100 / 0 as in trinary,
+    and between the thresholds the linear 1..99 probability.
+  - ``raw``: the value is the rounded mean of the channels (0..255) itself, ``negate`` and the
+    thresholds ignored (Nav2; ROS 1 applies ``negate`` first); 0..100 are kept, anything above
+    100 is -1 (unknown; in ROS 1 255 wraps to -1 as well).
+
+  Boolean occupancy (our policy, the same for every mode): a cell is free only when the map
+  server gives it 0; occupied (100), unknown (-1) and any probability 1..99 are obstacles, as
+  AMCL reads a map (0 free, 100 occupied, anything else unknown): the robot must not plan or
+  drive through space nobody has seen free. For an image without alpha, trinary and scale
+  therefore give the same grid (free iff ``occ < free_thresh``; scale also frees a pixel exactly
+  at ``free_thresh``, which Nav2 rounds to 0). Any other ``mode`` is refused, naming the file.
 - Door gaps are *free* in the occupancy grid: the grid is the static map, and the door is a
   movable object on top of it (the same prior map the paper's baseline used).
 """
@@ -293,6 +315,47 @@ def merge_cells_into_rectangles(occupancy: np.ndarray) -> list[tuple[int, int, i
 
 
 # -- file format ---------------------------------------------------------------------------
+MAP_MODES = ("trinary", "scale", "raw")
+
+
+def map_server_values(img, mode: str = "trinary", negate: bool = False, occupied_thresh: float = 0.65,
+                      free_thresh: float = 0.196) -> np.ndarray:
+    """The ``OccupancyGrid`` values (int8: 0 free, 100 occupied, 1..99, -1 unknown) that ROS
+    ``map_server`` gives a PIL image, in image row order (top row first). See the module
+    docstring for the rules of each ``mode``."""
+    if mode not in MAP_MODES:
+        raise ValueError(f"mode must be one of {', '.join(MAP_MODES)}, got {mode!r}")
+    if img.mode in ("I", "I;16", "I;16B", "I;16L", "I;16N", "F"):
+        full = 65535.0 if img.mode != "F" else 1.0
+        rgb = np.asarray(img, dtype=np.float64)[..., None] / full
+        alpha = None
+    else:
+        has_alpha = img.mode in ("RGBA", "LA", "PA", "La", "RGBa") or (img.mode == "P" and "transparency" in img.info)
+        arr = np.asarray(img.convert("RGBA" if has_alpha else "RGB"), dtype=np.float64) / 255.0
+        rgb, alpha = arr[..., :3], (arr[..., 3] if has_alpha else None)
+    channels = rgb.shape[-1]
+    if mode == "trinary" and alpha is not None:
+        shade = (rgb.sum(axis=-1) + alpha) / (channels + 1)
+    else:
+        shade = rgb.mean(axis=-1)
+    if mode == "raw":
+        raw = np.rint(shade * 255.0)
+        return np.where(raw <= 100, raw, -1).astype(np.int8)
+    occ = shade if negate else 1.0 - shade
+    out = np.full(occ.shape, -1, dtype=np.int8)
+    if mode == "scale":
+        span = max(occupied_thresh - free_thresh, 1e-12)
+        out[:] = np.rint((occ - free_thresh) / span * 100.0).clip(-1, 100).astype(np.int8)
+        out[occ > occupied_thresh] = 100
+        out[occ < free_thresh] = 0
+        if alpha is not None:
+            out[alpha < 1.0] = -1
+    else:
+        out[occ > occupied_thresh] = 100
+        out[occ < free_thresh] = 0
+    return out
+
+
 _OUR_KEYS = ("name", "wall_height", "balls", "doors", "boxes", "pairs", "ball_regions", "random_pairs")
 
 
@@ -356,22 +419,20 @@ def load_world(path: str | os.PathLike) -> World:
         free_thresh = float(meta.get("free_thresh", 0.196))
     except (TypeError, ValueError) as exc:
         raise _fail(path, f"bad map_server field: {exc}") from None
-    if len(origin) < 2:
-        raise _fail(path, "origin must be [x, y, yaw]")
-    if origin[2:3] and abs(origin[2]) > 1e-9:
-        raise _fail(path, "rotated map origins (yaw != 0) are not supported")
+    if len(origin) not in (2, 3) or not all(math.isfinite(v) for v in origin):
+        raise _fail(path, f"origin must be [x, y, yaw] (m, m, rad), got {meta['origin']!r}")
+    mode = meta.get("mode", "trinary")
+    if not isinstance(mode, str) or mode.strip().lower() not in MAP_MODES:
+        raise _fail(path, f"mode must be one of {', '.join(MAP_MODES)} (ROS map_server), got {mode!r}")
     image_path = (path.parent / str(meta["image"])).resolve()
     try:
         with Image.open(image_path) as img:
-            pixels = np.asarray(img.convert("L"), dtype=np.float64)
+            values = map_server_values(img, mode.strip().lower(), bool(negate), occupied_thresh, free_thresh)
     except FileNotFoundError:
         raise _fail(path, f"map image {image_path} does not exist") from None
     except (UnidentifiedImageError, OSError) as exc:
         raise _fail(path, f"map image {image_path} is unreadable: {exc}") from None
-    occ_prob = pixels / 255.0 if negate else (255.0 - pixels) / 255.0
-    occupied = occ_prob > occupied_thresh
-    unknown = (occ_prob >= free_thresh) & ~occupied
-    grid = np.flipud(occupied | unknown)
+    grid = np.flipud(values != 0)
 
     def item(key: str, cls: type) -> tuple:
         return _build_items(path, key, meta.get(key), cls)
@@ -403,6 +464,7 @@ def load_world(path: str | os.PathLike) -> World:
         occupancy=grid,
         resolution=resolution,
         origin=(origin[0], origin[1]),
+        origin_yaw=origin[2] if len(origin) > 2 else 0.0,
         wall_height=wall_height,
         balls=item("balls", Ball),
         doors=item("doors", Door),
@@ -436,7 +498,8 @@ def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm")
     meta: dict[str, Any] = {
         "image": image_name,
         "resolution": float(world.resolution),
-        "origin": [float(world.origin[0]), float(world.origin[1]), 0.0],
+        "origin": [float(world.origin[0]), float(world.origin[1]), float(world.origin_yaw)],
+        "mode": "trinary",
         "negate": 0,
         "occupied_thresh": 0.65,
         "free_thresh": 0.196,

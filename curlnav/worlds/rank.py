@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from curlnav.sim.world import World
+from curlnav.sim.pairs import sample_pairs
+from curlnav.sim.world import StartGoal, World
 
 from .metrics import GridGraph, MetricMaps, MetricsError, barn_astar, inflate
 
@@ -74,21 +75,35 @@ def resample(occupancy: np.ndarray, resolution: float, target: float) -> np.ndar
     return occupancy[np.ix_(r, c)]
 
 
+MEASURE_PAIRS = 5  # seeded random pairs measured on a world with no pairs of its own
+MEASURE_SEED = 0
+
+
+def measured_pairs(world: World) -> tuple[StartGoal, ...]:
+    """The pairs a world is measured (and drawn) with: its own, or for a plain map
+    ``MEASURE_PAIRS`` seeded random pairs (``curlnav.sim.pairs``; ``WorldError`` when no pair is
+    possible)."""
+    if world.pairs:
+        return world.pairs
+    return sample_pairs(world, MEASURE_PAIRS, seed=MEASURE_SEED)
+
+
 def world_paths(world: World, resolution: float = METRIC_RESOLUTION, radius_m: float = CSPACE_RADIUS_M
                 ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The C-space grid at ``resolution`` and one shortest cell path per pair (start twice).
-    ``MetricsError`` names the world and pair when a pair is blocked or unreachable."""
+    """The C-space grid at ``resolution`` (in the world's grid frame) and one shortest cell path
+    per pair of ``measured_pairs`` (start twice). ``MetricsError`` names the world and pair when
+    a pair is blocked or unreachable. ``path_points`` turns a path into map-frame points."""
     grid = resample(world.occupancy, world.resolution, resolution)
     cs = inflate(grid, int(round(radius_m / resolution)))
-    if not world.pairs:
-        raise MetricsError(f"{world.source}: world {world.name!r} has no start/goal pairs to measure")
+    pairs = measured_pairs(world)
     rows, cols = cs.shape
     starts, goals = [], []
-    for pair in world.pairs:
+    for pair in pairs:
         cells = []
         for label, (x, y) in (("start", (pair.x, pair.y)), ("goal", (pair.gx, pair.gy))):
-            r = int((y - world.origin[1]) / resolution)
-            c = int((x - world.origin[0]) / resolution)
+            u, v = world.grid_from_map(x, y)
+            r = int(math.floor(v / resolution))
+            c = int(math.floor(u / resolution))
             if not (0 <= r < rows and 0 <= c < cols) or cs[r, c]:
                 raise MetricsError(f"{world.source}: pair {pair.name!r} {label} ({x:.2f}, {y:.2f}) lies inside an "
                                    f"obstacle of the C-space grid (static map inflated by {radius_m} m)")
@@ -100,10 +115,16 @@ def world_paths(world: World, resolution: float = METRIC_RESOLUTION, radius_m: f
         paths = [barn_astar(cs, s, g, int(round(radius_m / resolution))) for s, g in zip(starts, goals)]
     else:
         paths = GridGraph(cs).shortest_paths(starts, goals)
-    for pair, path in zip(world.pairs, paths):
+    for pair, path in zip(pairs, paths):
         if path is None:
             raise MetricsError(f"{world.source}: pair {pair.name!r} has no path on the C-space grid")
     return cs, paths
+
+
+def path_points(world: World, path: np.ndarray, resolution: float = METRIC_RESOLUTION) -> tuple[np.ndarray, np.ndarray]:
+    """Map-frame ``(x, y)`` arrays (m) of the cell centres of a ``world_paths`` path."""
+    path = np.asarray(path)
+    return world.map_from_grid((path[:, 1] + 0.5) * resolution, (path[:, 0] + 0.5) * resolution)
 
 
 def measure(world: World) -> WorldDifficulty:
