@@ -6,8 +6,13 @@ velocity motors, so it cannot tip or drift out of the plane, and movable bodies 
 linear damping in place of rolling resistance. This keeps each physics step cheap while the
 contacts that matter (arm on ball, arm on door, base on wall) are real rigid-body contacts.
 
-All static obstacle cells of the grid are merged into a few rectangles and become *one*
-compound body, so a large world costs little per step and per ray.
+Static geometry: every face between an obstacle cell and free space, merged into straight
+segments, becomes part of a static triangle mesh, one mesh per tile of the grid (not one
+compound of boxes: PyBullet keeps at most 16 child shapes per compound and silently drops the
+rest, and one body per box costs broad-phase work per body and step), plus four boundary walls
+around the map; the scene checks that PyBullet holds every face and refuses to run otherwise.
+The LiDAR walks the occupancy grid for walls and intersects the movable bodies analytically
+(``geometry.py``); the tests hold both against PyBullet's own ray test on these bodies.
 """
 
 from __future__ import annotations
@@ -17,22 +22,30 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from operator import itemgetter
-
 import numpy as np
 import pybullet as pb
 
 from .config import EnvConfig
-from .world import Ball, Box, Door, World, merge_cells_into_rectangles
+from .geometry import cast_grid, cast_movable, face_segments, wall_faces
+from .world import Ball, Box, Door, World
 
-# Collision filter groups. Rays test static and movable bodies, never the robot itself.
-GROUP_STATIC = 1
-GROUP_MOVABLE = 2
-GROUP_ROBOT = 4
-GROUP_ALL = GROUP_STATIC | GROUP_MOVABLE | GROUP_ROBOT
-RAY_MASK = GROUP_STATIC | GROUP_MOVABLE
+# Collision filter groups. A pair collides when each one's group is in the other's mask. Bit 1
+# is Bullet's DefaultFilter, the group of PyBullet's ray queries: every mask keeps it so that
+# rays see every body (they choose what to see with their own ``collisionFilterMask``).
+GROUP_QUERY = 1
+GROUP_STATIC = 2  # walls: they never test against each other (that would cost more than all else)
+GROUP_MOVABLE = 4
+GROUP_ROBOT = 8
+GROUP_DOOR = 16  # door panels: their joint limits keep them off the walls, so they skip wall tests
+GROUP_ALL = GROUP_QUERY | GROUP_STATIC | GROUP_MOVABLE | GROUP_ROBOT | GROUP_DOOR
+RAY_MASK = GROUP_STATIC | GROUP_MOVABLE | GROUP_DOOR  # what a PyBullet ray test should see (not the robot)
+STATIC_TILE_CELLS = 256  # cells per side of one wall mesh (fewer bodies: less broad-phase work per step)
+MAX_SEGMENTS_PER_MESH = 8192  # 32k vertices; PyBullet refused one mesh of about 193k
+RAY_BATCH = 8192  # rays per rayTestBatch call when checking the walls
 
-_first, _third = itemgetter(0), itemgetter(2)  # body id and hit fraction of a rayTestBatch result
+
+class StaticGeometryError(RuntimeError):
+    """PyBullet does not hold every wall shape the scene created (a library limit was hit)."""
 
 # Robot joints, in the order of the URDF below.
 JOINT_X, JOINT_Y, JOINT_YAW, JOINT_ARM = 0, 1, 2, 3
@@ -76,10 +89,18 @@ def _robot_urdf(cfg: EnvConfig) -> str:
 """
 
 
+DOOR_HINGE_GAP = 0.03  # m; the panel starts just off the hinge so it never rubs the wall it hangs on
+
+
+def _door_panel_size(door: Door, height: float) -> tuple[float, float, float]:
+    """The door panel's box: length, thickness, height (m)."""
+    return max(door.width - 2 * DOOR_HINGE_GAP, 0.05), door.thickness, height
+
+
 def _door_urdf(door: Door, height: float) -> str:
     lower, upper = (0.0, door.max_open) if door.swing == "left" else (-door.max_open, 0.0)
-    gap = 0.03  # the panel starts just off the hinge so it never rubs the wall it hangs on
-    length = max(door.width - 2 * gap, 0.05)
+    gap = DOOR_HINGE_GAP
+    length = _door_panel_size(door, height)[0]
     m = door.mass
     izz = m * length ** 2 / 3
     return f"""<?xml version="1.0"?>
@@ -128,8 +149,8 @@ class Scene:
         beams = cfg.lidar_beams
         self.beam_angles = (np.linspace(-cfg.lidar_fov / 2, cfg.lidar_fov / 2, beams)
                             if beams > 1 else np.zeros(1))
-        self._ray_starts = np.full((beams, 3), cfg.lidar_height)
-        self._ray_ends = np.full((beams, 3), cfg.lidar_height)
+        self._static_ranges = np.empty(beams, dtype=np.float64)
+        self._no_boxes = np.zeros((0, 15))
 
     # -- building --------------------------------------------------------------------------
     def _build(self) -> None:
@@ -140,16 +161,17 @@ class Scene:
         pb.setPhysicsEngineParameter(fixedTimeStep=cfg.physics_timestep, numSubSteps=0,
                                      numSolverIterations=cfg.solver_iterations,
                                      deterministicOverlappingPairs=1, physicsClientId=c)
-        self.static_body = self._build_static()
-        self.movable_ids: list[int] = []
+        self.static_bodies = self._build_static()
         self.ball_ids = [self._build_ball(b) for b in self.world.balls]
         self.box_ids = [self._build_box(b) for b in self.world.boxes]
         self.door_ids = [self._build_door(i, d) for i, d in enumerate(self.world.doors)]
         self.movable_ids = self.ball_ids + self.box_ids + self.door_ids
         self.movable_set = frozenset(self.movable_ids)
-        lookup_size = max(self.movable_ids + [self.static_body]) + 2
-        self._movable_lookup = np.zeros(lookup_size, dtype=np.float32)
-        self._movable_lookup[self.movable_ids] = 1.0
+        self._box_half_extents = [(b.size_x / 2, b.size_y / 2, self.world.wall_height / 2) for b in self.world.boxes]
+        self._door_half_extents = []
+        for door in self.world.doors:
+            length, thickness, height = _door_panel_size(door, self.world.wall_height)
+            self._door_half_extents.append((length / 2, thickness / 2, height / 2))
         urdf = Path(self._tmp.name) / "robot.urdf"
         urdf.write_text(_robot_urdf(cfg))
         self.robot = pb.loadURDF(str(urdf), useFixedBase=True, physicsClientId=c)
@@ -160,33 +182,110 @@ class Scene:
         # Joints start with default velocity motors; ours are set each physics step.
         self._initial_state = pb.saveState(physicsClientId=c)
 
-    def _build_static(self) -> int:
+    def _build_static(self) -> list[int]:
+        """Every wall face as static triangle meshes (one per tile of the grid), plus four thick
+        boundary walls; returns the bodies' ids.
+
+        Only faces between an obstacle cell and a free cell (or the map's edge) exist, merged
+        into straight segments, each a vertical rectangle of two triangles. Meshes are
+        hollow: the robot moves at most a few cm per physics step, far less than any wall is
+        thick, so it meets a face long before it could pass one. After building, one short ray
+        across the middle of each segment checks that PyBullet holds it
+        (``StaticGeometryError`` otherwise).
+        """
         c = self.client
         world = self.world
         res = world.resolution
         h = world.wall_height
-        half_extents: list[list[float]] = []
-        centres: list[list[float]] = []
-        for iy, ix, height, width in merge_cells_into_rectangles(world.occupancy):
-            half_extents.append([width * res / 2, height * res / 2, h / 2])
-            centres.append([world.origin[0] + (ix + width / 2) * res,
-                            world.origin[1] + (iy + height / 2) * res, h / 2])
-        x0, y0, x1, y1 = world.bounds
+        rows, cols = world.occupancy.shape
+        yaw_q = pb.getQuaternionFromEuler([0, 0, world.origin_yaw])
+        bodies: list[int] = []
+        horizontal, vertical = wall_faces(world.occupancy)
+        segments: list[np.ndarray] = []
+        blocks = [(r, col, r + STATIC_TILE_CELLS if r + STATIC_TILE_CELLS < rows else rows + 1,
+                   col + STATIC_TILE_CELLS if col + STATIC_TILE_CELLS < cols else cols + 1)
+                  for r in range(0, rows, STATIC_TILE_CELLS) for col in range(0, cols, STATIC_TILE_CELLS)]
+        while blocks:
+            r0, c0, r1, c1 = blocks.pop()
+            seg = face_segments(horizontal, vertical, r0, c0, r1, c1)
+            if len(seg) == 0:
+                continue
+            if len(seg) > MAX_SEGMENTS_PER_MESH:  # too many for one mesh: halve the block
+                if r1 - r0 >= c1 - c0:
+                    mid = (r0 + r1) // 2
+                    blocks += [(r0, c0, mid, c1), (mid, c0, r1, c1)]
+                else:
+                    mid = (c0 + c1) // 2
+                    blocks += [(r0, c0, r1, mid), (r0, mid, r1, c1)]
+                continue
+            ends = seg.astype(np.float64) * res  # grid-frame metres
+            mid_u = (ends[:, [0, 2]].min() + ends[:, [0, 2]].max()) / 2
+            mid_v = (ends[:, [1, 3]].min() + ends[:, [1, 3]].max()) / 2
+            vertices = np.zeros((4 * len(seg), 3))
+            vertices[0::4, :2] = vertices[3::4, :2] = ends[:, :2] - (mid_u, mid_v)
+            vertices[1::4, :2] = vertices[2::4, :2] = ends[:, 2:] - (mid_u, mid_v)
+            vertices[2::4, 2] = vertices[3::4, 2] = h
+            first = np.arange(len(seg)) * 4
+            indices = np.stack([first, first + 1, first + 2, first, first + 2, first + 3], axis=1).ravel()
+            try:
+                shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(),
+                                                flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
+            except pb.error as exc:
+                raise StaticGeometryError(f"world {world.name!r}: PyBullet refused a wall mesh of {len(vertices)} "
+                                          f"vertices ({exc}); lower MAX_SEGMENTS_PER_MESH") from None
+            x, y = world.map_from_grid(mid_u, mid_v)
+            bodies.append(self._static_body(shape, [x, y, 0.0], yaw_q))
+            segments.append(seg)
+        self.static_segments = np.concatenate(segments) if segments else np.zeros((0, 4), dtype=np.int64)
+        self.static_mesh_count = len(bodies)
+        width, height = world.size
         t = BOUNDARY_THICKNESS
-        for cx, cy, hx, hy in (((x0 + x1) / 2, y0 - t / 2, (x1 - x0) / 2 + t, t / 2),
-                               ((x0 + x1) / 2, y1 + t / 2, (x1 - x0) / 2 + t, t / 2),
-                               (x0 - t / 2, (y0 + y1) / 2, t / 2, (y1 - y0) / 2),
-                               (x1 + t / 2, (y0 + y1) / 2, t / 2, (y1 - y0) / 2)):
-            half_extents.append([hx, hy, h / 2])
-            centres.append([cx, cy, h / 2])
-        self.static_box_count = len(half_extents)
-        shape = pb.createCollisionShapeArray(shapeTypes=[pb.GEOM_BOX] * len(half_extents),
-                                             halfExtents=half_extents, collisionFramePositions=centres,
-                                             physicsClientId=c)
-        body = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, physicsClientId=c)
-        pb.setCollisionFilterGroupMask(body, -1, GROUP_STATIC, GROUP_ALL, physicsClientId=c)
+        for u, v, hx, hy in ((width / 2, -t / 2, width / 2 + t, t / 2),
+                             (width / 2, height + t / 2, width / 2 + t, t / 2),
+                             (-t / 2, height / 2, t / 2, height / 2),
+                             (width + t / 2, height / 2, t / 2, height / 2)):
+            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[hx, hy, h / 2], physicsClientId=c)
+            x, y = world.map_from_grid(u, v)
+            bodies.append(self._static_body(shape, [x, y, h / 2], yaw_q))
+        self.static_set = frozenset(bodies)
+        self.static_segments_in_physics = self._count_segments_in_physics()
+        if self.static_segments_in_physics != len(self.static_segments):
+            raise StaticGeometryError(
+                f"world {world.name!r}: PyBullet holds {self.static_segments_in_physics} of "
+                f"{len(self.static_segments)} wall faces")
+        return bodies
+
+    def _static_body(self, shape: int, position: list[float], orientation) -> int:
+        c = self.client
+        # Maximal coordinates (a plain static rigid body) cost about half the physics time of
+        # a fixed multi-body; walls never test against walls.
+        body = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=shape, basePosition=position,
+                                  baseOrientation=orientation, useMaximalCoordinates=True, physicsClientId=c)
+        pb.setCollisionFilterGroupMask(body, -1, GROUP_STATIC, GROUP_ALL & ~GROUP_STATIC, physicsClientId=c)
         pb.changeDynamics(body, -1, lateralFriction=0.5, physicsClientId=c)
         return body
+
+    def _count_segments_in_physics(self) -> int:
+        """How many wall segments PyBullet holds: a 2 mm ray across each segment's middle, at
+        the scan height, must hit a static body (exactly one face lies within 1 mm there)."""
+        seg = self.static_segments
+        if len(seg) == 0:
+            return 0
+        world = self.world
+        res = world.resolution
+        mid = (seg[:, :2] + seg[:, 2:]).astype(np.float64) * res / 2
+        normal = np.where((seg[:, 1] == seg[:, 3])[:, None], [0.0, 1.0], [1.0, 0.0]) * 0.001
+        found = 0
+        z = self.cfg.lidar_height if self.cfg.lidar_height < world.wall_height else world.wall_height / 2
+        for k in range(0, len(seg), RAY_BATCH):
+            a = mid[k:k + RAY_BATCH] - normal[k:k + RAY_BATCH]
+            b = mid[k:k + RAY_BATCH] + normal[k:k + RAY_BATCH]
+            starts = np.column_stack(world.map_from_grid(a[:, 0], a[:, 1]) + (np.full(len(a), z),))
+            ends = np.column_stack(world.map_from_grid(b[:, 0], b[:, 1]) + (np.full(len(a), z),))
+            hits = pb.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=GROUP_STATIC,
+                                   physicsClientId=self.client)
+            found += sum(1 for hit in hits if hit[0] in self.static_set)
+        return found
 
     def _movable(self, body: int, damping: float, friction: float) -> int:
         c = self.client
@@ -220,9 +319,8 @@ class Scene:
         body = pb.loadURDF(str(urdf), basePosition=[door.hinge_x, door.hinge_y, 0.0],
                            baseOrientation=pb.getQuaternionFromEuler([0, 0, door.closed_angle]),
                            useFixedBase=True, physicsClientId=c)
-        pb.setCollisionFilterGroupMask(body, 0, GROUP_MOVABLE, GROUP_ALL, physicsClientId=c)
         # Joint limits keep the panel out of the walls; it never needs to touch them.
-        pb.setCollisionFilterPair(body, self.static_body, 0, -1, 0, physicsClientId=c)
+        pb.setCollisionFilterGroupMask(body, 0, GROUP_DOOR, GROUP_ALL & ~GROUP_STATIC, physicsClientId=c)
         pb.changeDynamics(body, 0, linearDamping=0, angularDamping=0.5, lateralFriction=0.3,
                           physicsClientId=c)
         pb.setJointMotorControl2(body, 0, pb.VELOCITY_CONTROL, targetVelocity=0,
@@ -280,7 +378,7 @@ class Scene:
             if point[8] > CONTACT_DISTANCE:
                 continue
             link, other = point[3], point[2]
-            static = other == self.static_body
+            static = other in self.static_set
             movable = other in self.movable_set
             if link == LINK_BASE:
                 counts.base_static |= static
@@ -291,31 +389,49 @@ class Scene:
         return counts
 
     def scan(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Cast the LiDAR from ``(x, y)`` at heading ``yaw``.
+        """Cast the LiDAR from ``(x, y)`` at heading ``yaw`` (map frame).
 
-        Returns ``ranges`` (m, shape ``(beams,)``, clipped at max range), ``labels`` (1.0 where
-        the beam's first hit is a movable object, else 0.0) and ``hits`` (world x, y of each
-        beam's end point, shape ``(beams, 2)``).
+        Returns ``ranges`` (m, float32, shape ``(beams,)``, clipped at max range), ``labels``
+        (float32, 1.0 where the beam's first hit is a movable object, else 0.0) and ``hits``
+        (map x, y of each beam's end point, shape ``(beams, 2)``).
         """
         cfg = self.cfg
+        world = self.world
         angles = yaw + self.beam_angles
-        starts = self._ray_starts
-        starts[:, 0] = x
-        starts[:, 1] = y
-        ends = self._ray_ends
-        ends[:, 0] = x + cfg.lidar_max_range * np.cos(angles)
-        ends[:, 1] = y + cfg.lidar_max_range * np.sin(angles)
-        results = pb.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=RAY_MASK,
-                                  physicsClientId=self.client)
-        bodies = np.array(list(map(_first, results)), dtype=np.int64)
-        fractions = np.array(list(map(_third, results)), dtype=np.float64)
-        missed = bodies < 0
-        fractions[missed] = 1.0
-        ranges = (fractions * cfg.lidar_max_range).astype(np.float32)
-        # bodies == -1 (no hit) indexes the table's last entry, which is False.
-        labels = self._movable_lookup[bodies]
-        hits = starts[:, :2] + (ends[:, :2] - starts[:, :2]) * fractions[:, None]
-        return ranges, labels, hits
+        u, v = world.grid_from_map(x, y)
+        static = cast_grid(world.occupancy, world.resolution, u, v, angles - world.origin_yaw,
+                           cfg.lidar_max_range, self._static_ranges)
+        movable, _ = cast_movable(x, y, cfg.lidar_height, angles, cfg.lidar_max_range,
+                                  self._ball_spheres(), self._box_obbs())
+        labels = (movable < static).astype(np.float32)
+        ranges64 = np.minimum(static, movable)
+        hits = np.stack([x + ranges64 * np.cos(angles), y + ranges64 * np.sin(angles)], axis=1)
+        return ranges64.astype(np.float32), labels, hits
+
+    def _ball_spheres(self) -> np.ndarray:
+        """Shape ``(balls, 4)``: centre x, y, z and radius (m)."""
+        out = np.empty((len(self.ball_ids), 4))
+        for i, (body, ball) in enumerate(zip(self.ball_ids, self.world.balls)):
+            pos, _ = pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
+            out[i, :3] = pos
+            out[i, 3] = ball.radius
+        return out
+
+    def _box_obbs(self) -> np.ndarray:
+        """Movable boxes and door panels as oriented boxes, shape ``(n, 15)`` (see ``cast_movable``)."""
+        n = len(self.box_ids) + len(self.door_ids)
+        if n == 0:
+            return self._no_boxes
+        out = np.empty((n, 15))
+        c = self.client
+        poses = [pb.getBasePositionAndOrientation(body, physicsClientId=c) for body in self.box_ids]
+        poses += [pb.getLinkState(body, 0, computeForwardKinematics=True, physicsClientId=c)[:2]
+                  for body in self.door_ids]
+        for i, ((pos, orn), half) in enumerate(zip(poses, self._box_half_extents + self._door_half_extents)):
+            out[i, :3] = pos
+            out[i, 3:12] = np.asarray(pb.getMatrixFromQuaternion(orn)).reshape(3, 3).T.ravel()
+            out[i, 12:] = half
+        return out
 
     def ball_positions(self) -> list[tuple[float, float]]:
         out = []

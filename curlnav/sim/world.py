@@ -283,35 +283,7 @@ class World:
 
 
 # -- static geometry -----------------------------------------------------------------------
-def merge_cells_into_rectangles(occupancy: np.ndarray) -> list[tuple[int, int, int, int]]:
-    """Cover the obstacle cells exactly with few axis-aligned rectangles.
-
-    Greedy: runs along each row, then each run grows upward while the rows above hold the same
-    run. Returns ``(iy, ix, height, width)`` in cells. A 36 m world of a few hundred obstacle
-    cells becomes a few dozen boxes, so the physics engine sees one small compound body.
-    """
-    occ = np.asarray(occupancy, dtype=bool).copy()
-    rows, cols = occ.shape
-    rects: list[tuple[int, int, int, int]] = []
-    for iy in range(rows):
-        row = occ[iy]
-        if not row.any():
-            continue
-        ix = 0
-        while ix < cols:
-            if not row[ix]:
-                ix += 1
-                continue
-            start = ix
-            while ix < cols and row[ix]:
-                ix += 1
-            width = ix - start
-            height = 1
-            while iy + height < rows and occ[iy + height, start:ix].all():
-                height += 1
-            occ[iy:iy + height, start:ix] = False
-            rects.append((iy, start, height, width))
-    return rects
+from .geometry import merge_cells_into_rectangles  # noqa: E402,F401  (re-exported: part of the world API)
 
 
 # -- file format ---------------------------------------------------------------------------
