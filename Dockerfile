@@ -27,7 +27,8 @@ COPY learner /src/learner
 COPY replay /src/replay
 COPY scheduler /src/scheduler
 COPY proto /src/proto
-RUN pip install --no-cache-dir --no-deps --no-build-isolation /src
+RUN pip install --no-cache-dir --no-deps --no-build-isolation /src \
+ && python -c "from curlnav.sim.geometry import warm_up; warm_up()"  # numba kernels compiled into the image
 
 RUN useradd --create-home --uid 10001 curlnav && mkdir -p /data /curricula && chown curlnav /data
 USER curlnav

@@ -43,10 +43,14 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     return _drive_and_draw(GoalSeekingController(cfg).act, args.world, args.pair, args.seed, cfg, args.out, "rollout")
 
 
+DEFAULT_BENCH_WORLDS = ("bench-36m", "barn-3x3:0", "slam-office:0")
+
+
 def _cmd_bench_env(args: argparse.Namespace) -> int:
     from .sim.bench import run_env_bench
 
-    run_env_bench(steps=args.steps, world=args.world, pin=not args.no_pin)
+    specs = args.world or list(DEFAULT_BENCH_WORLDS)
+    run_env_bench(steps=args.steps, worlds=[_world_from_spec(spec) for spec in specs], pin=not args.no_pin)
     return 0
 
 
@@ -368,7 +372,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     p = bench_sub.add_parser("env", help="environment steps/s on one core vs a bare PyBullet loop")
     p.add_argument("--steps", type=int, default=5000)
-    p.add_argument("--world", default="bench-36m")
+    p.add_argument("--world", action="append",
+                   help="world to measure (repeat for several): built-in, YAML or FAMILY:SEED "
+                        f"(default: {', '.join(DEFAULT_BENCH_WORLDS)})")
     p.add_argument("--no-pin", action="store_true", help="do not pin the process to one CPU core")
     p.set_defaults(func=_cmd_bench_env)
     p = bench_sub.add_parser("learner", help="D4PG learner updates/s per preset")

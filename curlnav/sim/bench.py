@@ -1,4 +1,11 @@
-"""``curlnav bench env``: environment steps per second against a bare PyBullet loop."""
+"""``curlnav bench env``: environment steps per second against a bare PyBullet loop, per world.
+
+For each world it prints the static geometry as built (obstacle cells merged into rectangles,
+wall faces merged into segments, segments PyBullet holds: equal, or the scene refuses to run),
+then the full ``NamoEnv.step`` rate and two floors on the same scene: the bare loop (the same 10
+physics steps plus one 241-ray ``rayTestBatch`` through every wall: what a LiDAR made of
+PyBullet rays costs) and the physics alone.
+"""
 
 from __future__ import annotations
 
@@ -10,22 +17,31 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as pb
 
-from .builtin import get_world
 from .config import EnvConfig
 from .env import NamoEnv
+from .geometry import merge_cells_into_rectangles
+from .pairs import check_pairs_possible
 from .scene import RAY_MASK, Scene
-from .world import merge_cells_into_rectangles
+from .world import World
+
+
 
 
 @dataclass(frozen=True)
 class EnvBenchResult:
+    world: str
+    rectangles: int
+    wall_segments: int
+    segments_in_physics: int
     env_steps_per_second: float
     bare_steps_per_second: float
+    physics_steps_per_second: float
     steps: int
     episodes: int
 
     @property
     def ratio(self) -> float:
+        """Environment steps/s over the bare loop's."""
         return self.env_steps_per_second / self.bare_steps_per_second
 
 
@@ -37,33 +53,44 @@ def _pin_to_one_core() -> str:
     return "not pinned (no sched_setaffinity)"
 
 
-def bare_pybullet_steps_per_second(world_name: str, cfg: EnvConfig, steps: int) -> float:
-    """The floor: the same world's bodies, the same physics substeps, one 241-ray batch, nothing else."""
-    scene = Scene(get_world(world_name), cfg)
-    pair = scene.world.pairs[0]
-    scene.reset((pair.x, pair.y, pair.yaw), [(b.x, b.y) for b in scene.world.balls])
+def _start_pose(world: World, cfg: EnvConfig) -> tuple[float, float, float]:
+    if world.pairs:
+        pair = world.pairs[0]
+    else:
+        sampler = check_pairs_possible(world, (cfg.robot.base_length, cfg.robot.base_width))
+        pair = sampler.draw(np.random.default_rng(0))
+    return pair.x, pair.y, pair.yaw
+
+
+def bare_pybullet_steps_per_second(world: World, cfg: EnvConfig, steps: int, rays: bool = True) -> float:
+    """The floor: the same world's bodies, the same physics substeps, and (``rays``) one
+    241-ray batch through the full geometry, nothing else; the robot moves as in the env."""
+    scene = Scene(world, cfg)
+    x, y, yaw = _start_pose(world, cfg)
+    scene.reset((x, y, yaw), [(b.x, b.y) for b in world.balls])
     c = scene.client
     n = cfg.lidar_beams
     angles = np.linspace(-cfg.lidar_fov / 2, cfg.lidar_fov / 2, n)
-    starts = np.tile([pair.x, pair.y, cfg.lidar_height], (n, 1))
+    starts = np.tile([x, y, cfg.lidar_height], (n, 1))
     ends = starts.copy()
-    ends[:, 0] += cfg.lidar_max_range * np.cos(angles)
-    ends[:, 1] += cfg.lidar_max_range * np.sin(angles)
+    ends[:, 0] += cfg.lidar_max_range * np.cos(angles + yaw)
+    ends[:, 1] += cfg.lidar_max_range * np.sin(angles + yaw)
     substeps = cfg.physics_substeps
     t0 = time.perf_counter()
     for _ in range(steps):
         for _ in range(substeps):
             pb.stepSimulation(physicsClientId=c)
-        pb.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=RAY_MASK, physicsClientId=c)
+        if rays:
+            pb.rayTestBatch(starts, ends, numThreads=1, collisionFilterMask=RAY_MASK, physicsClientId=c)
     elapsed = time.perf_counter() - t0
     scene.close()
     return steps / elapsed
 
 
-def env_steps_per_second(world_name: str, cfg: EnvConfig, steps: int, seed: int = 0) -> tuple[float, int]:
+def env_steps_per_second(world: "World | str", cfg: EnvConfig, steps: int, seed: int = 0) -> tuple[float, int]:
     """Full ``NamoEnv.step`` (physics, contacts, LiDAR, reward, stacked observation), with a
     wandering action sequence, resets included. Returns (steps/s, episodes)."""
-    env = NamoEnv(world_name, cfg)
+    env = NamoEnv(world, cfg)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     episodes = 1
@@ -79,25 +106,44 @@ def env_steps_per_second(world_name: str, cfg: EnvConfig, steps: int, seed: int 
     return steps / elapsed, episodes
 
 
-def run_env_bench(steps: int = 5000, world: str = "bench-36m", cfg: EnvConfig | None = None,
-                  pin: bool = True) -> EnvBenchResult:
-    cfg = cfg or EnvConfig()
-    pinned = _pin_to_one_core() if pin else "not pinned"
-    w = get_world(world)
-    print(f"machine: {platform.machine()} {platform.processor() or ''} cpus={os.cpu_count()} "
-          f"python={platform.python_version()} pybullet={pb.getAPIVersion()} ({pinned})")
-    print(f"world: {w.name} {w.size[0]:.0f} m x {w.size[1]:.0f} m, {int(w.occupancy.sum())} obstacle cells "
-          f"merged into {len(merge_cells_into_rectangles(w.occupancy))} boxes, "
-          f"{len(w.balls)} balls, {len(w.doors)} doors")
-    print(f"settings: control period {cfg.control_period} s, {cfg.physics_substeps} physics substeps, "
-          f"{cfg.solver_iterations} solver iterations, {cfg.lidar_beams} beams, observation {cfg.observation_size} floats")
-    # Warm up both paths once so that neither pays first-call costs in the timed part.
-    bare_pybullet_steps_per_second(world, cfg, 200)
-    env_steps_per_second(world, cfg, 200)
+def bench_world(world: World, cfg: EnvConfig, steps: int) -> EnvBenchResult:
+    """Measure one world (see the module docstring) and print its lines."""
+    rectangles = len(merge_cells_into_rectangles(world.occupancy))
+    scene = Scene(world, cfg)  # raises StaticGeometryError if PyBullet lost a wall face
+    segments, held, meshes = len(scene.static_segments), scene.static_segments_in_physics, scene.static_mesh_count
+    scene.close()
+    print(f"world: {world.name} {world.size[0]:.0f} m x {world.size[1]:.0f} m at {world.resolution} m, "
+          f"{int(world.occupancy.sum())} obstacle cells = {rectangles} rectangles merged; "
+          f"{segments} wall segments in {meshes} meshes, {held} present in physics"
+          f" ({'equal' if held == segments else 'MISSING ' + str(segments - held)}); "
+          f"{len(world.balls)} balls, {len(world.doors)} doors")
+    warm = max(steps // 20, 50)
+    env_steps_per_second(world, cfg, warm)  # first-call costs (numba, PyBullet) out of the timed part
+    bare_pybullet_steps_per_second(world, cfg, warm)
     env_rate, episodes = env_steps_per_second(world, cfg, steps)
     bare_rate = bare_pybullet_steps_per_second(world, cfg, steps)
-    result = EnvBenchResult(env_rate, bare_rate, steps, episodes)
-    print(f"env:  {env_rate:8.0f} steps/s  ({steps} steps, {episodes} episodes, full observation)")
-    print(f"bare: {bare_rate:8.0f} steps/s  (stepSimulation x {cfg.physics_substeps} + one rayTestBatch)")
-    print(f"ratio env/bare: {result.ratio:.2f}")
+    physics_rate = bare_pybullet_steps_per_second(world, cfg, steps, rays=False)
+    result = EnvBenchResult(world.name, rectangles, segments, held, env_rate, bare_rate, physics_rate, steps, episodes)
+    print(f"  env:     {env_rate:7.0f} steps/s  ({steps} steps, {episodes} episodes, full observation)")
+    print(f"  bare:    {bare_rate:7.0f} steps/s  (stepSimulation x {cfg.physics_substeps} + one {cfg.lidar_beams}-ray "
+          f"rayTestBatch through every wall)")
+    print(f"  physics: {physics_rate:7.0f} steps/s  (stepSimulation x {cfg.physics_substeps} only)")
+    print(f"  ratio env/bare: {result.ratio:.2f}")
     return result
+
+
+def run_env_bench(steps: int = 5000, worlds: "list[World] | None" = None, cfg: EnvConfig | None = None,
+                  pin: bool = True) -> list[EnvBenchResult]:
+    """Benchmark each of ``worlds`` (default: bench-36m, barn-3x3-0 and slam-office-0)."""
+    cfg = cfg or EnvConfig()
+    if worlds is None:
+        from curlnav.worlds.generators import generate
+        from .builtin import get_world
+
+        worlds = [get_world("bench-36m"), generate("barn-3x3", 0), generate("slam-office", 0)]
+    pinned = _pin_to_one_core() if pin else "not pinned"
+    print(f"machine: {platform.machine()} {platform.processor() or ''} cpus={os.cpu_count()} "
+          f"python={platform.python_version()} pybullet={pb.getAPIVersion()} ({pinned})")
+    print(f"settings: control period {cfg.control_period} s, {cfg.physics_substeps} physics substeps, "
+          f"{cfg.solver_iterations} solver iterations, {cfg.lidar_beams} beams, observation {cfg.observation_size} floats")
+    return [bench_world(world, cfg, steps) for world in worlds]

@@ -270,6 +270,14 @@ class NamoEnv(gym.Env):
             "steps": self._steps,
         }
 
+    def _wall_distance(self) -> np.ndarray:
+        """Distance (m) from each cell's centre to the nearest obstacle cell's centre, computed
+        once per world (it costs milliseconds on a large map, at every reset otherwise)."""
+        if getattr(self, "_wall_distance_of", None) is not self.world:
+            self._wall_distance_cache = ndimage.distance_transform_edt(~self.world.occupancy) * self.world.resolution
+            self._wall_distance_of = self.world
+        return self._wall_distance_cache
+
     def _footprint(self) -> tuple[float, float]:
         robot = self.config.robot
         return robot.base_length, robot.base_width
@@ -294,7 +302,7 @@ class NamoEnv(gym.Env):
             position = (ball.x, ball.y)
             if ball.region is not None:
                 if dist is None:
-                    dist = ndimage.distance_transform_edt(~world.occupancy) * world.resolution
+                    dist = self._wall_distance()
                 region = world.ball_regions[ball.region]
                 for _ in range(200):
                     bx = float(rng.uniform(region.x_min, region.x_max))

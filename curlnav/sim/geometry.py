@@ -301,3 +301,17 @@ def face_segments(horizontal: np.ndarray, vertical: np.ndarray, r0: int, c0: int
     rows_v, cols_v = vt.shape
     out, n = _face_runs(vt, False, c0, min(c1, rows_v), r0, min(r1, cols_v), out, n)
     return out[:n].copy()
+
+
+def warm_up() -> None:
+    """Compile every kernel now (numba caches the machine code beside this file, or in
+    ``NUMBA_CACHE_DIR``), so the first environment step does not pay for it; the container
+    image calls this when it is built."""
+    grid = np.zeros((4, 4), dtype=bool)
+    grid[0] = True
+    merge_cells_into_rectangles(grid)
+    horizontal, vertical = wall_faces(grid)
+    face_segments(horizontal, vertical, 0, 0, 5, 5)
+    angles = np.linspace(-1.0, 1.0, 3)
+    cast_grid(grid, 0.1, 0.2, 0.2, angles, 1.0)
+    cast_movable(0.0, 0.0, 0.0, angles, 1.0, np.array([[0.5, 0.0, 0.0, 0.1]]), np.zeros((1, 15)))
