@@ -24,13 +24,13 @@ from safetensors.torch import load as safetensors_load
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig, NamoEnv
 from curlnav.transport import HttpServer, RateMeter, open_session, reliable_publisher
-from learner.config import D4PGConfig
-from learner.d4pg import act
-from learner.networks import Actor
-from proto.codec import ProtoError
-from proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
-from proto.topology import Topology
-from replay.nstep import NStepWriter
+from curlnav.learner.config import D4PGConfig
+from curlnav.learner.d4pg import act
+from curlnav.learner.networks import Actor
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
+from curlnav.proto.topology import Topology
+from curlnav.replay.nstep import NStepWriter
 
 log = logging.getLogger("curlnav.actor")
 

@@ -23,9 +23,9 @@ import numpy as np
 def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: int) -> None:
     from curlnav.layout import ObservationLayout
     from curlnav.transport import open_session, reliable_publisher
-    from proto.messages import TransitionBatch
-    from proto.topology import Topology
-    from replay.nstep import NStepWriter
+    from curlnav.proto.messages import TransitionBatch
+    from curlnav.proto.topology import Topology
+    from curlnav.replay.nstep import NStepWriter
 
     layout = ObservationLayout()
     rng = np.random.default_rng(abs(hash(actor_id)) % (1 << 31))
@@ -46,12 +46,12 @@ def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: in
 def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64, run_dir: str = "runs/bench-transport") -> dict:
     from curlnav.launch import free_port, http_json
     from curlnav.transport import open_session, reliable_publisher
-    from learner.config import D4PGConfig
-    from learner.d4pg import init_state
-    from learner.service import weights_message
+    from curlnav.learner.config import D4PGConfig
+    from curlnav.learner.d4pg import init_state
+    from curlnav.learner.service import weights_message
     from curlnav.layout import ObservationLayout
-    from proto.messages import SampledBatch, SampleRequest, Weights
-    from proto.topology import Topology
+    from curlnav.proto.messages import SampledBatch, SampleRequest, Weights
+    from curlnav.proto.topology import Topology
 
     run_dir = Path(run_dir)
     if run_dir.exists():

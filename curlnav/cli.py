@@ -78,8 +78,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"policy artefacts: {run_dir / 'learner' / 'artefacts'}")
         return 0
 
-    from learner.config import D4PGConfig
-    from learner.serial import SerialTrainConfig, train_serial
+    from curlnav.learner.config import D4PGConfig
+    from curlnav.learner.serial import SerialTrainConfig, train_serial
 
     run_dir = Path(args.run_dir or f"runs/{_time.strftime('%Y%m%d-%H%M%S')}-{args.world.replace('/', '_')}")
     cfg = SerialTrainConfig(world=args.world, minutes=args.minutes, max_env_steps=args.max_env_steps,
@@ -113,7 +113,7 @@ def _load_policy(path: str):
         from .policy import PolicyArtefact
 
         return PolicyArtefact(p if p.is_dir() else p.parent)
-    from learner.d4pg import act, load_checkpoint
+    from curlnav.learner.d4pg import act, load_checkpoint
 
     state, _ = load_checkpoint(p)
     state.actor.eval()
@@ -141,7 +141,7 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_learner(args: argparse.Namespace) -> int:
-    from learner.bench import run_learner_bench
+    from curlnav.learner.bench import run_learner_bench
 
     run_learner_bench(presets=args.presets.split(","), seconds=args.seconds, batch_size=args.batch, threads=args.threads)
     return 0

@@ -68,13 +68,13 @@ def serve(args) -> int:
         run_router(args.listen, stop, connect=peers or None)
         return 0
     if args.role == "replay":
-        from replay.service import ReplayService, ReplayServiceConfig
+        from curlnav.replay.service import ReplayService, ReplayServiceConfig
 
         service = ReplayService(ReplayServiceConfig(run=args.run, router=args.router, data_dir=str(data / "replay"),
                                                     http_port=args.http_port, min_size_to_sample=args.min_size,
                                                     samples_per_insert=args.samples_per_insert))
     elif args.role == "learner":
-        from learner.service import LearnerService, LearnerServiceConfig
+        from curlnav.learner.service import LearnerService, LearnerServiceConfig
 
         service = LearnerService(LearnerServiceConfig(run=args.run, router=args.router, data_dir=str(data / "learner"),
                                                       http_port=args.http_port, preset=args.preset,
@@ -83,7 +83,7 @@ def serve(args) -> int:
                                                       checkpoint_every_s=args.checkpoint_every_s, worlds=(args.world,),
                                                       torch_threads=args.threads))
     elif args.role == "scheduler":
-        from scheduler.service import SchedulerService, SchedulerServiceConfig
+        from curlnav.scheduler.service import SchedulerService, SchedulerServiceConfig
         from curlnav.sim import get_world
 
         get_world(args.world)  # an unknown default world fails here, with its name
@@ -95,7 +95,7 @@ def serve(args) -> int:
             for world in stage.worlds:
                 get_world(world)
     else:
-        from actor.service import ActorService, ActorServiceConfig
+        from curlnav.actor.service import ActorService, ActorServiceConfig
         from curlnav.sim import get_world
 
         get_world(args.world)

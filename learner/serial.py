@@ -25,7 +25,7 @@ import torch
 from curlnav.evaluate import EvalResult, evaluate, excluded_keys, held_out_pairs
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig, NamoEnv
-from replay import NStepWriter, ReplayTable, SampleToInsertRatio
+from curlnav.replay import NStepWriter, ReplayTable, SampleToInsertRatio
 
 from .artefact import export_policy
 from .config import D4PGConfig

@@ -26,9 +26,9 @@ from safetensors.torch import save as safetensors_bytes
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig
 from curlnav.transport import HttpServer, RateMeter, json_response, open_session, reliable_publisher
-from proto.codec import ProtoError
-from proto.messages import SampledBatch, SampleRequest, ServiceStatus, Weights
-from proto.topology import Topology
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import SampledBatch, SampleRequest, ServiceStatus, Weights
+from curlnav.proto.topology import Topology
 
 from .artefact import export_policy
 from .config import D4PGConfig

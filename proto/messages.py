@@ -10,7 +10,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from replay.nstep import FrameBatch
+from curlnav.replay.nstep import FrameBatch
 
 from .codec import ProtoError, check_header, dumps, field, loads, pack_array, unpack_array
 

@@ -24,9 +24,9 @@ from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.layout import ObservationLayout
 from curlnav.transport import HttpServer, RateMeter, json_response, open_session
-from proto.codec import ProtoError
-from proto.messages import SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
-from proto.topology import Topology
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
+from curlnav.proto.topology import Topology
 
 from .table import RateLimiterTimeout, ReplayInputError, ReplayTable, SampleToInsertRatio
 

@@ -21,9 +21,9 @@ from pathlib import Path
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.transport import HttpServer, json_response, open_session
-from proto.codec import ProtoError
-from proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
-from proto.topology import Topology
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
+from curlnav.proto.topology import Topology
 
 from .curriculum import Curriculum, CurriculumState, load_curriculum
 

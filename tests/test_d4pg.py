@@ -13,9 +13,9 @@ import torch
 from curlnav.layout import ObservationLayout
 from curlnav.policy import ArtefactError, PolicyArtefact
 from curlnav.sim import EnvConfig
-from learner.artefact import export_policy
-from learner.config import D4PGConfig
-from learner.d4pg import TensorBatch, act, categorical_projection, init_state, load_checkpoint, save_checkpoint, sgd_step
+from curlnav.learner.artefact import export_policy
+from curlnav.learner.config import D4PGConfig
+from curlnav.learner.d4pg import TensorBatch, act, categorical_projection, init_state, load_checkpoint, save_checkpoint, sgd_step
 
 LAYOUT = ObservationLayout()
 

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from curlnav.layout import ObservationLayout
-from proto.codec import ProtoError
-from proto.messages import (Assignment, AssignmentRequest, EpisodeReport, SampleRequest, ServiceStatus, TransitionBatch,
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import (Assignment, AssignmentRequest, EpisodeReport, SampleRequest, ServiceStatus, TransitionBatch,
                             Weights)
-from proto.topology import Topology
-from replay.nstep import NStepWriter
-from replay.service import ReplayService, ReplayServiceConfig
-from scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
-from scheduler.service import SchedulerCore
+from curlnav.proto.topology import Topology
+from curlnav.replay.nstep import NStepWriter
+from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
+from curlnav.scheduler.service import SchedulerCore
 
 LAYOUT = ObservationLayout()
 

@@ -10,7 +10,7 @@ import pytest
 
 from curlnav.launch import LocalCluster, http_json
 from curlnav.transport import open_session, reliable_publisher
-from proto.topology import Topology
+from curlnav.proto.topology import Topology
 
 CURRICULUM = """
 name: tiny

@@ -1,0 +1,77 @@
+"""The one place that knows how D4PG's pieces fit, from one ``ExperimentConfig``.
+
+In the spirit of Acme's D4PG ``builder.py``: the replay table with its rate limiter, the n-step
+writer, the learner's state, the behaviour policy, the environments and the evaluation protocol
+are all made here. The serial trainer and every service (replay, learner, actor, scheduler) call
+these methods and nothing else, so the two training modes cannot drift apart again (they once
+trained at different batch sizes, warm-ups and exploration scales).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from curlnav.config import ExperimentConfig
+from curlnav.layout import ObservationLayout
+from curlnav.learner.d4pg import D4PGState, init_state
+from curlnav.learner.networks import BehaviourPolicy
+from curlnav.replay import NStepWriter, ReplayTable, SampleToInsertRatio
+from curlnav.sim import NamoEnv
+
+
+class D4PGBuilder:
+    """Makes every component of one experiment. ``config`` is never changed."""
+
+    def __init__(self, config: ExperimentConfig) -> None:
+        self.config = config
+        self.layout = ObservationLayout.from_env_config(config.env)
+
+    # -- replay --------------------------------------------------------------------------------
+    def make_rate_limiter(self) -> SampleToInsertRatio:
+        """Reverb's SampleToInsertRatio with the replay section's ratio, warm-up and slack."""
+        replay, batch = self.config.replay, self.config.d4pg.batch_size
+        limiter = SampleToInsertRatio(replay.samples_per_insert, replay.min_size, replay.error_buffer(batch))
+        limiter.check_batch(batch)
+        return limiter
+
+    def make_replay_table(self) -> ReplayTable:
+        replay = self.config.replay
+        return ReplayTable(self.layout, replay.capacity, self.make_rate_limiter(),
+                           "prioritized" if replay.prioritized else "uniform",
+                           priority_exponent=replay.priority_exponent, seed=self.config.seed)
+
+    def restore_replay_table(self, path) -> ReplayTable:
+        """A saved table under this config's rate limiter (its own capacity and contents)."""
+        return ReplayTable.restore(path, self.make_rate_limiter())
+
+    def importance_weights(self, probabilities: np.ndarray, table_size: int) -> np.ndarray | None:
+        """Importance-sampling weights ``(N P(i)) ** -beta``, max-normalised, for a prioritized
+        sample; None for uniform sampling (every weight 1)."""
+        if not self.config.replay.prioritized:
+            return None
+        weights = (1.0 / (max(table_size, 1) * np.maximum(probabilities, 1e-12))) ** self.config.replay.importance_exponent
+        return (weights / weights.max()).astype(np.float32)
+
+    # -- acting --------------------------------------------------------------------------------
+    def make_nstep_writer(self) -> NStepWriter:
+        return NStepWriter(self.layout, self.config.d4pg.n_step, self.config.d4pg.discount)
+
+    def make_behaviour_policy(self, actor_index: int = 0, actor_count: int = 1) -> BehaviourPolicy:
+        """The policy actor ``actor_index`` of ``actor_count`` runs: random actions for its share
+        of the warm-up, then the latest network with its rung of the sigma ladder."""
+        exploration = self.config.exploration
+        return BehaviourPolicy(self.layout, self.config.d4pg, sigma=exploration.sigma(actor_index),
+                               warmup_steps=exploration.warmup_share(actor_count),
+                               rng=np.random.default_rng([self.config.seed, actor_index]))
+
+    def make_env(self, world=None) -> NamoEnv:
+        """The training environment (episodes end at a base collision)."""
+        return NamoEnv(world if world is not None else self.config.curriculum.world, self.config.env)
+
+    def make_eval_env(self, world=None) -> NamoEnv:
+        """The evaluation environment (collisions counted, the trial goes on)."""
+        return NamoEnv(world if world is not None else self.config.curriculum.world, self.config.eval_env)
+
+    # -- learning ------------------------------------------------------------------------------
+    def make_learner_state(self, device=None) -> D4PGState:
+        return init_state(self.config.d4pg, self.layout, device)

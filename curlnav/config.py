@@ -1,0 +1,433 @@
+"""The experiment config: everything that changes results, in one typed, frozen, validated tree.
+
+``ExperimentConfig`` holds the environment, D4PG (networks and optimisation), the replay (its
+size, warm-up, rate limit and prioritisation), exploration (per actor), the curriculum, the
+evaluation protocol and the budget. Presets are values of it (``ExperimentConfig.preset``).
+``curlnav.builder.D4PGBuilder`` makes every component from it, for the serial trainer and for
+every service alike, so the two modes cannot drift. Service configs (``*ServiceConfig``) hold
+only where and how a service runs (run name, router, ports, data folder, threads), never what
+it learns.
+
+Loading: ``load_config(path)`` (YAML or JSON, unknown keys refused with their dotted path),
+``apply_overrides(cfg, ["d4pg.batch_size=512"])`` and ``overrides_from_environment()``
+(``CURLNAV_D4PG__BATCH_SIZE=512``: section and field joined by a double underscore). Every
+value is validated when the config is built; errors are ``ConfigError`` with one line naming the
+field. ``config_hash(cfg)`` identifies a config: all services of one run must agree on it.
+Units: metres, seconds, radians, kilograms; counts are environment steps or transitions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from curlnav.sim.config import ConfigError, EnvConfig
+
+__all__ = ["ConfigError", "D4PGConfig", "ReplayConfig", "ExplorationConfig", "CurriculumConfig", "EvaluationConfig",
+           "BudgetConfig", "ExperimentConfig", "PRESETS", "load_config", "apply_overrides",
+           "overrides_from_environment", "config_hash", "config_to_dict", "config_from_dict", "config_differences"]
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)
+
+
+def _positive_numbers(obj: Any, prefix: str, names: list[str]) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        _require(not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+                 f"{prefix}.{name} must be a positive number, got {value!r}")
+
+
+@dataclass(frozen=True)
+class D4PGConfig:
+    """Networks and optimisation of distributional DDPG."""
+
+    preset: str = "default"  # the preset these values came from (informative)
+    # "pooled" min-pools each range frame (max-pools each label frame) over windows of `pool`
+    # beams into an MLP; "conv" is the paper's trunk: two Conv1D (32 filters, kernel 3) over the
+    # 8 stacked scan channels.
+    encoder: str = "pooled"
+    pool: int = 4  # beams per window of the pooled encoder (241 -> 61)
+    conv_filters: int = 32  # filters per Conv1D layer of the conv encoder
+    hidden: tuple[int, ...] = (256, 256)  # MLP widths (ELU) of the actor and critic heads
+    atoms: int = 51  # atoms of the categorical return distribution
+    v_min: float = -50.0  # lower end of its support (return units; the goal reward is +200)
+    v_max: float = 250.0  # upper end
+    n_step: int = 5  # steps per n-step return
+    discount: float = 0.99  # per environment step (0.2 s)
+    batch_size: int = 256  # transitions per update
+    actor_lr: float = 1e-4  # Adam learning rate of the actor
+    critic_lr: float = 1e-4  # Adam learning rate of the critic
+    target_update_period: int = 100  # updates between hard copies to the target networks
+    grad_clip_norm: float = 40.0  # global gradient norm, per network
+    seed: int = 0  # network initialisation
+
+    def __post_init__(self) -> None:
+        p = "d4pg"
+        _require(self.encoder in ("pooled", "conv"), f"{p}.encoder must be 'pooled' or 'conv', got {self.encoder!r}")
+        _require(isinstance(self.atoms, int) and self.atoms >= 2, f"{p}.atoms must be an integer >= 2, got {self.atoms!r}")
+        _require(self.v_min < self.v_max, f"{p}.v_min ({self.v_min}) must be below {p}.v_max ({self.v_max})")
+        _require(0 < self.discount <= 1, f"{p}.discount must be in (0, 1], got {self.discount!r}")
+        _positive_numbers(self, p, ["pool", "conv_filters", "n_step", "batch_size", "actor_lr", "critic_lr",
+                                    "target_update_period", "grad_clip_norm"])
+        _require(len(self.hidden) > 0 and all(isinstance(h, int) and h > 0 for h in self.hidden),
+                 f"{p}.hidden must be positive integer widths, got {self.hidden!r}")
+
+    def to_dict(self) -> dict:
+        return config_to_dict(self)
+
+    @staticmethod
+    def from_dict(data: dict) -> "D4PGConfig":
+        """From ``to_dict`` output. Keys that older curlnav versions kept here (replay and
+        exploration settings, now in their own sections) are ignored, so old checkpoints and
+        weights messages still load."""
+        legacy = {"exploration_sigma", "replay_min_size", "replay_max_size", "samples_per_insert",
+                  "samples_per_insert_tolerance", "prioritized"}
+        return config_from_dict(D4PGConfig, {k: v for k, v in data.items() if k not in legacy}, "d4pg")
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """The replay table and its rate limiter (Reverb's ``SampleToInsertRatio``)."""
+
+    capacity: int = 200_000  # transitions kept (FIFO)
+    min_size: int = 2000  # transitions inserted before the first sample (the learner's warm-up)
+    samples_per_insert: float = 64.0  # transitions sampled per transition inserted, on average
+    tolerance: float = 0.1  # how far the ratio may drift: see ``error_buffer``
+    prioritized: bool = False  # sample by priority (critic loss) instead of uniformly
+    priority_exponent: float = 0.6  # alpha: sampling probability ~ priority ** alpha
+    importance_exponent: float = 0.4  # beta: importance weights (N P(i)) ** -beta, max-normalised
+
+    def __post_init__(self) -> None:
+        _positive_numbers(self, "replay", ["capacity", "min_size", "samples_per_insert", "tolerance",
+                                           "priority_exponent", "importance_exponent"])
+        _require(self.min_size <= self.capacity,
+                 f"replay.min_size ({self.min_size}) must not exceed replay.capacity ({self.capacity})")
+
+    def error_buffer(self, batch_size: int) -> float:
+        """The rate limiter's slack (transitions x samples): ``tolerance * min_size *
+        samples_per_insert``, but never less than ``batch_size + samples_per_insert``, so that
+        inserts and samples can never both be blocked (the one formula, for every mode)."""
+        return max(self.tolerance * self.min_size * self.samples_per_insert, batch_size + self.samples_per_insert)
+
+
+@dataclass(frozen=True)
+class ExplorationConfig:
+    """How actors explore. Actor ``i`` (the serial trainer is actor 0) adds Gaussian noise of
+    ``sigma_ladder[i % len(sigma_ladder)]`` times each action's half-range, clipped to the
+    bounds; several actors thus explore at several scales, as Ape-X and D4PG's actors do."""
+
+    sigma_ladder: tuple[float, ...] = (0.3, 0.5, 0.2)  # noise scale per actor index
+    warmup_steps: int = 2000  # uniformly random actions at the start of a run, shared by the actors
+
+    def __post_init__(self) -> None:
+        _require(len(self.sigma_ladder) > 0 and all(isinstance(s, (int, float)) and 0 <= s <= 10 and math.isfinite(s)
+                                                    for s in self.sigma_ladder),
+                 f"exploration.sigma_ladder must be numbers in [0, 10], got {self.sigma_ladder!r}")
+        _require(isinstance(self.warmup_steps, int) and self.warmup_steps >= 0,
+                 f"exploration.warmup_steps must be a non-negative integer, got {self.warmup_steps!r}")
+
+    def sigma(self, actor_index: int) -> float:
+        """The noise scale of actor ``actor_index``."""
+        return float(self.sigma_ladder[actor_index % len(self.sigma_ladder)])
+
+    def warmup_share(self, actor_count: int) -> int:
+        """Random-action steps each of ``actor_count`` actors takes."""
+        return -(-self.warmup_steps // max(actor_count, 1))
+
+
+@dataclass(frozen=True)
+class CurriculumConfig:
+    """What to train on: one world (with its pairs, or random pairs), or a curriculum file."""
+
+    world: str = "open-room"  # built-in name or world YAML; also the actors' fallback
+    file: str = ""  # curriculum YAML for the scheduler; empty: train on `world` only
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.world, str) and self.world != "", "curriculum.world must name a world")
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """The held-out evaluation protocol (``curlnav.evaluate``): greedy policy, collisions
+    counted and the trial goes on, start/goal pairs never drawn in training."""
+
+    every_s: float = 120.0  # s of training between evaluations
+    episodes: int = 50  # held-out start/goal pairs per evaluation
+    max_episode_steps: int = 300  # 60 s at 5 Hz, the authors' evaluation timeout
+    stop_at_success: float | None = None  # stop training once an evaluation reaches this rate
+
+    def __post_init__(self) -> None:
+        _positive_numbers(self, "evaluation", ["every_s", "episodes", "max_episode_steps"])
+        _require(self.stop_at_success is None or 0 < self.stop_at_success <= 1,
+                 f"evaluation.stop_at_success must be in (0, 1], got {self.stop_at_success!r}")
+
+
+@dataclass(frozen=True)
+class BudgetConfig:
+    """When training stops: whichever comes first."""
+
+    minutes: float = 15.0  # wall-clock minutes, evaluations included
+    max_env_steps: int | None = None  # environment steps over all actors
+
+    def __post_init__(self) -> None:
+        _positive_numbers(self, "budget", ["minutes"])
+        _require(self.max_env_steps is None or (isinstance(self.max_env_steps, int) and self.max_env_steps > 0),
+                 f"budget.max_env_steps must be a positive integer, got {self.max_env_steps!r}")
+
+
+def _training_env() -> EnvConfig:
+    return EnvConfig(max_episode_steps=200, end_on_base_collision=True)
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """One experiment. ``env`` is the *training* environment (episodes end at a base collision,
+    40 s); evaluation uses the same environment with collisions counted and its own timeout."""
+
+    env: EnvConfig = field(default_factory=_training_env)
+    d4pg: D4PGConfig = field(default_factory=D4PGConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    budget: BudgetConfig = field(default_factory=BudgetConfig)
+    seed: int = 0  # environment draws, exploration noise and sampling (each actor adds its index)
+
+    def __post_init__(self) -> None:
+        _require(self.replay.min_size >= self.d4pg.batch_size,
+                 f"replay.min_size ({self.replay.min_size}) must be at least d4pg.batch_size ({self.d4pg.batch_size})")
+        _require(2 * self.replay.error_buffer(self.d4pg.batch_size) >= self.replay.samples_per_insert + self.d4pg.batch_size,
+                 "replay.tolerance too small: inserts and samples could both block")
+
+    @property
+    def eval_env(self) -> EnvConfig:
+        """The evaluation environment: collisions counted, the trial goes on."""
+        return dataclasses.replace(self.env, end_on_base_collision=False,
+                                   max_episode_steps=self.evaluation.max_episode_steps)
+
+    @staticmethod
+    def preset(name: str) -> "ExperimentConfig":
+        """A named preset (``PRESETS``)."""
+        if name not in PRESETS:
+            raise ConfigError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
+        return PRESETS[name]()
+
+
+def _default() -> ExperimentConfig:
+    """Sized for a laptop CPU: a pooled encoder and 256-256 heads (0.41 M parameters)."""
+    return ExperimentConfig()
+
+
+def _paper() -> ExperimentConfig:
+    """The authors' network and settings: Conv1D trunk, 512-512-256-256 ELU heads, batch 512,
+    10k warm-up, exploration sigma 1.0 clipped, for every actor. (51 atoms on [-40, 130] as
+    published; we keep the wider support since the goal reward is +200.)"""
+    return ExperimentConfig(
+        d4pg=D4PGConfig(preset="paper", encoder="conv", hidden=(512, 512, 256, 256), batch_size=512),
+        replay=ReplayConfig(min_size=10_000),
+        exploration=ExplorationConfig(sigma_ladder=(1.0,)))
+
+
+PRESETS: dict[str, typing.Callable[[], ExperimentConfig]] = {"default": _default, "paper": _paper}
+
+
+# -- dictionaries, files, overrides ---------------------------------------------------------------
+def config_to_dict(cfg: Any) -> Any:
+    """A plain dict (tuples as lists) of a config dataclass, recursively."""
+    if dataclasses.is_dataclass(cfg):
+        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    if isinstance(cfg, tuple):
+        return [config_to_dict(v) for v in cfg]
+    return cfg
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _coerce(value: Any, tp: Any, path: str) -> Any:
+    """``value`` as type ``tp`` (from YAML, JSON or a command-line string)."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None or (isinstance(value, str) and value.lower() in ("none", "null", "")):
+            if type(None) in args:
+                return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(value, inner[0], path)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path} must be a mapping, got {value!r}")
+        return config_from_dict(tp, value, path)
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [v for v in value.replace("[", "").replace("]", "").split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{path} must be a list, got {value!r}")
+        return tuple(_coerce(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "yes", "1", "on", "false", "no", "0", "off"):
+            return value.lower() in ("true", "yes", "1", "on")
+        raise ConfigError(f"{path} must be true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, bool):
+            raise ConfigError(f"{path} must be an integer, got {value!r}")
+        try:
+            number = float(value) if isinstance(value, str) else value
+            if isinstance(number, float) and (not math.isfinite(number) or number != int(number)):
+                raise ValueError
+            return int(number)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{path} must be an integer, got {value!r}") from None
+    if tp is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{path} must be a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{path} must be a number, got {value!r}") from None
+    if tp is str:
+        if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+            raise ConfigError(f"{path} must be a string, got {value!r}")
+        return str(value)
+    return value
+
+
+def config_from_dict(cls: type, data: dict, path: str = "") -> Any:
+    """Build config dataclass ``cls`` from a dict; missing fields keep their defaults, unknown
+    keys and bad values raise ``ConfigError`` naming their dotted path."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path or 'config'} must be a mapping, got {type(data).__name__}")
+    types_ = _field_types(cls)
+    unknown = set(data) - set(types_)
+    if unknown:
+        where = f"{path}." if path else ""
+        raise ConfigError(f"unknown config key {where}{sorted(unknown)[0]}; known: {', '.join(sorted(types_))}")
+    values = {name: _coerce(value, types_[name], f"{path}.{name}" if path else name) for name, value in data.items()}
+    try:
+        return cls(**values)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{path or cls.__name__}: {exc}") from None
+
+
+def experiment_from_dict(data: dict, base: ExperimentConfig | None = None) -> ExperimentConfig:
+    """An ``ExperimentConfig`` from a dict laid over ``base`` (default: the default preset).
+    The dict may name a ``preset`` to start from instead."""
+    data = dict(data)
+    preset = data.pop("preset", None)
+    if preset is not None:
+        base = ExperimentConfig.preset(str(preset))
+    base_dict = config_to_dict(base or ExperimentConfig())
+    return config_from_dict(ExperimentConfig, _merge(base_dict, data))
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def load_config(path: str | os.PathLike, base: ExperimentConfig | None = None) -> ExperimentConfig:
+    """Read a YAML (or JSON) experiment file: any subset of the fields, optionally ``preset:``."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the config file: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
+    try:
+        return experiment_from_dict(data, base)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def apply_overrides(cfg: ExperimentConfig, overrides: list[str]) -> ExperimentConfig:
+    """Apply ``section.field=value`` overrides (``--set``), in order."""
+    data = config_to_dict(cfg)
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"an override must look like section.field=value, got {item!r}")
+        node = data
+        parts = key.split(".")
+        for part in parts[:-1]:
+            if not isinstance(node.get(part), dict):
+                raise ConfigError(f"unknown config key {key}")
+            node = node[part]
+        if parts[-1] not in node or isinstance(node[parts[-1]], dict):
+            raise ConfigError(f"unknown config key {key}")
+        node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else raw
+    return config_from_dict(ExperimentConfig, data)
+
+
+def overrides_from_environment(environ: dict[str, str] | None = None) -> list[str]:
+    """``CURLNAV_<SECTION>__<FIELD>[__<FIELD>]=value`` variables as overrides, sorted by name
+    (``CURLNAV_D4PG__BATCH_SIZE=512`` -> ``d4pg.batch_size=512``)."""
+    environ = os.environ if environ is None else environ
+    out = []
+    for name in sorted(environ):
+        if name.startswith("CURLNAV_") and "__" in name:
+            key = ".".join(part.lower() for part in name[len("CURLNAV_"):].split("__"))
+            out.append(f"{key}={environ[name]}")
+    return out
+
+
+def config_hash(cfg: ExperimentConfig) -> str:
+    """SHA-256 of the config's canonical JSON: equal for equal configs, whatever the source."""
+    text = json.dumps(config_to_dict(cfg), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """Dotted paths where two config dicts differ, with both values."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        path = f"{prefix}{key}"
+        va, vb = a.get(key), b.get(key)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += config_differences(va, vb, path + ".")
+        elif va != vb:
+            out.append(f"{path} {va!r} vs {vb!r}")
+    return out
+
+
+def config_to_yaml(cfg: ExperimentConfig) -> str:
+    return yaml.safe_dump(config_to_dict(cfg), sort_keys=False)
+
+
+def resolve_config(config_path: str | None = None, preset: str | None = None, overrides: list[str] | None = None,
+                   environ: dict[str, str] | None = None) -> ExperimentConfig:
+    """Preset (default ``default``), then the file, then ``CURLNAV_*`` variables, then
+    ``overrides``: the order in which a later source wins."""
+    cfg = ExperimentConfig.preset(preset or "default")
+    if config_path:
+        cfg = load_config(config_path, cfg)
+    env_overrides = overrides_from_environment(environ)
+    if env_overrides:
+        cfg = apply_overrides(cfg, env_overrides)
+    if overrides:
+        cfg = apply_overrides(cfg, overrides)
+    return cfg
