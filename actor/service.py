@@ -2,7 +2,9 @@
 
 Weights arrive on ``weights`` (and ``weights/latest`` when joining); the subscriber only keeps
 the newest message and the loop loads it between steps, so weight traffic never stalls the
-simulation. Each actor has its own exploration sigma. Transitions go out in batches every
+simulation. The environment, behaviour policy (actor ``actor_index``'s rung of the sigma ladder,
+its share of the warm-up) and n-step writer come from ``D4PGBuilder`` and run in the shared
+``EpisodeLoop``, exactly as in the serial trainer. Transitions go out in batches every
 ``batch_steps`` steps and at every episode end (reliable, BLOCK); each episode is reported to
 the scheduler, which is asked for the next world and pair at every reset. A liveliness token
 announces the actor; Zenoh reconnects by itself when the router comes back.
@@ -10,79 +12,65 @@ announces the actor; Zenoh reconnects by itself when the router comes back.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
-from pathlib import Path
 import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
-from safetensors.torch import load as safetensors_load
 
-from curlnav.layout import ObservationLayout
-from curlnav.sim import EnvConfig, NamoEnv
-from curlnav.transport import HttpServer, RateMeter, open_session, reliable_publisher
-from curlnav.learner.config import D4PGConfig
-from curlnav.learner.d4pg import act
-from curlnav.learner.networks import Actor
+from curlnav.builder import D4PGBuilder
+from curlnav.config import D4PGConfig, ExperimentConfig
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
-from curlnav.proto.topology import Topology
-from curlnav.replay.nstep import NStepWriter
+from curlnav.service import Deployment, ServiceShell
+from curlnav.transport import RateMeter, reliable_publisher
+
+from .loop import EpisodeLoop
 
 log = logging.getLogger("curlnav.actor")
 
 
 @dataclass(frozen=True)
 class ActorServiceConfig:
+    """Deployment of one actor (how it explores comes from the experiment config)."""
+
     actor_id: str = "actor-0"
-    run: str = "default"
-    router: str = "tcp/127.0.0.1:7447"
-    http_port: int = 0
-    sigma: float = 0.3  # exploration noise, fraction of each action's half-range
-    n_step: int = 5
-    discount: float = 0.99
-    batch_steps: int = 32  # steps per transition batch
-    max_episode_steps: int = 200
-    default_world: str = "open-room"  # when no scheduler answers
-    data_dir: str = ""  # where to write http_port (optional)
-    warmup_steps: int = 0  # random actions before the first weights arrive are always used
-    seed: int = 0
+    actor_index: int = 0  # rung of the sigma ladder and seed offset
+    actor_count: int = 1  # actors in the run: each takes this share of the warm-up
+    deployment: Deployment = Deployment(data_dir="")
+    batch_steps: int = 32  # environment steps per transition batch on the bus
 
 
 class ActorCore:
-    """Environment loop with n-step writer and swappable weights; no network."""
+    """The episode loop with swappable weights; no network."""
 
-    def __init__(self, cfg: ActorServiceConfig) -> None:
+    def __init__(self, cfg: ActorServiceConfig, experiment: ExperimentConfig) -> None:
         self.cfg = cfg
-        self.env_cfg = EnvConfig(max_episode_steps=cfg.max_episode_steps, end_on_base_collision=True)
-        self.layout = ObservationLayout.from_env_config(self.env_cfg)
-        self.env = NamoEnv(cfg.default_world, self.env_cfg)
-        self.writer = NStepWriter(self.layout, cfg.n_step, cfg.discount)
-        self.rng = np.random.default_rng(cfg.seed)
-        self.actor: Actor | None = None
+        builder = D4PGBuilder(experiment)
+        self.layout = builder.layout
+        self.policy = builder.make_behaviour_policy(cfg.actor_index, cfg.actor_count)
+        self.loop = EpisodeLoop(builder.make_env(), self.policy, builder.make_nstep_writer())
+        self.env = self.loop.env
+        self.default_world = experiment.curriculum.world
+        self.rng = np.random.default_rng([experiment.seed, cfg.actor_index, 1])
         self.weights_version = -1
         self.seq = 0
-        self.steps = 0
-        self.episodes = 0
+
+    @property
+    def steps(self) -> int:
+        return self.loop.steps
 
     def load_weights(self, msg: Weights) -> int:
-        if self.actor is None:
-            self.actor = Actor(self.layout, D4PGConfig.from_dict(msg.d4pg_config))
-            self.actor.eval()
-        self.actor.load_state_dict(safetensors_load(msg.safetensors))
+        self.policy.load_weights(msg.safetensors, D4PGConfig.from_dict(msg.d4pg_config))
         self.weights_version = msg.version
         return msg.version
 
-    def action(self, obs: np.ndarray) -> np.ndarray:
-        if self.actor is None or self.steps < self.cfg.warmup_steps:
-            return self.rng.uniform((0.0, -1.0, 0.0), (1.0, 1.0, 1.0)).astype(np.float32)
-        return act(self.actor, obs, self.cfg.sigma, self.rng)
-
     def batch(self) -> bytes | None:
-        frames = self.writer.flush()
+        frames = self.loop.flush()
         if frames.num_frames == 0 and frames.num_transitions == 0:
             return None
         msg = TransitionBatch(self.cfg.actor_id, self.seq, self.weights_version, frames)
@@ -91,11 +79,11 @@ class ActorCore:
 
 
 class ActorService:
-    def __init__(self, cfg: ActorServiceConfig) -> None:
+    def __init__(self, cfg: ActorServiceConfig, experiment: ExperimentConfig) -> None:
         self.cfg = cfg
-        self.topology = Topology(cfg.run)
+        self.experiment = experiment
         torch.set_num_threads(1)
-        self.core = ActorCore(cfg)
+        self.core = ActorCore(cfg, experiment)
         self.registry = CollectorRegistry()
         self.m_steps = Counter("actor_env_steps", "environment steps", registry=self.registry)
         self.m_episodes = Counter("actor_episodes", "episodes", ["world", "outcome"], registry=self.registry)
@@ -147,9 +135,9 @@ class ActorService:
         except Exception:  # safetensors or torch refused the tensors: count it, keep the old weights
             self.m_rejected.labels("bad_weights").inc()
 
-    def _assignment(self, session) -> Assignment | None:
+    def _assignment(self, session, key: str) -> Assignment | None:
         request = AssignmentRequest(self.cfg.actor_id).encode()
-        for reply in session.get(self.topology.assign, payload=request, timeout=2.0):
+        for reply in session.get(key, payload=request, timeout=2.0):
             if reply.ok is not None:
                 try:
                     return Assignment.decode(reply.ok.payload.to_bytes())
@@ -159,71 +147,60 @@ class ActorService:
 
     def run(self) -> None:
         cfg = self.cfg
-        topo = self.topology
         core = self.core
-        session = open_session(cfg.router)
-        transitions = reliable_publisher(session, topo.transitions(cfg.actor_id))
-        episodes = reliable_publisher(session, topo.episodes(cfg.actor_id))
-        weights_sub = session.declare_subscriber(topo.weights, self._on_weights)
-        credit_sub = session.declare_subscriber(topo.credit, self._on_credit)
-        token = session.liveliness().declare_token(topo.alive("actor", cfg.actor_id))
-        http = HttpServer("0.0.0.0", cfg.http_port, {}, registry=self.registry)
-        if cfg.data_dir:
-            Path(cfg.data_dir).mkdir(parents=True, exist_ok=True)
-            (Path(cfg.data_dir) / "http_port").write_text(str(http.port))
-        for reply in session.get(topo.weights_latest, timeout=5.0):
-            if reply.ok is not None:
-                self._on_weights(reply.ok)
-        log.info("actor %s up: run %s, router %s", cfg.actor_id, cfg.run, cfg.router)
-        try:
+        loop = core.loop
+        deployment = cfg.deployment
+        if not deployment.data_dir:
+            deployment = dataclasses.replace(deployment, data_dir=f"runs/service/actors/{cfg.actor_id}")
+        shell = ServiceShell("actor", cfg.actor_id, deployment, self.experiment, self.registry,
+                             lambda: {"steps": core.steps, "weights_version": core.weights_version})
+        with shell:
+            session = shell.open()
+            shell.on_close("environment", loop.close)
+            topo = shell.topology
+            transitions = reliable_publisher(session, topo.transitions(cfg.actor_id))
+            episodes = reliable_publisher(session, topo.episodes(cfg.actor_id))
+            weights_sub = session.declare_subscriber(topo.weights, self._on_weights)
+            shell.on_close("weights subscriber", weights_sub.undeclare)
+            credit_sub = session.declare_subscriber(topo.credit, self._on_credit)
+            shell.on_close("credit subscriber", credit_sub.undeclare)
+            for reply in session.get(topo.weights_latest, timeout=5.0):
+                if reply.ok is not None:
+                    self._on_weights(reply.ok)
             while not self.stop.is_set():
                 self._apply_weights()
-                assignment = self._assignment(session)
-                world = assignment.world if assignment else cfg.default_world
+                assignment = self._assignment(session, topo.assign)
+                world = assignment.world if assignment else core.default_world
                 options = {"world": world}
                 if assignment and assignment.pair:
                     options["pair"] = assignment.pair
                 try:
-                    obs, _ = core.env.reset(seed=int(core.rng.integers(1 << 31)), options=options)
+                    loop.begin(seed=int(core.rng.integers(1 << 31)), options=options)
                 except (KeyError, ValueError) as exc:
                     log.error("actor %s: cannot use assignment %s: %s", cfg.actor_id, options, exc)
                     self.stop.wait(1.0)
                     continue
-                core.writer.first(obs)
-                episode_return, version_used = 0.0, core.weights_version
-                while not self.stop.is_set():
+                version_used = core.weights_version
+                end = None
+                while not self.stop.is_set() and end is None:
                     if core.steps % cfg.batch_steps == 0:
                         self._wait_for_credit()
-                    action = core.action(obs)
-                    obs, reward, terminated, truncated, info = core.env.step(action)
-                    core.writer.step(action, reward, obs, terminated, truncated)
-                    core.steps += 1
-                    episode_return += reward
+                    end = loop.step()
                     self.m_steps.inc()
                     self.step_rate.add()
-                    done = terminated or truncated
-                    if done or core.steps % cfg.batch_steps == 0:
+                    if end is not None or core.steps % cfg.batch_steps == 0:
                         payload = core.batch()
                         if payload is not None:
                             transitions.put(payload)
                             allowed, heard = self._credit
                             self._credit = (allowed - cfg.batch_steps, heard)  # spend it until the next word
-                    if done:
-                        break
-                    if core.steps % 50 == 0:
+                    if end is None and core.steps % 50 == 0:
                         self._apply_weights()
-                if self.stop.is_set():
+                if end is None:
                     break
-                core.episodes += 1
-                self.m_episodes.labels(info["world"], "success" if info["is_success"] else "failure").inc()
+                info = end.info
+                self.m_episodes.labels(info["world"], "success" if end.success else "failure").inc()
                 episodes.put(EpisodeReport(cfg.actor_id, world, assignment.pair if assignment else "",
-                                           bool(info["is_success"]), float(episode_return), int(info["base_collisions"]),
+                                           end.success, float(end.episode_return), int(info["base_collisions"]),
                                            int(info["end_effector_collisions"]), int(info["steps"]), version_used,
                                            assignment.epoch if assignment else -1).encode())
-        finally:
-            token.undeclare()
-            credit_sub.undeclare()
-            weights_sub.undeclare()
-            http.close()
-            session.close()
-            core.env.close()

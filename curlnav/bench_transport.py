@@ -46,7 +46,7 @@ def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: in
 def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64, run_dir: str = "runs/bench-transport") -> dict:
     from curlnav.launch import free_port, http_json
     from curlnav.transport import open_session, reliable_publisher
-    from curlnav.learner.config import D4PGConfig
+    from curlnav.config import D4PGConfig
     from curlnav.learner.d4pg import init_state
     from curlnav.learner.service import weights_message
     from curlnav.layout import ObservationLayout
@@ -67,7 +67,7 @@ def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int 
     procs = [subprocess.Popen(common + ["router", "--listen", router], stdout=open(run_dir / "logs/router.log", "wb"),
                               stderr=subprocess.STDOUT),
              subprocess.Popen(common + ["replay", "--router", router, "--run", run, "--data-dir", str(run_dir),
-                                        "--min-size", "256", "--samples-per-insert", "0"],
+                                        "--set", "replay.min_size=256", "--set", "replay.samples_per_insert=0"],
                               stdout=open(run_dir / "logs/replay.log", "wb"), stderr=subprocess.STDOUT)]
     try:
         port_file = run_dir / "replay" / "http_port"

@@ -13,7 +13,6 @@ import numpy as np
 
 from curlnav.config import ExperimentConfig
 from curlnav.layout import ObservationLayout
-from curlnav.learner.d4pg import D4PGState, init_state
 from curlnav.learner.networks import BehaviourPolicy
 from curlnav.replay import NStepWriter, ReplayTable, SampleToInsertRatio
 from curlnav.sim import NamoEnv
@@ -30,6 +29,8 @@ class D4PGBuilder:
     def make_rate_limiter(self) -> SampleToInsertRatio:
         """Reverb's SampleToInsertRatio with the replay section's ratio, warm-up and slack."""
         replay, batch = self.config.replay, self.config.d4pg.batch_size
+        if replay.samples_per_insert == 0:  # no rate limit (benchmarks): sample once min_size is in
+            return SampleToInsertRatio.unlimited(replay.min_size)
         limiter = SampleToInsertRatio(replay.samples_per_insert, replay.min_size, replay.error_buffer(batch))
         limiter.check_batch(batch)
         return limiter
@@ -73,5 +74,9 @@ class D4PGBuilder:
         return NamoEnv(world if world is not None else self.config.curriculum.world, self.config.eval_env)
 
     # -- learning ------------------------------------------------------------------------------
-    def make_learner_state(self, device=None) -> D4PGState:
+    def make_learner_state(self, device=None):
+        """The learner's ``D4PGState`` (networks, targets, optimisers). Imported here so that
+        actors, which use the rest of the builder, never load the learner's internals."""
+        from curlnav.learner.d4pg import init_state
+
         return init_state(self.config.d4pg, self.layout, device)

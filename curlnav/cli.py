@@ -55,53 +55,15 @@ def _cmd_bench_env(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    import time as _time
+    from .train import run_train
 
-    _check_world(args.world)
-    if not args.serial:
-        from .launch import train_embedded
+    return run_train(args)
 
-        run_dir = Path(args.run_dir or f"runs/{_time.strftime('%Y%m%d-%H%M%S')}-{args.world.replace('/', '_')}-x{args.actors}")
-        print(f"run folder: {run_dir}; {args.actors} actors, world {args.world}, "
-              f"curriculum {args.curriculum or 'none'}, {args.minutes} min")
-        summary = train_embedded(run_dir, args.actors, args.minutes, args.world, args.curriculum,
-                                 eval_every_s=args.eval_every_s, eval_episodes=args.eval_episodes,
-                                 stop_at_success=args.stop_at_success, preset=args.preset)
-        print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min")
-        if summary["evals"]:
-            last = summary["evals"][-1]
-            print(f"last held-out evaluation: success {last['success_rate']:.0%}, "
-                  f"{last['collisions_per_episode']:.2f} collisions/episode")
-        reached = summary["first_eval_reaching_80"]
-        if reached:
-            print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min (policy v{reached['version']})")
-        print(f"policy artefacts: {run_dir / 'learner' / 'artefacts'}")
-        return 0
 
-    from curlnav.learner.config import D4PGConfig
-    from curlnav.learner.serial import SerialTrainConfig, train_serial
+def _cmd_config_show(args: argparse.Namespace) -> int:
+    from .train import show_config
 
-    run_dir = Path(args.run_dir or f"runs/{_time.strftime('%Y%m%d-%H%M%S')}-{args.world.replace('/', '_')}")
-    cfg = SerialTrainConfig(world=args.world, minutes=args.minutes, max_env_steps=args.max_env_steps,
-                            warmup_steps=args.warmup_steps, eval_every_s=args.eval_every_s,
-                            eval_episodes=args.eval_episodes, stop_at_success=args.stop_at_success,
-                            torch_threads=args.threads, seed=args.seed)
-    d4pg = D4PGConfig.named(args.preset, seed=args.seed,
-                            **({"replay_min_size": args.warmup_steps} if args.warmup_steps < 2000 else {}))
-    print(f"run folder: {run_dir}")
-    print(f"train: {cfg}")
-    print(f"d4pg: {d4pg}")
-    summary = train_serial(run_dir, cfg, d4pg, resume=args.resume)
-    final = summary["final_eval"]
-    print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min, {summary['env_steps']} env steps, "
-          f"{summary['updates']} updates, {summary['episodes']} episodes")
-    print(f"held-out evaluation: success {final['success_rate']:.0%} over {final['episodes']} episodes, "
-          f"{final['collisions_per_episode']:.2f} collisions/episode, time to goal {final['mean_time_to_goal_s']:.1f} s")
-    reached = summary["first_eval_reaching_80"]
-    if reached:
-        print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
-    print(f"policy artefact: {run_dir / 'policy'}; learning curve: {run_dir / 'learning_curve.png'}")
-    return 0
+    return show_config(args)
 
 
 def _load_policy(path: str):
@@ -121,12 +83,16 @@ def _load_policy(path: str):
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate, held_out_pairs
+    from .config import ExperimentConfig
+    from .evaluate import EvaluationProtocol
 
     _check_world(args.world)
     policy = _load_policy(args.policy)
-    pairs = held_out_pairs(args.world, args.episodes)
-    result = evaluate(policy, args.world, pairs)
+    protocol = EvaluationProtocol(ExperimentConfig(), world=args.world, episodes=args.episodes)
+    try:
+        result = protocol.run(policy)
+    finally:
+        protocol.close()
     print(f"{args.world}: {result.line()}, mean episode {result.mean_episode_time_s:.1f} s")
     return 0
 
@@ -297,21 +263,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="train a policy (--serial: environment and learner in one process)")
     p.add_argument("--serial", action="store_true", help="single-process trainer")
-    p.add_argument("--actors", type=int, default=2, help="actor processes (distributed trainer)")
-    p.add_argument("--curriculum", default="", help="curriculum YAML for the scheduler (distributed trainer)")
-    p.add_argument("--world", default="open-room", help="built-in world name or world YAML path")
-    p.add_argument("--minutes", type=float, default=15.0, help="wall-clock budget")
-    p.add_argument("--max-env-steps", type=int, default=None)
-    p.add_argument("--preset", default="default", choices=["default", "paper"])
-    p.add_argument("--warmup-steps", type=int, default=2000, help="random-action steps before learning")
-    p.add_argument("--eval-every-s", type=float, default=120.0)
-    p.add_argument("--eval-episodes", type=int, default=50)
-    p.add_argument("--stop-at-success", type=float, default=None, help="stop when held-out success reaches this")
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--actors", type=int, default=None, help="actor processes (distributed trainer; default 2)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads: the serial trainer's (default 2) or the learner service's (default 1)")
     p.add_argument("--run-dir", default=None, help="run folder (default runs/<time>-<world>)")
-    p.add_argument("--resume", action="store_true", help="continue from the run folder's checkpoint")
+    p.add_argument("--resume", action="store_true", help="continue the run folder's run (its saved config)")
+    from .experiment_cli import add_config_arguments, add_train_options
+
+    add_train_options(p)
+    add_config_arguments(p)
     p.set_defaults(func=_cmd_train)
+
+    config = sub.add_parser("config", help="the experiment config")
+    config_sub = config.add_subparsers(dest="config_command", required=True)
+    p = config_sub.add_parser("show", help="print the resolved config (preset, --config, CURLNAV_*, --set) and its hash")
+    add_config_arguments(p)
+    p.set_defaults(func=_cmd_config_show)
 
     p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs")
     p.add_argument("policy", help="policy artefact folder or checkpoint .safetensors")
@@ -400,12 +367,13 @@ def main(argv: list[str] | None = None) -> int:
         args.pair = int(args.pair)
     from .policy import ArtefactError
     from .sim.world import WorldError
+    from .service import ConfigMismatch
     from .transport import RouterUnreachable
     from .worlds.metrics import MetricsError
 
     try:
         return int(args.func(args) or 0)
-    except (WorldError, KeyError, ArtefactError, MetricsError, ValueError, RouterUnreachable) as exc:
+    except (WorldError, KeyError, ArtefactError, MetricsError, ValueError, RouterUnreachable, ConfigMismatch) as exc:
         print(f"curlnav: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -104,23 +104,29 @@ class ReplayConfig:
 
     capacity: int = 200_000  # transitions kept (FIFO)
     min_size: int = 2000  # transitions inserted before the first sample (the learner's warm-up)
-    samples_per_insert: float = 64.0  # transitions sampled per transition inserted, on average
+    samples_per_insert: float = 64.0  # transitions sampled per transition inserted, on average; 0: no rate limit
     tolerance: float = 0.1  # how far the ratio may drift: see ``error_buffer``
+    insert_batch: int = 64  # most transitions one insert brings (an actor's batch of 32 steps plus the n-step tail)
     prioritized: bool = False  # sample by priority (critic loss) instead of uniformly
     priority_exponent: float = 0.6  # alpha: sampling probability ~ priority ** alpha
     importance_exponent: float = 0.4  # beta: importance weights (N P(i)) ** -beta, max-normalised
 
     def __post_init__(self) -> None:
-        _positive_numbers(self, "replay", ["capacity", "min_size", "samples_per_insert", "tolerance",
+        _positive_numbers(self, "replay", ["capacity", "min_size", "tolerance", "insert_batch",
                                            "priority_exponent", "importance_exponent"])
+        _require(not isinstance(self.samples_per_insert, bool) and isinstance(self.samples_per_insert, (int, float))
+                 and math.isfinite(self.samples_per_insert) and self.samples_per_insert >= 0,
+                 f"replay.samples_per_insert must be a number >= 0, got {self.samples_per_insert!r}")
         _require(self.min_size <= self.capacity,
                  f"replay.min_size ({self.min_size}) must not exceed replay.capacity ({self.capacity})")
 
     def error_buffer(self, batch_size: int) -> float:
         """The rate limiter's slack (transitions x samples): ``tolerance * min_size *
-        samples_per_insert``, but never less than ``batch_size + samples_per_insert``, so that
-        inserts and samples can never both be blocked (the one formula, for every mode)."""
-        return max(self.tolerance * self.min_size * self.samples_per_insert, batch_size + self.samples_per_insert)
+        samples_per_insert``, but never less than one sampled batch plus one insert of
+        ``insert_batch`` transitions (``batch_size + samples_per_insert * insert_batch``), so
+        that inserts and samples can never both be blocked (the one formula, for every mode)."""
+        return max(self.tolerance * self.min_size * self.samples_per_insert,
+                   batch_size + self.samples_per_insert * self.insert_batch)
 
 
 @dataclass(frozen=True)
@@ -209,8 +215,6 @@ class ExperimentConfig:
     def __post_init__(self) -> None:
         _require(self.replay.min_size >= self.d4pg.batch_size,
                  f"replay.min_size ({self.replay.min_size}) must be at least d4pg.batch_size ({self.d4pg.batch_size})")
-        _require(2 * self.replay.error_buffer(self.d4pg.batch_size) >= self.replay.samples_per_insert + self.d4pg.batch_size,
-                 "replay.tolerance too small: inserts and samples could both block")
 
     @property
     def eval_env(self) -> EnvConfig:

@@ -1,7 +1,10 @@
-"""Greedy evaluation on held-out start/goal pairs: success rate, collisions, time.
+"""The evaluation protocol: greedy policy on held-out start/goal pairs; success rate,
+collisions, time.
 
-Evaluation follows the authors' protocol: a base collision is counted and the trial goes on;
-a trial that has not reached the goal after ``max_episode_steps`` (60 s) is a failure.
+It follows the authors' protocol: a base collision is counted and the trial goes on; a trial
+that has not reached the goal after ``evaluation.max_episode_steps`` (60 s) is a failure.
+Held-out pairs are drawn from their own seeds and excluded from training draws. The serial
+trainer, the launcher of the distributed run and ``curlnav eval`` all use ``EvaluationProtocol``.
 """
 
 from __future__ import annotations
@@ -36,7 +39,11 @@ class EvalResult:
 
 
 def evaluation_config(base: EnvConfig | None = None) -> EnvConfig:
-    return dataclasses.replace(base or EnvConfig(), end_on_base_collision=False, max_episode_steps=300)
+    """The evaluation environment of the default experiment (or of ``base``'s robot and sensors)."""
+    from .config import ExperimentConfig
+
+    experiment = ExperimentConfig() if base is None else dataclasses.replace(ExperimentConfig(), env=base)
+    return experiment.eval_env
 
 
 def held_out_pairs(world: "str | World", count: int = 50, seed: int = EVAL_SEED) -> list[StartGoal]:
@@ -65,8 +72,9 @@ def excluded_keys(pairs: list[StartGoal]) -> set:
 def evaluate(policy: Callable[[np.ndarray], np.ndarray], world: "str | World", pairs: list[StartGoal],
              env_config: EnvConfig | None = None, seed: int = EVAL_SEED,
              on_episode: Callable[[int, dict], None] | None = None, env: NamoEnv | None = None) -> EvalResult:
-    """Run ``policy`` greedily once per pair (balls placed from ``seed + i``)."""
-    cfg = evaluation_config(env_config)
+    """Run ``policy`` greedily once per pair (balls placed from ``seed + i``) in an environment
+    of ``env_config`` (default: ``evaluation_config()``; pass an evaluation environment)."""
+    cfg = env_config if env_config is not None else evaluation_config()
     own_env = env is None
     env = env or NamoEnv(world, cfg)
     successes, collisions, ee_collisions, times, goal_times = 0, 0, 0, [], []
@@ -92,3 +100,26 @@ def evaluate(policy: Callable[[np.ndarray], np.ndarray], world: "str | World", p
     n = max(len(pairs), 1)
     return EvalResult(len(pairs), successes / n, collisions / n, ee_collisions / n,
                       float(np.mean(goal_times)) if goal_times else float("nan"), float(np.mean(times)) if times else 0.0)
+
+
+class EvaluationProtocol:
+    """Held-out evaluation of one experiment on one world (``ExperimentConfig.evaluation``):
+    ``pairs`` (held out: give ``excluded`` to the training environments), ``run(policy)``."""
+
+    def __init__(self, experiment, world: "str | World | None" = None, episodes: int | None = None) -> None:
+        self.world = world if world is not None else experiment.curriculum.world
+        self.env_config = experiment.eval_env
+        self.pairs = held_out_pairs(self.world, episodes or experiment.evaluation.episodes)
+        self.excluded = excluded_keys(self.pairs)
+        self._env: NamoEnv | None = None
+
+    def run(self, policy: Callable[[np.ndarray], np.ndarray],
+            on_episode: Callable[[int, dict], None] | None = None) -> EvalResult:
+        if self._env is None:
+            self._env = NamoEnv(self.world, self.env_config)
+        return evaluate(policy, self.world, self.pairs, self.env_config, on_episode=on_episode, env=self._env)
+
+    def close(self) -> None:
+        if self._env is not None:
+            self._env.close()
+            self._env = None

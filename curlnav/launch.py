@@ -19,7 +19,7 @@ ROLES = ("router", "replay", "learner", "scheduler", "actor")
 
 
 def env_default(name: str, default):
-    """Configuration from ``CURLNAV_<NAME>`` environment variables (containers) or a default."""
+    """Deployment settings from ``CURLNAV_<NAME>`` environment variables (containers) or a default."""
     value = os.environ.get(f"CURLNAV_{name.upper()}")
     if value is None:
         return default
@@ -27,6 +27,10 @@ def env_default(name: str, default):
 
 
 def add_serve_arguments(p) -> None:
+    """``curlnav serve ROLE``: deployment options, plus the experiment config (``--preset``,
+    ``--config``, ``--set``, ``--world``, ``--curriculum``), which every service of a run must share."""
+    from .experiment_cli import add_config_arguments
+
     p.add_argument("role", choices=ROLES)
     p.add_argument("--run", default=env_default("run", "default"), help="run name: the Zenoh key prefix")
     p.add_argument("--router", default=env_default("router", "tcp/127.0.0.1:7447"), help="Zenoh router endpoint")
@@ -35,21 +39,68 @@ def add_serve_arguments(p) -> None:
                    help="router: other routers to join, comma-separated endpoints (multi-host)")
     p.add_argument("--data-dir", default=env_default("data_dir", "runs/service"), help="state folder (per role below it)")
     p.add_argument("--http-port", type=int, default=env_default("http_port", 0))
-    p.add_argument("--world", default=env_default("world", "open-room"), help="default world")
-    p.add_argument("--curriculum", default=env_default("curriculum", ""), help="scheduler: curriculum YAML")
     p.add_argument("--admin-token", default=env_default("admin_token", ""), help="scheduler: admin bearer token")
-    p.add_argument("--preset", default=env_default("preset", "default"), choices=["default", "paper"])
     p.add_argument("--actor-id", default=env_default("actor_id", ""), help="actor: id (default host-pid)")
-    p.add_argument("--sigma", type=float, default=env_default("sigma", 0.3), help="actor: exploration sigma")
-    p.add_argument("--seed", type=int, default=env_default("seed", 0))
-    p.add_argument("--min-size", type=int, default=env_default("min_size", 2000), help="replay: min size to sample")
-    p.add_argument("--samples-per-insert", type=float, default=env_default("samples_per_insert", 64.0))
+    p.add_argument("--actor-index", type=int, default=env_default("actor_index", -1),
+                   help="actor: rung of the sigma ladder and seed offset (default: from the actor id)")
+    p.add_argument("--actor-count", type=int, default=env_default("actor_count", 1),
+                   help="actor: actors in the run (each takes this share of the warm-up)")
     p.add_argument("--publish-every", type=int, default=env_default("publish_every", 50), help="learner: updates per broadcast")
     p.add_argument("--export-every-s", type=float, default=env_default("export_every_s", 60.0))
     p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 60.0))
     p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
     p.add_argument("--router-timeout-s", type=float, default=env_default("router_timeout_s", 60.0),
                    help="give up (exit 2) when the router does not answer within this at start; -1 waits forever")
+    add_config_arguments(p)
+    p.add_argument("--world", default=env_default("world", None), help="world to train on (curriculum.world)")
+    p.add_argument("--curriculum", default=env_default("curriculum", None), help="curriculum YAML (curriculum.file)")
+
+
+def build_service(args):
+    """The service object of ``args.role`` (not yet running): its experiment config resolved and
+    validated, its worlds and curriculum loaded. Raises on any bad input, before any network."""
+    import zlib
+
+    from .experiment_cli import experiment_from_args
+    from .service import Deployment
+    from .sim import get_world
+
+    experiment = experiment_from_args(args)
+    get_world(experiment.curriculum.world)  # an unknown world fails here, with its name
+    data = Path(args.data_dir)
+
+    def deployment(folder: str, default_port: int = 0) -> Deployment:
+        return Deployment(run=args.run, router=args.router, data_dir=str(data / folder) if folder else "",
+                          http_port=args.http_port or default_port)
+
+    if args.role == "replay":
+        from curlnav.replay.service import ReplayService, ReplayServiceConfig
+
+        return ReplayService(ReplayServiceConfig(deployment("replay")), experiment)
+    if args.role == "learner":
+        from curlnav.learner.service import LearnerService, LearnerServiceConfig
+
+        return LearnerService(LearnerServiceConfig(deployment("learner"), publish_every=args.publish_every,
+                                                   export_every_s=args.export_every_s,
+                                                   checkpoint_every_s=args.checkpoint_every_s,
+                                                   torch_threads=args.threads), experiment)
+    if args.role == "scheduler":
+        from curlnav.scheduler.service import SchedulerService, SchedulerServiceConfig
+
+        service = SchedulerService(SchedulerServiceConfig(deployment("scheduler", 8080), admin_token=args.admin_token),
+                                   experiment)
+        for stage in service.core.curriculum.stages:
+            for world in stage.worlds:
+                get_world(world)
+        return service
+    if args.role == "actor":
+        from curlnav.actor.service import ActorService, ActorServiceConfig
+
+        actor_id = args.actor_id or f"{socket.gethostname()}-{os.getpid()}"
+        index = args.actor_index if args.actor_index >= 0 else zlib.crc32(actor_id.encode()) % 997
+        return ActorService(ActorServiceConfig(actor_id=actor_id, actor_index=index, actor_count=args.actor_count,
+                                               deployment=deployment(f"actors/{actor_id}")), experiment)
+    raise ValueError(f"no service for role {args.role!r}")
 
 
 def serve(args) -> int:
@@ -61,49 +112,12 @@ def serve(args) -> int:
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {args.role} %(levelname)s %(message)s")
     stop = threading.Event()
     stop_on_signals(stop)
-    data = Path(args.data_dir)
     if args.role == "router":
         peers = [e.strip() for e in args.connect.split(",") if e.strip()]
         logging.info("router listening on %s%s", args.listen, f", joining {peers}" if peers else "")
         run_router(args.listen, stop, connect=peers or None)
         return 0
-    if args.role == "replay":
-        from curlnav.replay.service import ReplayService, ReplayServiceConfig
-
-        service = ReplayService(ReplayServiceConfig(run=args.run, router=args.router, data_dir=str(data / "replay"),
-                                                    http_port=args.http_port, min_size_to_sample=args.min_size,
-                                                    samples_per_insert=args.samples_per_insert))
-    elif args.role == "learner":
-        from curlnav.learner.service import LearnerService, LearnerServiceConfig
-
-        service = LearnerService(LearnerServiceConfig(run=args.run, router=args.router, data_dir=str(data / "learner"),
-                                                      http_port=args.http_port, preset=args.preset,
-                                                      publish_every=args.publish_every,
-                                                      export_every_s=args.export_every_s,
-                                                      checkpoint_every_s=args.checkpoint_every_s, worlds=(args.world,),
-                                                      torch_threads=args.threads))
-    elif args.role == "scheduler":
-        from curlnav.scheduler.service import SchedulerService, SchedulerServiceConfig
-        from curlnav.sim import get_world
-
-        get_world(args.world)  # an unknown default world fails here, with its name
-        service = SchedulerService(SchedulerServiceConfig(run=args.run, router=args.router,
-                                                          data_dir=str(data / "scheduler"), curriculum=args.curriculum,
-                                                          default_world=args.world, http_port=args.http_port or 8080,
-                                                          admin_token=args.admin_token))
-        for stage in service.core.curriculum.stages:
-            for world in stage.worlds:
-                get_world(world)
-    else:
-        from curlnav.actor.service import ActorService, ActorServiceConfig
-        from curlnav.sim import get_world
-
-        get_world(args.world)
-        actor_id = args.actor_id or f"{socket.gethostname()}-{os.getpid()}"
-        service = ActorService(ActorServiceConfig(actor_id=actor_id, run=args.run, router=args.router,
-                                                  http_port=args.http_port, sigma=args.sigma,
-                                                  default_world=args.world, seed=args.seed,
-                                                  data_dir=str(data / "actors" / actor_id)))
+    service = build_service(args)
     service.stop = stop
     service.run()
     return 0
@@ -121,36 +135,47 @@ def http_json(url: str, timeout: float = 2.0):
 
 
 class LocalCluster:
-    """Router, replay, learner, scheduler and N actors as local processes (one run folder)."""
+    """Router, replay, learner, scheduler and N actors as local processes (one run folder).
 
-    def __init__(self, run_dir: str | Path, actors: int = 2, world: str = "open-room", curriculum: str = "",
-                 run: str = "local", extra: dict[str, list[str]] | None = None, admin_token: str = "") -> None:
+    Every service reads the same experiment config, ``<run_dir>/config.yaml`` (written here
+    from ``experiment``), and gets only deployment options on its command line.
+    """
+
+    def __init__(self, run_dir: str | Path, experiment=None, actors: int = 2, run: str = "local",
+                 extra: dict[str, list[str]] | None = None, admin_token: str = "", learner_threads: int = 1) -> None:
+        from .config import ExperimentConfig, config_to_yaml
+
         self.run_dir = Path(run_dir)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        self.experiment = experiment or ExperimentConfig()
+        self.config_path = self.run_dir / "config.yaml"
+        self.config_path.write_text(config_to_yaml(self.experiment))
         self.router_port = free_port()
         self.scheduler_port = free_port()
         self.router = f"tcp/127.0.0.1:{self.router_port}"
-        self.world, self.curriculum, self.run, self.actors = world, curriculum, run, actors
+        self.run, self.actors = run, actors
         self.extra = extra or {}
         self.admin_token = admin_token
+        self.learner_threads = learner_threads
         self.processes: dict[str, subprocess.Popen] = {}
 
     def _spawn(self, name: str, role: str, *more: str) -> subprocess.Popen:
         cmd = [sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run, "--router", self.router,
-               "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir), "--world", self.world,
-               *self.extra.get(role, []), *more]
+               "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir),
+               "--config", str(self.config_path), *self.extra.get(role, []), *more]
         log = open(self.run_dir / "logs" / f"{name}.log", "ab")
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        # the services must not read the launcher's CURLNAV_* config variables: config.yaml is the config
+        env = {k: v for k, v in os.environ.items() if not (k.startswith("CURLNAV_") and "__" in k)
+               and k not in ("CURLNAV_PRESET", "CURLNAV_CONFIG", "CURLNAV_WORLD", "CURLNAV_CURRICULUM")}
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
         self.processes[name] = proc
         return proc
 
     def start(self) -> None:
         self._spawn("router", "router")
         self._spawn("replay", "replay")
-        self._spawn("learner", "learner")
+        self._spawn("learner", "learner", "--threads", str(self.learner_threads))
         sched = ["--http-port", str(self.scheduler_port)]
-        if self.curriculum:
-            sched += ["--curriculum", self.curriculum]
         if self.admin_token:
             sched += ["--admin-token", self.admin_token]
         self._spawn("scheduler", "scheduler", *sched)
@@ -158,8 +183,8 @@ class LocalCluster:
             self.start_actor(i)
 
     def start_actor(self, i: int) -> subprocess.Popen:
-        return self._spawn(f"actor-{i}", "actor", "--actor-id", f"actor-{i}", "--seed", str(i),
-                           "--sigma", str(round(0.2 + 0.2 * (i % 3), 2)))
+        return self._spawn(f"actor-{i}", "actor", "--actor-id", f"actor-{i}", "--actor-index", str(i),
+                           "--actor-count", str(self.actors))
 
     @property
     def status_url(self) -> str:
@@ -207,19 +232,18 @@ class LocalCluster:
         self.stop()
 
 
-def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str, curriculum: str,
-                   eval_every_s: float = 120.0, eval_episodes: int = 50, stop_at_success: float | None = None,
-                   preset: str = "default") -> dict:
-    """``curlnav train``: the services as local processes, progress every 5 s, evaluation of the
-    learner's latest artefact on held-out pairs, clean shutdown on Ctrl-C or at the budget."""
-    from curlnav.evaluate import evaluate, held_out_pairs
+def train_embedded(run_dir: str | Path, experiment, actors: int, learner_threads: int = 1) -> dict:
+    """``curlnav train``: the services as local processes, progress every 5 s, the evaluation
+    protocol on the learner's latest artefact, clean shutdown on Ctrl-C, SIGTERM or the budget
+    (``budget.minutes`` or ``budget.max_env_steps`` transitions inserted in the replay)."""
+    from curlnav.evaluate import EvaluationProtocol
     from curlnav.policy import PolicyArtefact
 
     run_dir = Path(run_dir)
-    cluster = LocalCluster(run_dir, actors=actors, world=world, curriculum=curriculum,
-                           extra={"learner": ["--preset", preset]})
+    cluster = LocalCluster(run_dir, experiment, actors=actors, learner_threads=learner_threads)
     evals: list[dict] = []
-    pairs = held_out_pairs(world, eval_episodes) if not curriculum else None
+    budget, evaluation = experiment.budget, experiment.evaluation
+    protocol = EvaluationProtocol(experiment) if not experiment.curriculum.file else None
     start = time.monotonic()
 
     def on_term(signum, frame):
@@ -231,7 +255,7 @@ def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str,
     last_eval = time.monotonic()
     stop_reason = "time budget"
     try:
-        while time.monotonic() - start < minutes * 60:
+        while time.monotonic() - start < budget.minutes * 60:
             time.sleep(5.0)
             dead = cluster.dead()
             if dead:
@@ -246,17 +270,20 @@ def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str,
                       f"env steps/s {replay.get('insert_rate') or 0:.0f} updates/s {learner.get('updates_per_s') or 0:.1f} "
                       f"learner v{learner.get('version')} replay {replay.get('size')} actors {len(s['live_actors'])}",
                       flush=True)
+                if budget.max_env_steps is not None and (replay.get("inserted") or 0) >= budget.max_env_steps:
+                    stop_reason = "env step budget"
+                    break
             port = cluster.learner_port()
-            if pairs and port and time.monotonic() - last_eval >= eval_every_s:
+            if protocol and port and time.monotonic() - last_eval >= evaluation.every_s:
                 last_eval = time.monotonic()
                 folder = _download_latest(port, run_dir / "eval-policy")
                 if folder:
-                    result = evaluate(PolicyArtefact(folder), world, pairs)
+                    result = protocol.run(PolicyArtefact(folder))
                     row = {"wall_s": time.monotonic() - start, "version": PolicyArtefact(folder).version,
                            **{k: getattr(result, k) for k in ("success_rate", "collisions_per_episode", "mean_time_to_goal_s")}}
                     evals.append(row)
                     print(f"[eval {row['wall_s'] / 60:5.1f} min, policy v{row['version']}] {result.line()}", flush=True)
-                    if stop_at_success is not None and result.success_rate >= stop_at_success:
+                    if evaluation.stop_at_success is not None and result.success_rate >= evaluation.stop_at_success:
                         stop_reason = f"held-out success {result.success_rate:.0%}"
                         break
     except KeyboardInterrupt:
@@ -264,6 +291,8 @@ def train_embedded(run_dir: str | Path, actors: int, minutes: float, world: str,
     finally:
         print("stopping services (checkpoints and replay are saved)...", flush=True)
         cluster.stop()
+        if protocol:
+            protocol.close()
     summary = {"stop_reason": stop_reason, "wall_s": time.monotonic() - start, "evals": evals,
                "first_eval_reaching_80": next((e for e in evals if e["success_rate"] >= 0.8), None),
                "run_dir": str(run_dir)}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import platform
 import time
@@ -10,12 +11,12 @@ import torch
 
 from curlnav.layout import ObservationLayout
 
-from .config import D4PGConfig
+from curlnav.config import ExperimentConfig
 from .d4pg import TensorBatch, init_state, sgd_step
 
 
 def updates_per_second(preset: str, seconds: float, batch_size: int, device: str | None = None) -> tuple[float, int]:
-    cfg = D4PGConfig.named(preset, batch_size=batch_size)
+    cfg = dataclasses.replace(ExperimentConfig.preset(preset).d4pg, batch_size=batch_size)
     layout = ObservationLayout()
     state = init_state(cfg, layout, device)
     dev = state.device

@@ -18,8 +18,8 @@ from safetensors.torch import load_file, save_file
 
 from curlnav.layout import ObservationLayout
 
-from .config import D4PGConfig
-from .networks import ACTION_HIGH, ACTION_LOW, Actor, DistributionalCritic
+from curlnav.config import D4PGConfig
+from .networks import ACTION_HIGH, ACTION_LOW, Actor, DistributionalCritic, act  # noqa: F401  (act: re-exported)
 
 
 def categorical_projection(next_probs: torch.Tensor, reward: torch.Tensor, discount: torch.Tensor,
@@ -133,19 +133,6 @@ def sgd_step(state: D4PGState, batch: TensorBatch) -> tuple[D4PGState, dict[str,
     metrics = {"losses/critic": critic_loss.item(), "losses/actor": actor_loss.item(), "values/q_mean": -actor_loss.item(),
                "grads/critic_norm": float(critic_norm), "grads/actor_norm": float(actor_norm)}
     return state, metrics, item_loss.detach().cpu().numpy()
-
-
-def act(actor: Actor, obs: np.ndarray, sigma: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
-    """The actor's action for one observation, plus Gaussian noise of ``sigma`` times each
-    action's half-range, clipped to the action bounds."""
-    device = next(actor.parameters()).device
-    with torch.no_grad():
-        action = actor(torch.as_tensor(obs, dtype=torch.float32, device=device)[None])[0].cpu().numpy()
-    if sigma > 0:
-        low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
-        rng = rng or np.random.default_rng()
-        action = np.clip(action + rng.normal(0.0, sigma * (high - low) / 2), low, high)
-    return action.astype(np.float32)
 
 
 # -- checkpoints (safetensors + JSON, no pickle) -----------------------------------------------

@@ -6,13 +6,15 @@ go through an encoder, the goal history is concatenated, then an ELU MLP.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from safetensors.torch import load as safetensors_load
 from torch import nn
 import torch.nn.functional as F
 
 from curlnav.layout import ObservationLayout
 
-from .config import D4PGConfig
+from curlnav.config import D4PGConfig
 
 # Action bounds of NamoEnv: v in [0, 1], w in [-1, 1], L in [0, 1].
 ACTION_LOW = (0.0, -1.0, 0.0)
@@ -97,3 +99,53 @@ class DistributionalCritic(nn.Module):
     def mean(self, logits: torch.Tensor) -> torch.Tensor:
         """Expected return of each row of logits."""
         return (torch.softmax(logits, dim=-1) * self.support).sum(-1)
+
+
+def act(actor: Actor, obs: np.ndarray, sigma: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+    """The actor's action for one observation, plus Gaussian noise of ``sigma`` times each
+    action's half-range, clipped to the action bounds."""
+    device = next(actor.parameters()).device
+    with torch.no_grad():
+        action = actor(torch.as_tensor(obs, dtype=torch.float32, device=device)[None])[0].cpu().numpy()
+    if sigma > 0:
+        low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
+        rng = rng or np.random.default_rng()
+        action = np.clip(action + rng.normal(0.0, sigma * (high - low) / 2), low, high)
+    return action.astype(np.float32)
+
+
+class BehaviourPolicy:
+    """What an actor runs (as Acme keeps the behaviour policy with the networks): uniformly
+    random actions for its first ``warmup_steps`` steps or until it has weights, then the actor
+    network plus Gaussian noise of ``sigma`` (a fraction of each action's half-range), clipped.
+
+    The network is either shared (``use_network``: the serial trainer's live actor) or loaded
+    from safetensors bytes (``load_weights``: the actor service). Actions are float32 ``(3,)``.
+    """
+
+    def __init__(self, layout: ObservationLayout, d4pg: D4PGConfig, sigma: float, warmup_steps: int,
+                 rng: np.random.Generator) -> None:
+        self.layout = layout
+        self.d4pg = d4pg
+        self.sigma = float(sigma)
+        self.warmup_steps = int(warmup_steps)
+        self.rng = rng
+        self.network: Actor | None = None
+        self.steps = 0  # actions taken
+
+    def use_network(self, network: Actor) -> None:
+        self.network = network
+
+    def load_weights(self, safetensors: bytes, d4pg: D4PGConfig | None = None) -> None:
+        """Load actor weights (safetensors bytes); a network of ``d4pg``'s shape is made on
+        first use. Raises if the tensors do not fit the network."""
+        if self.network is None:
+            self.network = Actor(self.layout, d4pg or self.d4pg)
+            self.network.eval()
+        self.network.load_state_dict(safetensors_load(safetensors))
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        self.steps += 1
+        if self.network is None or self.steps <= self.warmup_steps:
+            return self.rng.uniform(ACTION_LOW, ACTION_HIGH).astype(np.float32)
+        return act(self.network, obs, self.sigma, self.rng)

@@ -19,38 +19,34 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 from safetensors.torch import save as safetensors_bytes
 
-from curlnav.layout import ObservationLayout
-from curlnav.sim import EnvConfig
-from curlnav.transport import HttpServer, RateMeter, json_response, open_session, reliable_publisher
+from curlnav.builder import D4PGBuilder
+from curlnav.config import ExperimentConfig
 from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import SampledBatch, SampleRequest, ServiceStatus, Weights
-from curlnav.proto.topology import Topology
+from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, Weights
+from curlnav.service import Deployment, ServiceShell
+from curlnav.transport import RateMeter, json_response, reliable_publisher
 
 from .artefact import export_policy
-from .config import D4PGConfig
-from .d4pg import TensorBatch, init_state, load_checkpoint, save_checkpoint, sgd_step
+from .d4pg import TensorBatch, load_checkpoint, save_checkpoint, sgd_step
 
 log = logging.getLogger("curlnav.learner")
 
 
 @dataclass(frozen=True)
 class LearnerServiceConfig:
-    run: str = "default"
-    router: str = "tcp/127.0.0.1:7447"
-    data_dir: str = "runs/service/learner"
-    http_port: int = 0
-    preset: str = "default"
-    batch_size: int = 256
+    """Deployment of the learner service (what it learns comes from the experiment config)."""
+
+    deployment: Deployment = Deployment(data_dir="runs/service/learner")
     publish_every: int = 50  # updates between weight broadcasts
     checkpoint_every_s: float = 120.0
     export_every_s: float = 120.0
-    keep_artefacts: int = 5
+    keep_artefacts: int = 5  # newest artefact versions kept on disk
     torch_threads: int = 1  # on 2 cores shared with actors, 1 thread ran 31 updates/s, 2 threads 22
-    worlds: tuple[str, ...] = ("open-room",)
 
 
 def weights_message(state, version: int) -> Weights:
@@ -59,11 +55,12 @@ def weights_message(state, version: int) -> Weights:
 
 
 class LearnerService:
-    def __init__(self, cfg: LearnerServiceConfig, layout: ObservationLayout | None = None) -> None:
+    def __init__(self, cfg: LearnerServiceConfig, experiment: ExperimentConfig) -> None:
         self.cfg = cfg
-        self.topology = Topology(cfg.run)
-        self.layout = layout or ObservationLayout()
-        self.data_dir = Path(cfg.data_dir)
+        self.experiment = experiment
+        self.builder = builder = D4PGBuilder(experiment)
+        self.layout = builder.layout
+        self.data_dir = Path(cfg.deployment.data_dir)
         (self.data_dir / "artefacts").mkdir(parents=True, exist_ok=True)
         torch.set_num_threads(cfg.torch_threads)
         ckpt = self.data_dir / "latest.safetensors"
@@ -72,7 +69,7 @@ class LearnerService:
             self.version = int(extra.get("version", 0))
             log.info("resumed from %s at %d updates, weights version %d", ckpt, self.state.steps, self.version)
         else:
-            self.state = init_state(D4PGConfig.named(cfg.preset, batch_size=cfg.batch_size), self.layout)
+            self.state = builder.make_learner_state()
             self.version = 0
         self.registry = CollectorRegistry()
         self.m_updates = Counter("learner_updates", "SGD steps", registry=self.registry)
@@ -83,6 +80,7 @@ class LearnerService:
         self.update_rate = RateMeter()
         self.latest_weights: bytes = weights_message(self.state, self.version).encode()
         self.metrics: dict[str, float] = {}
+        self.pending_priorities: PriorityUpdate | None = None  # for the replay, when prioritized
         self.stop = threading.Event()
 
     # -- pure parts ----------------------------------------------------------------------------
@@ -90,12 +88,17 @@ class LearnerService:
         batch = SampledBatch.decode(payload)
         if batch.obs.shape[1] != self.layout.size:
             raise ProtoError("shape", f"observations of {batch.obs.shape[1]} values, expected {self.layout.size}")
-        tensors = TensorBatch.from_sample(batch, self.state.device)
-        self.state, self.metrics, _ = sgd_step(self.state, tensors)
+        weights = self.builder.importance_weights(batch.probabilities, self.replay_size)
+        tensors = TensorBatch.from_sample(batch, self.state.device, weights)
+        self.state, self.metrics, item_loss = sgd_step(self.state, tensors)
+        if self.experiment.replay.prioritized:
+            self.pending_priorities = PriorityUpdate(batch.keys, (item_loss + 1e-6).astype(np.float32))
         self.m_updates.inc()
         self.update_rate.add()
         self.m_loss.set(self.metrics["losses/critic"])
         return self.metrics
+
+    replay_size = 1  # transitions in the replay, from its status (importance weights)
 
     def publish_version(self) -> bytes:
         self.version += 1
@@ -107,7 +110,8 @@ class LearnerService:
 
     def export(self) -> Path:
         folder = self.data_dir / "artefacts" / f"v{self.version}"
-        export_policy(self.state, folder, EnvConfig(), worlds=list(self.cfg.worlds), version=self.version)
+        export_policy(self.state, folder, self.experiment.env, worlds=[self.experiment.curriculum.world],
+                      version=self.version)
         versions = sorted(self.artefact_versions())
         for old in versions[:-self.cfg.keep_artefacts]:
             shutil.rmtree(self.data_dir / "artefacts" / f"v{old}", ignore_errors=True)
@@ -154,70 +158,72 @@ class LearnerService:
     # -- shell -----------------------------------------------------------------------------------
     def run(self) -> None:
         cfg = self.cfg
-        topo = self.topology
-        session = open_session(cfg.router)
-        weights_pub = reliable_publisher(session, topo.weights)
-        status_pub = session.declare_publisher(topo.status("learner"))
-        token = session.liveliness().declare_token(topo.alive("learner", "0"))
-        latest_q = session.declare_queryable(topo.weights_latest,
-                                             lambda q: (q.reply(topo.weights_latest, self.latest_weights)))
-        http = HttpServer("0.0.0.0", cfg.http_port, {
-            ("GET", "/healthz"): lambda r: json_response({"ok": True, **self.status()}),
-            ("GET", "/policy/"): self._policy,
-        }, registry=self.registry)
-        (self.data_dir / "http_port").write_text(str(http.port))
-        if not self.artefact_versions():
-            self.export()
-        weights_pub.put(self.latest_weights)
-        log.info("learner up: run %s, router %s, http port %d, version %d", cfg.run, cfg.router, http.port, self.version)
-        request = SampleRequest(cfg.batch_size, timeout_s=0.5).encode()
-        ready: queue.Queue[bytes] = queue.Queue(maxsize=2)
+        shell = ServiceShell("learner", "0", cfg.deployment, self.experiment, self.registry, self.status)
+        with shell:
+            session = shell.open({("GET", "/policy/"): self._policy})
+            topo = shell.topology
+            weights_pub = reliable_publisher(session, topo.weights)
+            priorities_pub = reliable_publisher(session, topo.priorities)
+            status_pub = session.declare_publisher(topo.status("learner"))
+            latest_q = session.declare_queryable(topo.weights_latest,
+                                                 lambda q: q.reply(topo.weights_latest, self.latest_weights))
+            shell.on_close("weights queryable", latest_q.undeclare)
+            replay_status = session.declare_subscriber(topo.status("replay"), self._on_replay_status)
+            shell.on_close("replay status subscriber", replay_status.undeclare)
+            if not self.artefact_versions():
+                self.export()
+            weights_pub.put(self.latest_weights)
+            ready: queue.Queue[bytes] = queue.Queue(maxsize=2)
+            fetcher = threading.Thread(target=self._prefetch, args=(session, topo.sample, ready), daemon=True)
+            fetcher.start()
+            last_status = last_ckpt = last_export = time.monotonic()
+            try:
+                while not self.stop.is_set():
+                    got = False
+                    try:
+                        self.learn_from(ready.get(timeout=0.2))
+                        got = True
+                    except queue.Empty:
+                        pass
+                    except ProtoError as exc:
+                        self.m_rejected.labels(exc.reason).inc()
+                    if self.pending_priorities is not None:
+                        priorities_pub.put(self.pending_priorities.encode())
+                        self.pending_priorities = None
+                    if got and self.state.steps % cfg.publish_every == 0:
+                        weights_pub.put(self.publish_version())
+                    now = time.monotonic()
+                    if now - last_status >= 1.0:
+                        status_pub.put(ServiceStatus("learner", self.status()).encode())
+                        last_status = now
+                    if now - last_ckpt >= cfg.checkpoint_every_s:
+                        self.checkpoint()
+                        last_ckpt = now
+                    if now - last_export >= cfg.export_every_s:
+                        self.export()
+                        last_export = now
+            finally:
+                self.stop.set()
+                fetcher.join(timeout=10)
+                self.checkpoint()
+                self.export()
+                log.info("learner stopped at %d updates, version %d", self.state.steps, self.version)
 
-        def prefetch():
-            """Keep the next batches coming while the current one is learned from."""
-            while not self.stop.is_set():
-                for reply in session.get(topo.sample, payload=request, timeout=5.0):
-                    if reply.ok is not None:  # an error reply: rate limited or not ready, ask again
-                        while not self.stop.is_set():
-                            try:
-                                ready.put(reply.ok.payload.to_bytes(), timeout=0.5)
-                                break
-                            except queue.Full:
-                                continue
-
-        fetcher = threading.Thread(target=prefetch, daemon=True)
-        fetcher.start()
-        last_status = last_ckpt = last_export = time.monotonic()
+    def _on_replay_status(self, sample) -> None:
         try:
-            while not self.stop.is_set():
-                got = False
-                try:
-                    payload = ready.get(timeout=0.2)
-                    self.learn_from(payload)
-                    got = True
-                except queue.Empty:
-                    pass
-                except ProtoError as exc:
-                    self.m_rejected.labels(exc.reason).inc()
-                if got and self.state.steps % cfg.publish_every == 0:
-                    weights_pub.put(self.publish_version())
-                now = time.monotonic()
-                if now - last_status >= 1.0:
-                    status_pub.put(ServiceStatus("learner", self.status()).encode())
-                    last_status = now
-                if now - last_ckpt >= cfg.checkpoint_every_s:
-                    self.checkpoint()
-                    last_ckpt = now
-                if now - last_export >= cfg.export_every_s:
-                    self.export()
-                    last_export = now
-        finally:
-            self.stop.set()
-            fetcher.join(timeout=10)
-            self.checkpoint()
-            self.export()
-            token.undeclare()
-            latest_q.undeclare()
-            http.close()
-            session.close()
-            log.info("learner stopped at %d updates, version %d", self.state.steps, self.version)
+            self.replay_size = max(int(ServiceStatus.decode(sample.payload.to_bytes()).values.get("size", 1)), 1)
+        except ProtoError as exc:
+            self.m_rejected.labels(exc.reason).inc()
+
+    def _prefetch(self, session, key: str, ready: "queue.Queue[bytes]") -> None:
+        """Keep the next batches coming while the current one is learned from."""
+        request = SampleRequest(self.experiment.d4pg.batch_size, timeout_s=0.5).encode()
+        while not self.stop.is_set():
+            for reply in session.get(key, payload=request, timeout=5.0):
+                if reply.ok is not None:  # an error reply: rate limited or not ready, ask again
+                    while not self.stop.is_set():
+                        try:
+                            ready.put(reply.ok.payload.to_bytes(), timeout=0.5)
+                            break
+                        except queue.Full:
+                            continue

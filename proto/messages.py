@@ -10,7 +10,7 @@ from dataclasses import dataclass, field as dc_field
 
 import numpy as np
 
-from curlnav.replay.nstep import FrameBatch
+from .frames import FrameBatch
 
 from .codec import ProtoError, check_header, dumps, field, loads, pack_array, unpack_array
 
@@ -113,23 +113,80 @@ class SampledBatch:
     discount: np.ndarray  # float32 (B,)
     next_obs: np.ndarray  # float16 (B, obs_size)
     keys: np.ndarray  # int64 (B,)
+    probabilities: np.ndarray  # float32 (B,): each item's probability of being drawn
     KIND = "sampled_batch"
+    VERSION = 2  # 2: probabilities (importance weights of prioritized replay)
 
     def encode(self) -> bytes:
-        return dumps({"kind": self.KIND, "v": VERSION, **{n: pack_array(getattr(self, n)) for n in
-                                                          ("obs", "action", "reward", "discount", "next_obs", "keys")}})
+        return dumps({"kind": self.KIND, "v": self.VERSION, **{n: pack_array(getattr(self, n)) for n in
+                                                               ("obs", "action", "reward", "discount", "next_obs",
+                                                                "keys", "probabilities")}})
 
     @staticmethod
     def decode(data: bytes) -> "SampledBatch":
         obj = loads(data)
-        check_header(obj, SampledBatch.KIND, VERSION)
+        check_header(obj, SampledBatch.KIND, SampledBatch.VERSION)
         try:
             b, size = obj["obs"]["shape"]
         except (KeyError, TypeError, ValueError):
             raise ProtoError("shape", "obs must be (B, obs_size)") from None
         specs = {"obs": ("<f2", (b, size)), "action": ("<f4", (b, 3)), "reward": ("<f4", (b,)),
-                 "discount": ("<f4", (b,)), "next_obs": ("<f2", (b, size)), "keys": ("<i8", (b,))}
+                 "discount": ("<f4", (b,)), "next_obs": ("<f2", (b, size)), "keys": ("<i8", (b,)),
+                 "probabilities": ("<f4", (b,))}
         return SampledBatch(**{n: unpack_array(obj.get(n), n, dt, sh) for n, (dt, sh) in specs.items()})
+
+
+@dataclass
+class PriorityUpdate:
+    """learner -> replay: new priorities (the items' critic losses) for sampled keys, when the
+    replay is prioritized. Keys that left the table meanwhile are ignored by the replay."""
+
+    keys: np.ndarray  # int64 (B,)
+    priorities: np.ndarray  # float32 (B,), positive
+    KIND = "priority_update"
+
+    def encode(self) -> bytes:
+        return dumps({"kind": self.KIND, "v": VERSION, "keys": pack_array(self.keys),
+                      "priorities": pack_array(self.priorities)})
+
+    @staticmethod
+    def decode(data: bytes) -> "PriorityUpdate":
+        obj = loads(data)
+        check_header(obj, PriorityUpdate.KIND, VERSION)
+        try:
+            (b,) = obj["keys"]["shape"]
+        except (KeyError, TypeError, ValueError):
+            raise ProtoError("shape", "keys must be (B,)") from None
+        if not 0 < b <= MAX_ITEMS:
+            raise ProtoError("size", f"priority_update of {b} items (1..{MAX_ITEMS})")
+        keys = unpack_array(obj.get("keys"), "keys", "<i8", (b,))
+        priorities = unpack_array(obj.get("priorities"), "priorities", "<f4", (b,))
+        if not (np.isfinite(priorities).all() and (priorities > 0).all()):
+            raise ProtoError("non_finite", "priorities must be finite and positive")
+        return PriorityUpdate(keys, priorities)
+
+
+@dataclass
+class RunConfig:
+    """every service -> any service (query reply): the experiment config a service runs with.
+    A service joining a run compares hashes and refuses to join on a difference."""
+
+    role: str
+    instance: str
+    config_hash: str  # sha256 hex of the config's canonical JSON
+    config_json: str  # the config itself, to name the fields that differ
+    KIND = "run_config"
+
+    def encode(self) -> bytes:
+        return dumps({"kind": self.KIND, "v": VERSION, "role": self.role, "instance": self.instance,
+                      "config_hash": self.config_hash, "config_json": self.config_json})
+
+    @staticmethod
+    def decode(data: bytes) -> "RunConfig":
+        obj = loads(data)
+        check_header(obj, RunConfig.KIND, VERSION)
+        return RunConfig(*(field(obj, name, str, RunConfig.KIND) for name in ("role", "instance", "config_hash",
+                                                                              "config_json")))
 
 
 @dataclass

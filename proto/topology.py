@@ -12,7 +12,10 @@ All keys live under ``curlnav/<run>/`` so that several runs can share one router
     replay   --put  ServiceStatus   (every 1 s)      -->  status/replay            --> scheduler
     replay   --put  ServiceStatus   (every 20 ms)    -->  replay/credit            --> actors (insert credit: pace, don't block)
     learner  --put  ServiceStatus   (every 1 s)      -->  status/learner           --> scheduler
+    learner  --put  PriorityUpdate  (reliable, BLOCK)-->  replay/priorities        --> replay (prioritized replay only)
     every service --token (liveliness)               -->  alive/<role>/<id>        --> scheduler
+    every service --get  (empty) -> RunConfig        -->  config/<role>/<id>       <-- every service (queryable): a
+                                                          joining service refuses to join on a config hash mismatch
 
 HTTP (not Zenoh): scheduler ``/status``, ``/curriculum``, ``/metrics``, ``POST /admin/advance``;
 learner ``/policy/latest``, ``/policy/<version>``, ``/healthz``, ``/metrics``; replay and
@@ -71,5 +74,9 @@ class Topology:
     def alive(self, role: str = "*", ident: str = "*") -> str:
         return f"{self.prefix}/alive/{role}/{ident}"
 
-    def alive_all(self) -> str:
-        return f"{self.prefix}/alive/**"
+    @property
+    def priorities(self) -> str:
+        return f"{self.prefix}/replay/priorities"
+
+    def config(self, role: str = "*", ident: str = "*") -> str:
+        return f"{self.prefix}/config/{role}/{ident}"

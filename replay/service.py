@@ -7,7 +7,9 @@ while it is exhausted. Zenoh's blocking puts remain the safety net, but they nev
 for long (a put blocked for seconds makes Zenoh take the link down). Sampling is a
 queryable (``replay/sample``) answered from its own thread. Malformed batches are counted by
 reason and dropped; accepted ones are never lost: the table is saved every ``persist_every_s``
-and on SIGTERM, and restored on start.
+and on SIGTERM, and restored on start. With a prioritized replay, the learner's
+``PriorityUpdate`` messages set the sampled items' new priorities. The table and its rate limiter
+come from ``D4PGBuilder`` (the experiment config), exactly as in the serial trainer.
 """
 
 from __future__ import annotations
@@ -22,44 +24,40 @@ from pathlib import Path
 import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
-from curlnav.layout import ObservationLayout
-from curlnav.transport import HttpServer, RateMeter, json_response, open_session
+from curlnav.builder import D4PGBuilder
+from curlnav.config import ExperimentConfig
 from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
-from curlnav.proto.topology import Topology
+from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
+from curlnav.service import Deployment, ServiceShell
+from curlnav.transport import RateMeter
 
-from .table import RateLimiterTimeout, ReplayInputError, ReplayTable, SampleToInsertRatio
+from .table import RateLimiterTimeout, ReplayInputError
 
 log = logging.getLogger("curlnav.replay")
 
 
 @dataclass(frozen=True)
 class ReplayServiceConfig:
-    run: str = "default"
-    router: str = "tcp/127.0.0.1:7447"
-    data_dir: str = "runs/service/replay"
-    http_port: int = 0  # 0: pick a free port; /metrics and /healthz
-    max_size: int = 200_000
-    min_size_to_sample: int = 2000
-    samples_per_insert: float = 64.0  # 0 disables rate limiting
-    error_buffer: float | None = None  # default: max(0.1 * min * spi, 2 * 256 + spi)
-    persist_every_s: float = 120.0
+    """Deployment of the replay service (what it holds comes from the experiment config)."""
+
+    deployment: Deployment = Deployment(data_dir="runs/service/replay")
+    persist_every_s: float = 120.0  # s between saves of the whole table
 
 
 class ReplayService:
-    def __init__(self, cfg: ReplayServiceConfig, layout: ObservationLayout | None = None) -> None:
+    def __init__(self, cfg: ReplayServiceConfig, experiment: ExperimentConfig) -> None:
         self.cfg = cfg
-        self.topology = Topology(cfg.run)
-        self.layout = layout or ObservationLayout()
-        self.data_dir = Path(cfg.data_dir)
+        self.experiment = experiment
+        builder = D4PGBuilder(experiment)
+        self.layout = builder.layout
+        self.data_dir = Path(cfg.deployment.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
         path = self.data_dir / "replay.npz"
-        limiter = self._limiter()
         if path.exists():
-            self.table = ReplayTable.restore(path, limiter)
+            self.table = builder.restore_replay_table(path)
             log.info("restored %d transitions from %s", self.table.size, path)
         else:
-            self.table = ReplayTable(self.layout, cfg.max_size, limiter)
+            self.table = builder.make_replay_table()
         self.registry = CollectorRegistry()
         self.m_in = Counter("replay_transitions_inserted", "transitions accepted", registry=self.registry)
         self.m_batches = Counter("replay_batches_received", "transition batches received", registry=self.registry)
@@ -74,14 +72,6 @@ class ReplayService:
         self.last_seq: dict[str, int] = {}
         self.seq_gaps = 0
         self.stop = threading.Event()
-
-    def _limiter(self) -> SampleToInsertRatio:
-        cfg = self.cfg
-        if cfg.samples_per_insert <= 0:
-            return SampleToInsertRatio.unlimited(cfg.min_size_to_sample)
-        buffer = cfg.error_buffer or max(0.1 * cfg.min_size_to_sample * cfg.samples_per_insert,
-                                         2 * 512 + cfg.samples_per_insert)
-        return SampleToInsertRatio(cfg.samples_per_insert, cfg.min_size_to_sample, buffer)
 
     # -- pure handlers (tested without a network) --------------------------------------------
     def handle_batch(self, payload: bytes, timeout: float | None = None, force: bool = False) -> int:
@@ -112,7 +102,21 @@ class ReplayService:
         self.m_sampled.inc(request.batch_size)
         self.sample_rate.add(request.batch_size)
         return SampledBatch(sample.obs.astype(np.float16), sample.action, sample.reward, sample.discount,
-                            sample.next_obs.astype(np.float16), sample.keys).encode()
+                            sample.next_obs.astype(np.float16), sample.keys,
+                            sample.probabilities.astype(np.float32)).encode()
+
+    def handle_priorities(self, payload: bytes) -> int:
+        """Apply a learner's ``PriorityUpdate``; returns the items updated (0 when refused)."""
+        try:
+            msg = PriorityUpdate.decode(payload)
+        except ProtoError as exc:
+            self.m_rejected.labels(exc.reason).inc()
+            return 0
+        if not self.experiment.replay.prioritized:
+            self.m_rejected.labels("not_prioritized").inc()
+            return 0
+        self.table.update_priorities(msg.keys, msg.priorities)
+        return len(msg.keys)
 
     def insert_credit(self) -> int:
         """Transitions the limiter would accept now (actors pace themselves on it instead of
@@ -143,80 +147,77 @@ class ReplayService:
     # -- shell -----------------------------------------------------------------------------------
     def run(self) -> None:
         cfg = self.cfg
-        topo = self.topology
-        session = open_session(cfg.router)
-        # Transitions come in on a session of their own: when the limiter holds inserts back and
-        # the channel is full, that session's receive path blocks (backpressure to the actors
-        # through the router), while sampling queries keep flowing on the other one. With one
-        # session, a full channel would stall the queries too, and nothing would ever unblock.
-        ingest = open_session(cfg.router)
-        # The subscriber callback only appends to a deque: it never blocks Zenoh (a long block
-        # makes Zenoh close the link and lose data). Actors pace themselves on the insert credit
-        # published below, which counts this backlog, so the deque stays short.
-        subscriber = ingest.declare_subscriber(topo.transitions("*"), lambda s: self.backlog.append(s.payload.to_bytes()))
-        queryable = session.declare_queryable(topo.sample)
-        token = session.liveliness().declare_token(topo.alive("replay", "0"))
-        status_pub = session.declare_publisher(topo.status("replay"))
-        http = HttpServer("0.0.0.0", cfg.http_port, {("GET", "/healthz"): lambda r: json_response(self.status())},
-                          registry=self.registry)
-        (self.data_dir / "http_port").write_text(str(http.port))
-        log.info("replay service up: run %s, router %s, http port %d", cfg.run, cfg.router, http.port)
-
-        def insert_loop():
-            while not self.stop.is_set():
-                if not self.backlog:
-                    time.sleep(0.001)
-                    continue
-                payload = self.backlog.popleft()
-                while not self.stop.is_set():
-                    try:
-                        self.handle_batch(payload, timeout=0.5)
-                        break
-                    except RateLimiterTimeout:
-                        continue  # the learner has not caught up: hold the batch (and the channel)
-
-        def sample_loop():
-            while not self.stop.is_set():
-                query = queryable.try_recv()
-                if query is None:
-                    time.sleep(0.0005)
-                    continue
-                try:
-                    payload = query.payload.to_bytes() if query.payload is not None else b""
-                    query.reply(topo.sample, self.handle_sample(payload))
-                except RateLimiterTimeout:
-                    query.reply_err(b"rate_limited")
-                except ProtoError as exc:
-                    query.reply_err(str(exc).encode())
-                finally:
-                    query.drop()
-
-        threads = [threading.Thread(target=insert_loop, daemon=True), threading.Thread(target=sample_loop, daemon=True)]
-        for t in threads:
-            t.start()
-        credit_pub = session.declare_publisher(topo.credit)
-        last_save = last_status = time.monotonic()
-        try:
-            while not self.stop.wait(0.02):
-                credit_pub.put(ServiceStatus("replay-credit", {"allowed": self.insert_credit()}).encode())
-                if time.monotonic() - last_status < 1.0:
-                    continue
-                last_status = time.monotonic()
-                status_pub.put(ServiceStatus("replay", self.status()).encode())
-                if time.monotonic() - last_save >= cfg.persist_every_s:
-                    self.save()
-                    last_save = time.monotonic()
-        finally:
+        shell = ServiceShell("replay", "0", cfg.deployment, self.experiment, self.registry, self.status)
+        with shell:
+            session = shell.open()
+            topo = shell.topology
+            # Transitions come in on a session of their own: when the limiter holds inserts back
+            # and the channel is full, that session's receive path blocks (backpressure to the
+            # actors through the router), while sampling queries keep flowing on the other one.
+            ingest = shell.new_session()
+            # The subscriber callback only appends to a deque: it never blocks Zenoh (a long
+            # block makes Zenoh close the link and lose data). Actors pace themselves on the
+            # insert credit published below, which counts this backlog, so the deque stays short.
+            subscriber = ingest.declare_subscriber(topo.transitions("*"),
+                                                   lambda s: self.backlog.append(s.payload.to_bytes()))
+            priorities = session.declare_subscriber(topo.priorities,
+                                                    lambda s: self.handle_priorities(s.payload.to_bytes()))
+            shell.on_close("priority subscriber", priorities.undeclare)
+            queryable = session.declare_queryable(topo.sample)
+            shell.on_close("sample queryable", queryable.undeclare)
+            status_pub = session.declare_publisher(topo.status("replay"))
+            credit_pub = session.declare_publisher(topo.credit)
+            threads = [threading.Thread(target=self._insert_loop, daemon=True),
+                       threading.Thread(target=self._sample_loop, args=(queryable, topo.sample), daemon=True)]
             for t in threads:
-                t.join(timeout=5)
-            subscriber.undeclare()
-            # insert what Zenoh already delivered before saving: accepted data is never lost
-            while self.backlog:
-                self.handle_batch(self.backlog.popleft(), force=True)
-            self.save()
-            log.info("replay saved %d transitions", self.table.size)
-            token.undeclare()
-            queryable.undeclare()
-            http.close()
-            ingest.close()
-            session.close()
+                t.start()
+            last_save = last_status = time.monotonic()
+            try:
+                while not self.stop.wait(0.02):
+                    credit_pub.put(ServiceStatus("replay-credit", {"allowed": self.insert_credit()}).encode())
+                    if time.monotonic() - last_status < 1.0:
+                        continue
+                    last_status = time.monotonic()
+                    status_pub.put(ServiceStatus("replay", self.status()).encode())
+                    if time.monotonic() - last_save >= cfg.persist_every_s:
+                        self.save()
+                        last_save = time.monotonic()
+            finally:
+                self.stop.set()
+                for t in threads:
+                    t.join(timeout=5)
+                subscriber.undeclare()
+                # insert what Zenoh already delivered before saving: accepted data is never lost
+                while self.backlog:
+                    self.handle_batch(self.backlog.popleft(), force=True)
+                self.save()
+                log.info("replay saved %d transitions", self.table.size)
+
+    def _insert_loop(self) -> None:
+        while not self.stop.is_set():
+            if not self.backlog:
+                time.sleep(0.001)
+                continue
+            payload = self.backlog.popleft()
+            while not self.stop.is_set():
+                try:
+                    self.handle_batch(payload, timeout=0.5)
+                    break
+                except RateLimiterTimeout:
+                    continue  # the learner has not caught up: hold the batch (and the channel)
+
+    def _sample_loop(self, queryable, key: str) -> None:
+        while not self.stop.is_set():
+            query = queryable.try_recv()
+            if query is None:
+                time.sleep(0.0005)
+                continue
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                query.reply(key, self.handle_sample(payload))
+            except RateLimiterTimeout:
+                query.reply_err(b"rate_limited")
+            except ProtoError as exc:
+                query.reply_err(str(exc).encode())
+            finally:
+                query.drop()

@@ -20,10 +20,11 @@ from pathlib import Path
 
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
-from curlnav.transport import HttpServer, json_response, open_session
+from curlnav.config import ExperimentConfig
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
-from curlnav.proto.topology import Topology
+from curlnav.service import Deployment, ServiceShell
+from curlnav.transport import json_response
 
 from .curriculum import Curriculum, CurriculumState, load_curriculum
 
@@ -32,13 +33,9 @@ log = logging.getLogger("curlnav.scheduler")
 
 @dataclass(frozen=True)
 class SchedulerServiceConfig:
-    run: str = "default"
-    router: str = "tcp/127.0.0.1:7447"
-    data_dir: str = "runs/service/scheduler"
-    curriculum: str = ""  # YAML path; empty: one stage on the default world, no advance
-    default_world: str = "open-room"
-    http_host: str = "0.0.0.0"
-    http_port: int = 8080
+    """Deployment of the scheduler (the curriculum itself is ``curriculum`` of the experiment)."""
+
+    deployment: Deployment = Deployment(data_dir="runs/service/scheduler", http_port=8080)
     admin_token: str = ""  # empty: the admin call is refused
 
 
@@ -147,17 +144,17 @@ class SchedulerCore:
 
 
 class SchedulerService:
-    def __init__(self, cfg: SchedulerServiceConfig) -> None:
+    def __init__(self, cfg: SchedulerServiceConfig, experiment: ExperimentConfig) -> None:
         self.cfg = cfg
-        self.topology = Topology(cfg.run)
-        self.data_dir = Path(cfg.data_dir)
+        self.experiment = experiment
+        self.data_dir = Path(cfg.deployment.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        if cfg.curriculum:
-            curriculum = load_curriculum(cfg.curriculum)
+        if experiment.curriculum.file:
+            curriculum = load_curriculum(experiment.curriculum.file)
         else:
             from .curriculum import Stage
 
-            curriculum = Curriculum("no-curriculum", (Stage("train", (cfg.default_world,)),))
+            curriculum = Curriculum("no-curriculum", (Stage("train", (experiment.curriculum.world,)),))
         state_path = self.data_dir / "state.json"
         state = None
         if state_path.exists():
@@ -187,51 +184,50 @@ class SchedulerService:
                               "substep": self.core.state.substep, "epoch": self.core.state.epoch})
 
     def run(self) -> None:
-        cfg = self.cfg
-        topo = self.topology
         core = self.core
-        session = open_session(cfg.router)
+        shell = ServiceShell("scheduler", "0", self.cfg.deployment, self.experiment, core.registry,
+                             lambda: {"stage": core.state.current.name})
+        with shell:
+            session = shell.open({
+                ("GET", "/status"): lambda r: json_response(core.status()),
+                ("GET", "/curriculum"): lambda r: json_response({**core.curriculum.to_dict(),
+                                                                 "state": core.state.to_dict()}),
+                ("POST", "/admin/advance"): self._admin,
+            })
+            topo = shell.topology
 
-        def on_assign(query):
+            def on_assign(query):
+                try:
+                    payload = query.payload.to_bytes() if query.payload is not None else b""
+                    query.reply(topo.assign, core.assign(payload))
+                except ProtoError as exc:
+                    core.m_rejected.labels(exc.reason).inc()
+                    query.reply_err(str(exc).encode())
+
+            def on_report(sample):
+                if core.report(sample.payload.to_bytes()):
+                    self.save()
+                    log.info("curriculum advanced to %s, sub-step %d", core.state.current.name, core.state.substep)
+
+            def on_alive(sample):
+                parts = str(sample.key_expr).split("/")
+                if len(parts) >= 5 and parts[-2] == "actor":
+                    if sample.kind == sample.kind.PUT:
+                        core.actor_joined(parts[-1])
+                    else:
+                        core.actor_left(parts[-1])
+
+            for what, entity in (
+                    ("assign queryable", session.declare_queryable(topo.assign, on_assign)),
+                    ("report subscriber", session.declare_subscriber(topo.episodes("*"), on_report)),
+                    ("status subscriber", session.declare_subscriber(
+                        topo.status("*"), lambda s: core.service_status(s.payload.to_bytes()))),
+                    ("actor liveliness subscriber", session.liveliness().declare_subscriber(
+                        topo.alive("actor", "*"), on_alive, history=True))):
+                shell.on_close(what, entity.undeclare)
+            log.info("scheduler curriculum %s", core.curriculum.name)
             try:
-                payload = query.payload.to_bytes() if query.payload is not None else b""
-                query.reply(topo.assign, core.assign(payload))
-            except ProtoError as exc:
-                core.m_rejected.labels(exc.reason).inc()
-                query.reply_err(str(exc).encode())
-
-        def on_report(sample):
-            if core.report(sample.payload.to_bytes()):
+                while not self.stop.wait(10.0):
+                    self.save()
+            finally:
                 self.save()
-                log.info("curriculum advanced to %s, sub-step %d", core.state.current.name, core.state.substep)
-
-        def on_alive(sample):
-            parts = str(sample.key_expr).split("/")
-            if len(parts) >= 5 and parts[-2] == "actor":
-                if sample.kind == sample.kind.PUT:
-                    core.actor_joined(parts[-1])
-                else:
-                    core.actor_left(parts[-1])
-
-        queryable = session.declare_queryable(topo.assign, on_assign)
-        reports = session.declare_subscriber(topo.episodes("*"), on_report)
-        statuses = session.declare_subscriber(topo.status("*"), lambda s: core.service_status(s.payload.to_bytes()))
-        alive = session.liveliness().declare_subscriber(topo.alive("actor", "*"), on_alive, history=True)
-        token = session.liveliness().declare_token(topo.alive("scheduler", "0"))
-        http = HttpServer(cfg.http_host, cfg.http_port, {
-            ("GET", "/status"): lambda r: json_response(core.status()),
-            ("GET", "/curriculum"): lambda r: json_response({**core.curriculum.to_dict(), "state": core.state.to_dict()}),
-            ("GET", "/healthz"): lambda r: json_response({"ok": True}),
-            ("POST", "/admin/advance"): self._admin,
-        }, registry=core.registry)
-        (self.data_dir / "http_port").write_text(str(http.port))
-        log.info("scheduler up: run %s, curriculum %s, http port %d", cfg.run, core.curriculum.name, http.port)
-        try:
-            while not self.stop.wait(10.0):
-                self.save()
-        finally:
-            self.save()
-            for entity in (alive, reports, statuses, queryable, token):
-                entity.undeclare()
-            http.close()
-            session.close()

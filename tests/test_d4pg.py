@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import subprocess
 import sys
@@ -14,7 +16,7 @@ from curlnav.layout import ObservationLayout
 from curlnav.policy import ArtefactError, PolicyArtefact
 from curlnav.sim import EnvConfig
 from curlnav.learner.artefact import export_policy
-from curlnav.learner.config import D4PGConfig
+from curlnav.config import D4PGConfig, ExperimentConfig
 from curlnav.learner.d4pg import TensorBatch, act, categorical_projection, init_state, load_checkpoint, save_checkpoint, sgd_step
 
 LAYOUT = ObservationLayout()
@@ -95,7 +97,7 @@ def test_exploration_noise_stays_inside_the_action_bounds():
 
 @pytest.mark.parametrize("preset", ["default", "paper"])
 def test_checkpoint_round_trip_restores_networks_and_optimisers(tmp_path, preset):
-    state = init_state(D4PGConfig.named(preset, batch_size=8), LAYOUT, "cpu")
+    state = init_state(dataclasses.replace(ExperimentConfig.preset(preset).d4pg, batch_size=8), LAYOUT, "cpu")
     batch = random_batch(8)
     for _ in range(3):
         sgd_step(state, batch)
@@ -142,7 +144,7 @@ def test_a_tampered_artefact_is_refused(tmp_path):
 def test_serial_training_smoke_run_writes_logs_checkpoint_and_artefact_and_resumes(tmp_path):
     run = tmp_path / "run"
     base = [sys.executable, "-m", "curlnav.cli", "train", "--serial", "--run-dir", str(run), "--max-env-steps", "400",
-            "--warmup-steps", "300", "--eval-episodes", "2", "--threads", "1"]
+            "--warmup-steps", "300", "--eval-episodes", "2", "--threads", "1", "--set", "replay.min_size=300"]
     result = subprocess.run(base + ["--minutes", "3"], capture_output=True, text=True, timeout=400)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "held-out evaluation: success" in result.stdout

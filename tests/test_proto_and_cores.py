@@ -14,7 +14,9 @@ from curlnav.proto.messages import (Assignment, AssignmentRequest, EpisodeReport
                             Weights)
 from curlnav.proto.topology import Topology
 from curlnav.replay.nstep import NStepWriter
+from curlnav.config import resolve_config
 from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.service import Deployment
 from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
 from curlnav.scheduler.service import SchedulerCore
 
@@ -80,7 +82,8 @@ def test_keys_live_under_the_run_prefix():
 
 
 def test_replay_core_counts_rejections_and_keeps_accepted_data(tmp_path):
-    service = ReplayService(ReplayServiceConfig(data_dir=str(tmp_path), min_size_to_sample=1, samples_per_insert=0))
+    small = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"])
+    service = ReplayService(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))), small)
     assert service.handle_batch(a_batch(seq=0).encode()) == 6
     for payload in (b"junk", tamper(a_batch().encode(), v=2), b""):
         assert service.handle_batch(payload) == 0
@@ -90,7 +93,7 @@ def test_replay_core_counts_rejections_and_keeps_accepted_data(tmp_path):
     reply = service.handle_sample(SampleRequest(8, 0.1).encode())
     assert len(reply) > 8 * LAYOUT.size * 4
     service.save()
-    restored = ReplayService(ReplayServiceConfig(data_dir=str(tmp_path), min_size_to_sample=1, samples_per_insert=0))
+    restored = ReplayService(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))), small)
     assert restored.table.size == 12
 
 

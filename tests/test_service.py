@@ -8,6 +8,7 @@ import urllib.request
 
 import pytest
 
+from curlnav.config import resolve_config
 from curlnav.launch import LocalCluster, http_json
 from curlnav.transport import open_session, reliable_publisher
 from curlnav.proto.topology import Topology
@@ -46,10 +47,10 @@ def metric(url: str, name: str) -> float:
 @pytest.fixture
 def cluster(tmp_path):
     (tmp_path / "tiny.yaml").write_text(CURRICULUM)
-    c = LocalCluster(tmp_path / "run", actors=2, curriculum=str(tmp_path / "tiny.yaml"), run="itest",
-                     admin_token="secret",
-                     extra={"replay": ["--min-size", "200", "--samples-per-insert", "8"],
-                            "learner": ["--publish-every", "5", "--export-every-s", "5"]})
+    experiment = resolve_config(overrides=[f"curriculum.file={tmp_path / 'tiny.yaml'}", "replay.min_size=200",
+                                           "replay.samples_per_insert=8", "d4pg.batch_size=128"])
+    c = LocalCluster(tmp_path / "run", experiment, actors=2, run="itest", admin_token="secret",
+                     extra={"learner": ["--publish-every", "5", "--export-every-s", "5"]})
     c.start()
     try:
         yield c
@@ -115,9 +116,8 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
 
 
 def test_services_carry_on_after_the_router_restarts(tmp_path):
-    c = LocalCluster(tmp_path / "run", actors=1, run="restart",
-                     extra={"replay": ["--min-size", "200", "--samples-per-insert", "8"],
-                            "learner": ["--publish-every", "5"]})
+    experiment = resolve_config(overrides=["replay.min_size=200", "replay.samples_per_insert=8", "d4pg.batch_size=128"])
+    c = LocalCluster(tmp_path / "run", experiment, actors=1, run="restart", extra={"learner": ["--publish-every", "5"]})
     c.start()
     try:
         before = wait_for("learning under way", lambda: (st := c.status()) and (st["learner"]["version"] or 0) >= 2

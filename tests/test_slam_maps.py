@@ -227,7 +227,7 @@ def test_worlds_show_rollout_and_eval_work_on_a_plain_rotated_map(tmp_path, caps
     # eval with a freshly initialised artefact: the held-out pairs are drawn on the plain map
     result = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
         from curlnav.learner.artefact import export_policy
-        from curlnav.learner.config import D4PGConfig
+        from curlnav.config import D4PGConfig
         from curlnav.learner.d4pg import init_state
         from curlnav.layout import ObservationLayout
         from curlnav.sim import EnvConfig

@@ -328,7 +328,6 @@ def map_server_values(img, mode: str = "trinary", negate: bool = False, occupied
     return out
 
 
-_OUR_KEYS = ("name", "wall_height", "balls", "doors", "boxes", "pairs", "ball_regions", "random_pairs")
 
 
 def _fail(path: Path | str, message: str) -> WorldError:

@@ -1,0 +1,74 @@
+"""The one episode loop: environment, behaviour policy and n-step writer, stepped in turn.
+
+The serial trainer and the actor service both drive an ``EpisodeLoop``; they differ only in
+where the written frames go (straight into the replay table, or onto the bus in batches) and in
+who assigns the next world and pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from curlnav.replay import FrameBatch, NStepWriter
+from curlnav.sim import NamoEnv
+
+
+@dataclass(frozen=True)
+class EpisodeEnd:
+    """An episode that just ended: its info (``NamoEnv``'s last ``info``) and return."""
+
+    info: dict[str, Any]
+    episode_return: float
+    truncated: bool
+
+    @property
+    def success(self) -> bool:
+        return bool(self.info["is_success"])
+
+
+class EpisodeLoop:
+    """``begin`` an episode, then ``step`` until it returns an ``EpisodeEnd``; ``flush``
+    whenever the written transitions should go out (the writer keeps the n-step tail)."""
+
+    def __init__(self, env: NamoEnv, policy: Callable[[np.ndarray], np.ndarray], writer: NStepWriter) -> None:
+        self.env = env
+        self.policy = policy
+        self.writer = writer
+        self.obs: np.ndarray | None = None
+        self.episode_return = 0.0
+        self.steps = 0  # environment steps, all episodes
+        self.episodes = 0  # episodes ended
+
+    def begin(self, seed: int, options: dict | None = None) -> np.ndarray:
+        """Reset the environment (``options``: world and pair) and start a new trajectory."""
+        self.obs, _ = self.env.reset(seed=seed, options=options)
+        self.writer.first(self.obs)
+        self.episode_return = 0.0
+        return self.obs
+
+    def step(self) -> EpisodeEnd | None:
+        """One environment step with the behaviour policy; the transition goes to the writer.
+        Returns the episode's end when this step ended it, else None."""
+        if self.obs is None:
+            raise RuntimeError("call begin() before step()")
+        action = self.policy(self.obs)
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.writer.step(action, reward, obs, terminated, truncated)
+        self.steps += 1
+        self.episode_return += reward
+        self.obs = obs
+        if terminated or truncated:
+            self.episodes += 1
+            self.obs = None
+            return EpisodeEnd(info, self.episode_return, bool(truncated and not terminated))
+        return None
+
+    def flush(self) -> FrameBatch:
+        """Frames and transitions written since the last flush."""
+        return self.writer.flush()
+
+    def close(self) -> None:
+        self.env.close()

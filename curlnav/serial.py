@@ -1,0 +1,242 @@
+"""``curlnav train --serial``: the episode loop and the learner in one process.
+
+The same parts as the distributed service, made by the same ``D4PGBuilder`` from the same
+``ExperimentConfig``: ``EpisodeLoop`` (environment, behaviour policy of actor 0, n-step writer),
+``ReplayTable`` with its rate limiter, ``sgd_step``, ``EvaluationProtocol``. They are driven in
+turn: step the environment while the limiter accepts inserts, update while it allows samples.
+Neither ever waits on the other, so it cannot deadlock.
+
+A run folder holds ``config.yaml`` (the experiment), ``metrics.csv`` (training), ``eval.csv``
+(held-out evaluations), ``learning_curve.png``, ``checkpoints/`` (learner + replay, resumable)
+and ``policy/`` (the latest exported artefact).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from curlnav.actor.loop import EpisodeEnd, EpisodeLoop
+from curlnav.builder import D4PGBuilder
+from curlnav.config import ExperimentConfig
+from curlnav.evaluate import EvalResult, EvaluationProtocol
+from curlnav.learner.artefact import export_policy
+from curlnav.learner.d4pg import TensorBatch, act, load_checkpoint, save_checkpoint, sgd_step
+
+
+@dataclass(frozen=True)
+class SerialRunConfig:
+    """How the serial trainer runs (nothing here changes what it learns)."""
+
+    checkpoint_every_s: float = 300.0  # s between checkpoints (learner, replay, policy)
+    save_replay: bool = True  # include the replay in checkpoints (needed for an exact resume)
+    torch_threads: int = 2
+    progress: bool = True  # a tqdm progress bar
+
+
+class CsvLog:
+    """Append-only CSV with a fixed header, flushed at every row."""
+
+    def __init__(self, path: Path, fields: list[str]) -> None:
+        self.path = path
+        self.fields = fields
+        new = not path.exists()
+        self._file = open(path, "a", newline="")
+        self._writer = csv.DictWriter(self._file, fieldnames=fields, extrasaction="ignore")
+        if new:
+            self._writer.writeheader()
+
+    def write(self, row: dict) -> None:
+        self._writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+TRAIN_FIELDS = ["wall_s", "env_steps", "updates", "episodes", "train_success_100", "return_100",
+                "base_collisions_100", "env_steps_per_s", "updates_per_s", "losses/critic", "losses/actor",
+                "values/q_mean", "replay_size"]
+EVAL_FIELDS = ["wall_s", "env_steps", "updates", "train_episodes", "episodes", "success_rate", "collisions_per_episode",
+               "end_effector_collisions_per_episode", "mean_time_to_goal_s"]
+
+
+class SerialTrainer:
+    """One serial run in ``run_dir``. ``run()`` trains to the budget and returns a summary."""
+
+    def __init__(self, run_dir: str | Path, experiment: ExperimentConfig, run: SerialRunConfig | None = None,
+                 resume: bool = False) -> None:
+        self.run_dir = Path(run_dir)
+        self.experiment = experiment
+        self.run_cfg = run or SerialRunConfig()
+        torch.set_num_threads(self.run_cfg.torch_threads)
+        self.ckpt_dir = self.run_dir / "checkpoints"
+        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+        self.builder = builder = D4PGBuilder(experiment)
+        self.evaluation = EvaluationProtocol(experiment)
+        self.counters = {"env_steps": 0, "episodes": 0, "elapsed_s": 0.0, "evals": []}
+        ckpt, replay_path = self.ckpt_dir / "latest.safetensors", self.ckpt_dir / "replay.npz"
+        if resume and ckpt.exists():
+            self.state, extra = load_checkpoint(ckpt)
+            self.counters.update(extra.get("counters", {}))
+            self.table = builder.restore_replay_table(replay_path) if replay_path.exists() else builder.make_replay_table()
+            print(f"resumed from {ckpt}: {self.state.steps} updates, {self.counters['env_steps']} env steps, "
+                  f"replay {self.table.size} transitions")
+        else:
+            self.state = builder.make_learner_state()
+            self.table = builder.make_replay_table()
+        env = builder.make_env()
+        env.excluded_pairs = self.evaluation.excluded
+        self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1)
+        self.policy.use_network(self.state.actor)
+        self.policy.steps = self.counters["env_steps"]  # the warm-up is not repeated on resume
+        self.loop = EpisodeLoop(env, self.policy, builder.make_nstep_writer())
+        self.recent: deque[tuple[bool, float, int]] = deque(maxlen=100)  # success, return, base collisions
+        self.metrics: dict[str, float] = {}
+
+    # -- the parts of one iteration -------------------------------------------------------------
+    def act_once(self) -> EpisodeEnd | None:
+        """One environment step, its transitions into the table; a new episode after an end."""
+        end = self.loop.step()
+        self.table.insert(self.loop.flush(), timeout=0)
+        self.counters["env_steps"] += 1
+        if end is not None:
+            self.counters["episodes"] += 1
+            self.recent.append((end.success, end.episode_return, int(end.info["base_collisions"])))
+            self._begin()
+        return end
+
+    def learn_once(self) -> None:
+        """One update from a sampled batch (importance-weighted and re-prioritised when the
+        replay is prioritized)."""
+        batch_size = self.experiment.d4pg.batch_size
+        sample = self.table.sample(batch_size, timeout=0)
+        weights = self.builder.importance_weights(sample.probabilities, self.table.size)
+        self.state, self.metrics, item_loss = sgd_step(self.state, TensorBatch.from_sample(sample, self.state.device,
+                                                                                           weights))
+        if self.experiment.replay.prioritized:
+            self.table.update_priorities(sample.keys, item_loss + 1e-6)
+
+    def evaluate(self, start: float) -> EvalResult:
+        self.state.actor.eval()
+        result = self.evaluation.run(lambda o: act(self.state.actor, o))
+        self.state.actor.train()
+        row = {"wall_s": time.monotonic() - start, "env_steps": self.counters["env_steps"], "updates": self.state.steps,
+               "train_episodes": self.counters["episodes"], **dataclasses.asdict(result)}
+        self.eval_log.write(row)
+        self.counters["evals"].append(row)
+        self._print(f"[eval {row['wall_s'] / 60:5.1f} min, {self.counters['env_steps']} steps, {self.state.steps} "
+                    f"updates] {result.line()}")
+        return result
+
+    def checkpoint(self, start: float) -> None:
+        self.counters["elapsed_s"] = time.monotonic() - start
+        save_checkpoint(self.state, self.ckpt_dir / "latest.safetensors", extra={"counters": self.counters})
+        if self.run_cfg.save_replay:
+            self.table.save(self.ckpt_dir / "replay.npz")
+        export_policy(self.state, self.run_dir / "policy", self.experiment.env,
+                      worlds=[str(self.experiment.curriculum.world)], env_steps=self.counters["env_steps"])
+
+    def _begin(self) -> None:
+        self.loop.begin(seed=self.experiment.seed + self.counters["episodes"])
+
+    def _print(self, line: str) -> None:
+        (self.bar.write if self.bar is not None else print)(line)
+
+    # -- the loop ----------------------------------------------------------------------------------
+    def run(self) -> dict:
+        """Train until the budget, a held-out success target or Ctrl-C; returns the summary."""
+        from tqdm import tqdm
+
+        from curlnav.plots import plot_learning_curve
+
+        experiment, budget = self.experiment, self.experiment.budget
+        self.train_log = CsvLog(self.run_dir / "metrics.csv", TRAIN_FIELDS)
+        self.eval_log = CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS)
+        budget_s = budget.minutes * 60.0
+        start = time.monotonic() - self.counters["elapsed_s"]
+        self.bar = tqdm(total=int(budget_s), unit="s", disable=not self.run_cfg.progress,
+                        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} s {postfix}")
+        last_log = last_eval = last_ckpt = time.monotonic()
+        at_log = (self.counters["env_steps"], self.state.steps)
+        final: EvalResult | None = None
+        stop_reason = "time budget"
+        self._begin()
+        try:
+            while time.monotonic() - start < budget_s:
+                if budget.max_env_steps is not None and self.counters["env_steps"] >= budget.max_env_steps:
+                    stop_reason = "env step budget"
+                    break
+                if self.table.can_insert(1):
+                    self.act_once()
+                if self.table.can_sample(experiment.d4pg.batch_size):
+                    self.learn_once()
+                now = time.monotonic()
+                if now - last_log >= 5.0:
+                    self._log(now, start, now - last_log, at_log, budget_s)
+                    last_log, at_log = now, (self.counters["env_steps"], self.state.steps)
+                if (self.counters["env_steps"] > experiment.exploration.warmup_steps
+                        and now - last_eval >= experiment.evaluation.every_s):
+                    result = self.evaluate(start)
+                    last_eval = time.monotonic()
+                    target = experiment.evaluation.stop_at_success
+                    if target is not None and result.success_rate >= target:
+                        final = result
+                        stop_reason = f"held-out success {result.success_rate:.0%} >= {target:.0%}"
+                        break
+                if now - last_ckpt >= self.run_cfg.checkpoint_every_s:
+                    self.checkpoint(start)
+                    last_ckpt = time.monotonic()
+        except KeyboardInterrupt:
+            stop_reason = "interrupted"
+            self._print("interrupted: saving a checkpoint and the policy")
+        finally:
+            self.bar.close()
+            self.bar = None
+        if final is None:
+            final = self.evaluate(start)
+        self.checkpoint(start)
+        self.train_log.close()
+        self.eval_log.close()
+        plot_learning_curve(self.run_dir)
+        self.loop.close()
+        self.evaluation.close()
+        summary = {"stop_reason": stop_reason, "wall_s": time.monotonic() - start,
+                   "env_steps": self.counters["env_steps"], "updates": self.state.steps,
+                   "episodes": self.counters["episodes"], "final_eval": dataclasses.asdict(final),
+                   "first_eval_reaching_80": next((e for e in self.counters["evals"] if e["success_rate"] >= 0.8), None),
+                   "run_dir": str(self.run_dir)}
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+    bar = None
+
+    def _log(self, now: float, start: float, dt: float, at_log: tuple[int, int], budget_s: float) -> None:
+        sps = (self.counters["env_steps"] - at_log[0]) / dt
+        ups = (self.state.steps - at_log[1]) / dt
+        recent = self.recent
+        success = float(np.mean([r[0] for r in recent])) if recent else 0.0
+        self.train_log.write({"wall_s": now - start, "env_steps": self.counters["env_steps"], "updates": self.state.steps,
+                              "episodes": self.counters["episodes"], "train_success_100": success,
+                              "return_100": float(np.mean([r[1] for r in recent])) if recent else 0.0,
+                              "base_collisions_100": float(np.mean([r[2] for r in recent])) if recent else 0.0,
+                              "env_steps_per_s": sps, "updates_per_s": ups, "replay_size": self.table.size,
+                              **self.metrics})
+        if self.bar is not None:
+            self.bar.n = min(int(now - start), int(budget_s))
+            self.bar.set_postfix_str(f"steps {self.counters['env_steps']} ({sps:.0f}/s) updates {self.state.steps} "
+                                     f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%}")
+
+
+def train_serial(run_dir: str | Path, experiment: ExperimentConfig, run: SerialRunConfig | None = None,
+                 resume: bool = False) -> dict:
+    """Train in one process; returns a summary with the final evaluation (see ``SerialTrainer``)."""
+    return SerialTrainer(run_dir, experiment, run, resume).run()

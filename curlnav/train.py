@@ -1,0 +1,130 @@
+"""``curlnav train``: one experiment config, two modes (``--serial``: one process; default: the
+services as local processes). Every option works in both modes or is refused with exit 2.
+
+The run folder keeps the resolved config as ``config.yaml``. A folder that already holds a run
+is continued only with ``--resume`` (with its saved config: only the budget and the stopping
+target may change), and ``--resume`` on a folder with nothing to resume is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from .config import (ConfigError, ExperimentConfig, config_differences, config_hash, config_to_dict, config_to_yaml,
+                     experiment_from_dict, load_config)
+from .experiment_cli import experiment_from_args, explicit_sources
+
+DEFAULT_ACTORS = 2
+RESUMABLE_CHANGES = ("budget.", "evaluation.stop_at_success")  # fields a resume may change
+
+
+class TrainRefused(ValueError):
+    """A train invocation that cannot run as asked (exit 2, one line)."""
+
+
+def _saved_state(run_dir: Path, serial: bool) -> Path | None:
+    candidates = ([run_dir / "checkpoints" / "latest.safetensors"] if serial else
+                  [run_dir / "learner" / "latest.safetensors", run_dir / "replay" / "replay.npz"])
+    return next((p for p in candidates if p.exists()), None)
+
+
+def resolve_train_config(args: argparse.Namespace, run_dir: Path) -> ExperimentConfig:
+    """The experiment of this invocation: the command line's, or on ``--resume`` the saved one
+    with the budget and stopping target of the command line."""
+    experiment = experiment_from_args(args)
+    saved_state = _saved_state(run_dir, args.serial)
+    if not args.resume:
+        if saved_state is not None:
+            raise TrainRefused(f"run folder {run_dir} already holds a run ({saved_state.name}): add --resume to "
+                               f"continue it, or choose another --run-dir")
+        return experiment
+    if saved_state is None:
+        raise TrainRefused(f"--resume: nothing to resume in {run_dir} (no checkpoint or replay there)")
+    saved_path = run_dir / "config.yaml"
+    if not saved_path.exists():
+        return experiment
+    saved = load_config(saved_path)
+    if explicit_sources(args):
+        changed = [d for d in config_differences(config_to_dict(experiment), config_to_dict(saved))
+                   if not d.startswith(RESUMABLE_CHANGES)]
+        if changed:
+            raise TrainRefused(f"--resume: {saved_path} was trained with another config ({'; '.join(changed[:3])}; "
+                               f"command line first): only budget.* and evaluation.stop_at_success may change")
+    data = config_to_dict(saved)
+    data["budget"] = config_to_dict(experiment.budget)
+    data["evaluation"]["stop_at_success"] = experiment.evaluation.stop_at_success
+    return experiment_from_dict(data)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from .sim import get_world
+    from .sim.pairs import check_pairs_possible
+
+    if args.serial and args.actors is not None:
+        raise TrainRefused("--actors is for the distributed trainer; --serial runs one actor in the learner's process")
+    actors = DEFAULT_ACTORS if args.actors is None else args.actors
+    if actors < 1:
+        raise TrainRefused(f"--actors must be at least 1, got {actors}")
+    world_name = (args.world or "run").replace("/", "_")
+    suffix = "" if args.serial else f"-x{actors}"
+    run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{Path(world_name).stem}{suffix}")
+    experiment = resolve_train_config(args, run_dir)
+    if args.serial and experiment.curriculum.file:
+        raise TrainRefused("a curriculum needs the distributed trainer (the scheduler): drop --serial")
+    world = get_world(experiment.curriculum.world)  # unknown world: one line, before anything starts
+    robot = experiment.env.robot
+    check_pairs_possible(world, (robot.base_length, robot.base_width))
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(config_to_yaml(experiment))
+    print(f"run folder: {run_dir}; config {config_hash(experiment)[:12]} (config.yaml), preset "
+          f"{experiment.d4pg.preset}, world {experiment.curriculum.world}, curriculum "
+          f"{experiment.curriculum.file or 'none'}, {experiment.budget.minutes} min"
+          + ("" if args.serial else f", {actors} actors"))
+    if args.serial:
+        return _train_serial(args, run_dir, experiment)
+    return _train_distributed(args, run_dir, experiment, actors)
+
+
+def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
+    from .serial import SerialRunConfig, train_serial
+
+    summary = train_serial(run_dir, experiment, SerialRunConfig(torch_threads=args.threads or 2), resume=args.resume)
+    final = summary["final_eval"]
+    print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min, {summary['env_steps']} env steps, "
+          f"{summary['updates']} updates, {summary['episodes']} episodes")
+    print(f"held-out evaluation: success {final['success_rate']:.0%} over {final['episodes']} episodes, "
+          f"{final['collisions_per_episode']:.2f} collisions/episode, time to goal {final['mean_time_to_goal_s']:.1f} s")
+    reached = summary["first_eval_reaching_80"]
+    if reached:
+        print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
+    print(f"policy artefact: {run_dir / 'policy'}; learning curve: {run_dir / 'learning_curve.png'}")
+    return 0
+
+
+def _train_distributed(args, run_dir: Path, experiment: ExperimentConfig, actors: int) -> int:
+    from .launch import train_embedded
+
+    summary = train_embedded(run_dir, experiment, actors, learner_threads=args.threads or 1)
+    print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min")
+    if summary["evals"]:
+        last = summary["evals"][-1]
+        print(f"last held-out evaluation: success {last['success_rate']:.0%}, "
+              f"{last['collisions_per_episode']:.2f} collisions/episode")
+    reached = summary["first_eval_reaching_80"]
+    if reached:
+        print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min (policy v{reached['version']})")
+    print(f"policy artefacts: {run_dir / 'learner' / 'artefacts'}")
+    return 0
+
+
+def show_config(args: argparse.Namespace) -> int:
+    """``curlnav config show``: the resolved config as YAML, and its hash."""
+    experiment = experiment_from_args(args)
+    print(config_to_yaml(experiment), end="")
+    print(f"# config hash {config_hash(experiment)}")
+    return 0
+
+
+__all__ = ["ConfigError", "TrainRefused", "resolve_train_config", "run_train", "show_config"]
