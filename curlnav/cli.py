@@ -252,15 +252,14 @@ def _cmd_bench_metrics(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="curlnav", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
+    _add_training_commands(sub)
+    _add_world_commands(sub)
+    _add_bench_commands(sub)
+    return parser
 
-    p = sub.add_parser("rollout", help="drive a reactive controller for one episode and draw the trajectory")
-    p.add_argument("--world", default="door-corridor", help="built-in world name or world YAML path")
-    p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
-    p.add_argument("--steps", type=int, default=300, help="episode length limit (steps of 0.2 s)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="runs/rollout", help="folder for the picture")
-    p.set_defaults(func=_cmd_rollout)
 
+def _add_training_commands(sub) -> None:
+    """train, config, eval, policy, serve, pull."""
     p = sub.add_parser("train", help="train a policy (--serial: environment and learner in one process)")
     p.add_argument("--serial", action="store_true", help="single-process trainer")
     p.add_argument("--actors", type=int, default=None, help="actor processes (distributed trainer; default 2)")
@@ -308,6 +307,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="policy")
     p.set_defaults(func=_cmd_pull)
 
+
+def _add_world_commands(sub) -> None:
+    """rollout and worlds (generate, show, scatter-balls, rank)."""
+    p = sub.add_parser("rollout", help="drive a reactive controller for one episode and draw the trajectory")
+    p.add_argument("--world", default="door-corridor", help="built-in world name or world YAML path")
+    p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
+    p.add_argument("--steps", type=int, default=300, help="episode length limit (steps of 0.2 s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="runs/rollout", help="folder for the picture")
+    p.set_defaults(func=_cmd_rollout)
+
     worlds = sub.add_parser("worlds", help="generate, draw and rank worlds")
     worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)
     p = worlds_sub.add_parser("generate", help="write generated worlds as world files")
@@ -335,6 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/ranking")
     p.set_defaults(func=_cmd_worlds_rank)
 
+
+def _add_bench_commands(sub) -> None:
+    """Benchmarks that print their figures."""
     bench = sub.add_parser("bench", help="benchmarks that print their figures")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     p = bench_sub.add_parser("env", help="environment steps/s on one core vs a bare PyBullet loop")
@@ -357,8 +370,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
     p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
     p.set_defaults(func=_cmd_bench_metrics)
-    return parser
-
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()

@@ -73,6 +73,10 @@ def run_train(args: argparse.Namespace) -> int:
     experiment = resolve_train_config(args, run_dir)
     if args.serial and experiment.curriculum.file:
         raise TrainRefused("a curriculum needs the distributed trainer (the scheduler): drop --serial")
+    if experiment.curriculum.file and any(getattr(args, name, None) is not None
+                                          for name in ("eval_every_s", "eval_episodes", "stop_at_success")):
+        raise TrainRefused("held-out evaluation does not run during a curriculum yet: drop --eval-every-s, "
+                           "--eval-episodes and --stop-at-success, or --curriculum")
     world = get_world(experiment.curriculum.world)  # unknown world: one line, before anything starts
     robot = experiment.env.robot
     check_pairs_possible(world, (robot.base_length, robot.base_width))

@@ -368,9 +368,15 @@ def _build_items(path: Path, key: str, raw: Any, cls: type) -> tuple:
 
 def load_world(path: str | os.PathLike) -> World:
     """Load a world from a ROS ``map_server`` YAML (plus curlnav keys). Errors name the file."""
-    from PIL import Image, UnidentifiedImageError
-
     path = Path(path)
+    meta = _read_yaml_mapping(path)
+    grid, resolution, origin = _read_map_server(path, meta)
+    return World(name=str(meta.get("name", path.stem)), occupancy=grid, resolution=resolution,
+                 origin=(origin[0], origin[1]), origin_yaw=origin[2] if len(origin) > 2 else 0.0,
+                 source=str(path), **_read_curlnav_keys(path, meta))
+
+
+def _read_yaml_mapping(path: Path) -> dict:
     try:
         meta = yaml.safe_load(path.read_text())
     except OSError as exc:
@@ -379,6 +385,13 @@ def load_world(path: str | os.PathLike) -> World:
         raise _fail(path, f"not valid YAML: {exc}") from None
     if not isinstance(meta, dict):
         raise _fail(path, "a world file must be a YAML mapping")
+    return meta
+
+
+def _read_map_server(path: Path, meta: dict) -> tuple[np.ndarray, float, list[float]]:
+    """The map_server part: occupancy grid (row 0 = bottom), resolution (m), origin [x, y(, yaw)]."""
+    from PIL import Image, UnidentifiedImageError
+
     for key in ("image", "resolution", "origin"):
         if key not in meta:
             raise _fail(path, f"missing required key '{key}' (ROS map_server format)")
@@ -403,11 +416,12 @@ def load_world(path: str | os.PathLike) -> World:
         raise _fail(path, f"map image {image_path} does not exist") from None
     except (UnidentifiedImageError, OSError) as exc:
         raise _fail(path, f"map image {image_path} is unreadable: {exc}") from None
-    grid = np.flipud(values != 0)
+    return np.flipud(values != 0), resolution, origin
 
-    def item(key: str, cls: type) -> tuple:
-        return _build_items(path, key, meta.get(key), cls)
 
+def _read_curlnav_keys(path: Path, meta: dict) -> dict:
+    """curlnav's own keys (movable objects, pairs, ball regions, random pairs, wall height) as
+    ``World`` fields; all optional."""
     random_pairs = None
     if meta.get("random_pairs") is not None:
         raw = meta["random_pairs"]
@@ -430,21 +444,11 @@ def load_world(path: str | os.PathLike) -> World:
         wall_height = float(meta.get("wall_height", 1.0))
     except (TypeError, ValueError):
         raise _fail(path, "wall_height must be a number") from None
-    return World(
-        name=str(meta.get("name", path.stem)),
-        occupancy=grid,
-        resolution=resolution,
-        origin=(origin[0], origin[1]),
-        origin_yaw=origin[2] if len(origin) > 2 else 0.0,
-        wall_height=wall_height,
-        balls=item("balls", Ball),
-        doors=item("doors", Door),
-        boxes=item("boxes", Box),
-        pairs=item("pairs", StartGoal),
-        ball_regions=tuple(regions),
-        random_pairs=random_pairs,
-        source=str(path),
-    )
+    return {"wall_height": wall_height, "balls": _build_items(path, "balls", meta.get("balls"), Ball),
+            "doors": _build_items(path, "doors", meta.get("doors"), Door),
+            "boxes": _build_items(path, "boxes", meta.get("boxes"), Box),
+            "pairs": _build_items(path, "pairs", meta.get("pairs"), StartGoal),
+            "ball_regions": tuple(regions), "random_pairs": random_pairs}
 
 
 def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm") -> Path:
