@@ -57,17 +57,25 @@ class D4PGBuilder:
     def make_nstep_writer(self) -> NStepWriter:
         return NStepWriter(self.layout, self.config.d4pg.n_step, self.config.d4pg.discount)
 
-    def make_behaviour_policy(self, actor_index: int = 0, actor_count: int = 1) -> BehaviourPolicy:
+    def make_behaviour_policy(self, actor_index: int = 0, actor_count: int = 1, stream: int = 0) -> BehaviourPolicy:
         """The policy actor ``actor_index`` of ``actor_count`` runs: random actions for its share
-        of the warm-up, then the latest network with its rung of the sigma ladder."""
+        of the warm-up, then the latest network with its rung of the sigma ladder. ``stream``
+        picks another noise sequence (a resumed run passes its step count)."""
         exploration = self.config.exploration
         return BehaviourPolicy(self.layout, self.config.d4pg, sigma=exploration.sigma(actor_index),
                                warmup_steps=exploration.warmup_share(actor_count),
-                               rng=np.random.default_rng([self.config.seed, actor_index]))
+                               rng=np.random.default_rng([self.config.seed, actor_index, stream]))
 
     def make_env(self, world=None) -> NamoEnv:
-        """The training environment (episodes end at a base collision)."""
-        return NamoEnv(world if world is not None else self.config.curriculum.world, self.config.env)
+        """The training environment (episodes end at a base collision). On the experiment's own
+        world, the evaluation protocol's held-out pairs are never drawn for training."""
+        from curlnav.evaluate import excluded_keys, held_out_pairs
+
+        env = NamoEnv(world if world is not None else self.config.curriculum.world, self.config.env)
+        if world is None or world == self.config.curriculum.world:
+            env.excluded_pairs = excluded_keys(held_out_pairs(self.config.curriculum.world,
+                                                              self.config.evaluation.episodes))
+        return env
 
     def make_eval_env(self, world=None) -> NamoEnv:
         """The evaluation environment (collisions counted, the trial goes on)."""

@@ -213,6 +213,11 @@ class ExperimentConfig:
     seed: int = 0  # environment draws, exploration noise and sampling (each actor adds its index)
 
     def __post_init__(self) -> None:
+        _require(isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0,
+                 f"seed must be a non-negative integer, got {self.seed!r}")
+        _require(self.d4pg.seed >= 0, f"d4pg.seed must be non-negative, got {self.d4pg.seed!r}")
+        _require(self.d4pg.pool <= self.env.lidar_beams,
+                 f"d4pg.pool ({self.d4pg.pool}) must not exceed env.lidar_beams ({self.env.lidar_beams})")
         _require(self.replay.min_size >= self.d4pg.batch_size,
                  f"replay.min_size ({self.replay.min_size}) must be at least d4pg.batch_size ({self.d4pg.batch_size})")
 
@@ -387,13 +392,18 @@ def apply_overrides(cfg: ExperimentConfig, overrides: list[str]) -> ExperimentCo
     return config_from_dict(ExperimentConfig, data)
 
 
+#: environment variables that set one field each (what containers have always used)
+ENV_ALIASES = {"CURLNAV_WORLD": "curriculum.world", "CURLNAV_CURRICULUM": "curriculum.file", "CURLNAV_SEED": "seed"}
+
+
 def overrides_from_environment(environ: dict[str, str] | None = None) -> list[str]:
     """``CURLNAV_<SECTION>__<FIELD>[__<FIELD>]=value`` variables as overrides, sorted by name
-    (``CURLNAV_D4PG__BATCH_SIZE=512`` -> ``d4pg.batch_size=512``)."""
+    (``CURLNAV_D4PG__BATCH_SIZE=512`` -> ``d4pg.batch_size=512``), after the aliases of
+    ``ENV_ALIASES`` (``CURLNAV_WORLD`` ...). Empty variables count as unset."""
     environ = os.environ if environ is None else environ
-    out = []
+    out = [f"{path}={environ[name]}" for name, path in ENV_ALIASES.items() if environ.get(name, "").strip()]
     for name in sorted(environ):
-        if name.startswith("CURLNAV_") and "__" in name:
+        if name.startswith("CURLNAV_") and "__" in name and environ[name].strip():
             key = ".".join(part.lower() for part in name[len("CURLNAV_"):].split("__"))
             out.append(f"{key}={environ[name]}")
     return out
@@ -403,6 +413,13 @@ def config_hash(cfg: ExperimentConfig) -> str:
     """SHA-256 of the config's canonical JSON: equal for equal configs, whatever the source."""
     text = json.dumps(config_to_dict(cfg), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def service_config_hash(cfg: ExperimentConfig) -> str:
+    """The hash the services of a run must agree on: every section they use (not ``budget``
+    nor ``evaluation``, which only the launcher reads)."""
+    data = {k: v for k, v in config_to_dict(cfg).items() if k not in ("budget", "evaluation")}
+    return hashlib.sha256(json.dumps(data, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:

@@ -72,8 +72,3 @@ def experiment_from_args(args: argparse.Namespace, environ: dict[str, str] | Non
     preset = args.preset or environ.get("CURLNAV_PRESET") or None
     config = args.config or environ.get("CURLNAV_CONFIG") or None
     return resolve_config(config, preset, option_overrides(args) + list(args.overrides or []), environ)
-
-
-def explicit_sources(args: argparse.Namespace) -> bool:
-    """Whether the user named any config source on the command line."""
-    return bool(args.preset or args.config or args.overrides or option_overrides(args))

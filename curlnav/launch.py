@@ -52,8 +52,8 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--router-timeout-s", type=float, default=env_default("router_timeout_s", 60.0),
                    help="give up (exit 2) when the router does not answer within this at start; -1 waits forever")
     add_config_arguments(p)
-    p.add_argument("--world", default=env_default("world", None), help="world to train on (curriculum.world)")
-    p.add_argument("--curriculum", default=env_default("curriculum", None), help="curriculum YAML (curriculum.file)")
+    p.add_argument("--world", default=None, help="world to train on (curriculum.world; CURLNAV_WORLD)")
+    p.add_argument("--curriculum", default=None, help="curriculum YAML (curriculum.file; CURLNAV_CURRICULUM)")
 
 
 def build_service(args):

@@ -3,10 +3,11 @@ teardown. Every service (replay, learner, scheduler, actor) is a pure core plus 
 built on ``ServiceShell``.
 
 Config agreement: every service answers ``config/<role>/<id>`` with the ``ExperimentConfig`` it
-runs (``RunConfig``: hash and JSON). A service joining a run first asks every service already
-there; if any runs another config, it refuses to join (``ConfigMismatch``: one line naming the
-service and the first fields that differ; ``curlnav serve`` exits 2). Services may start in any
-order: whichever joins second notices.
+runs (``RunConfig``: hash and JSON). A service joining a run declares its own answer, then asks
+every service there; if any runs another config (every section but ``budget`` and
+``evaluation``, which only the launcher reads), it refuses to join (``ConfigMismatch``: one line
+naming the service and the first fields that differ; ``curlnav serve`` exits 2). Services may
+start in any order, even at once: the later one, or both, notice.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from typing import Callable
 
 from prometheus_client import CollectorRegistry
 
-from curlnav.config import ExperimentConfig, config_differences, config_hash, config_to_dict
+from curlnav.config import ExperimentConfig, config_differences, config_to_dict, service_config_hash
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import RunConfig
 from curlnav.proto.topology import Topology
@@ -46,15 +47,20 @@ class Deployment:
     http_port: int = 0  # 0: any free port (written to <data_dir>/http_port)
 
 
+def _shared_part(config: dict) -> dict:
+    return {k: v for k, v in config.items() if k not in ("budget", "evaluation")}
+
+
 def check_agreement(own: ExperimentConfig, replies: list[RunConfig]) -> None:
-    """Raise ``ConfigMismatch`` if any reply carries another config than ``own``."""
-    own_hash = config_hash(own)
+    """Raise ``ConfigMismatch`` if any reply carries another config than ``own`` (compared on
+    ``service_config_hash``: the budget and evaluation sections are the launcher's own)."""
+    own_hash = service_config_hash(own)
     for reply in replies:
         if reply.config_hash == own_hash:
             continue
         try:
             theirs = json.loads(reply.config_json)
-            diffs = config_differences(config_to_dict(own), theirs)
+            diffs = config_differences(_shared_part(config_to_dict(own)), _shared_part(theirs))
         except ValueError:
             diffs = []
         detail = "; ".join(diffs[:3]) + (f" (+{len(diffs) - 3} more)" if len(diffs) > 3 else "")
@@ -80,7 +86,7 @@ class ServiceShell:
         self.registry = registry
         self.health = health
         self.topology = Topology(deployment.run)
-        self.config_hash = config_hash(experiment)
+        self.config_hash = service_config_hash(experiment)
         self.data_dir = Path(deployment.data_dir)
         self.session = None
         self.http: HttpServer | None = None
@@ -97,12 +103,14 @@ class ServiceShell:
         left open) when the run already runs another config."""
         try:
             self.session = session = self.new_session()
-            check_agreement(self.experiment, self.run_configs())
+            # answer first, then ask: two services starting together see each other
             reply = RunConfig(self.role, self.instance, self.config_hash,
                               json.dumps(config_to_dict(self.experiment), sort_keys=True)).encode()
             key = self.topology.config(self.role, self.instance)
             queryable = session.declare_queryable(key, lambda q: q.reply(key, reply))
             self.on_close("config queryable", queryable.undeclare)
+            check_agreement(self.experiment, [c for c in self.run_configs()
+                                              if (c.role, c.instance) != (self.role, self.instance)])
             token = session.liveliness().declare_token(self.topology.alive(self.role, self.instance))
             self.on_close("liveliness token", token.undeclare)
             all_routes = {("GET", "/healthz"): lambda r: json_response({"ok": True, **self.health()}),

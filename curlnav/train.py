@@ -14,7 +14,8 @@ from pathlib import Path
 
 from .config import (ConfigError, ExperimentConfig, config_differences, config_hash, config_to_dict, config_to_yaml,
                      experiment_from_dict, load_config)
-from .experiment_cli import experiment_from_args, explicit_sources
+from .config import apply_overrides, overrides_from_environment
+from .experiment_cli import experiment_from_args, option_overrides
 
 DEFAULT_ACTORS = 2
 RESUMABLE_CHANGES = ("budget.", "evaluation.stop_at_success")  # fields a resume may change
@@ -31,31 +32,31 @@ def _saved_state(run_dir: Path, serial: bool) -> Path | None:
 
 
 def resolve_train_config(args: argparse.Namespace, run_dir: Path) -> ExperimentConfig:
-    """The experiment of this invocation: the command line's, or on ``--resume`` the saved one
-    with the budget and stopping target of the command line."""
-    experiment = experiment_from_args(args)
+    """The experiment of this invocation. On ``--resume``, the saved config with this command
+    line's overrides on top; only ``budget.*`` and ``evaluation.stop_at_success`` may differ."""
     saved_state = _saved_state(run_dir, args.serial)
     if not args.resume:
         if saved_state is not None:
             raise TrainRefused(f"run folder {run_dir} already holds a run ({saved_state.name}): add --resume to "
                                f"continue it, or choose another --run-dir")
-        return experiment
+        return experiment_from_args(args)
     if saved_state is None:
         raise TrainRefused(f"--resume: nothing to resume in {run_dir} (no checkpoint or replay there)")
     saved_path = run_dir / "config.yaml"
     if not saved_path.exists():
-        return experiment
+        return experiment_from_args(args)
     saved = load_config(saved_path)
-    if explicit_sources(args):
-        changed = [d for d in config_differences(config_to_dict(experiment), config_to_dict(saved))
-                   if not d.startswith(RESUMABLE_CHANGES)]
-        if changed:
-            raise TrainRefused(f"--resume: {saved_path} was trained with another config ({'; '.join(changed[:3])}; "
-                               f"command line first): only budget.* and evaluation.stop_at_success may change")
-    data = config_to_dict(saved)
-    data["budget"] = config_to_dict(experiment.budget)
-    data["evaluation"]["stop_at_success"] = experiment.evaluation.stop_at_success
-    return experiment_from_dict(data)
+    if args.preset or args.config:  # a whole config named again: it must be the saved one
+        candidates = [experiment_from_args(args)]
+    else:
+        candidates = [apply_overrides(saved, overrides_from_environment() + option_overrides(args) + list(args.overrides))]
+    experiment = candidates[0]
+    changed = [d for d in config_differences(config_to_dict(experiment), config_to_dict(saved))
+               if not d.startswith(RESUMABLE_CHANGES)]
+    if changed:
+        raise TrainRefused(f"--resume: {saved_path} was trained with another config ({'; '.join(changed[:3])}; "
+                           f"command line first): only budget.* and evaluation.stop_at_success may change")
+    return experiment
 
 
 def run_train(args: argparse.Namespace) -> int:
@@ -67,14 +68,19 @@ def run_train(args: argparse.Namespace) -> int:
     actors = DEFAULT_ACTORS if args.actors is None else args.actors
     if actors < 1:
         raise TrainRefused(f"--actors must be at least 1, got {actors}")
-    world_name = (args.world or "run").replace("/", "_")
-    suffix = "" if args.serial else f"-x{actors}"
-    run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{Path(world_name).stem}{suffix}")
+    if args.run_dir is None:
+        if args.resume:
+            raise TrainRefused("--resume needs --run-dir: the folder of the run to continue")
+        experiment = experiment_from_args(args)
+        suffix = "" if args.serial else f"-x{actors}"
+        run_dir = Path(f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{Path(experiment.curriculum.world).stem}{suffix}")
+    else:
+        run_dir = Path(args.run_dir)
     experiment = resolve_train_config(args, run_dir)
     if args.serial and experiment.curriculum.file:
         raise TrainRefused("a curriculum needs the distributed trainer (the scheduler): drop --serial")
-    if experiment.curriculum.file and any(getattr(args, name, None) is not None
-                                          for name in ("eval_every_s", "eval_episodes", "stop_at_success")):
+    if experiment.curriculum.file and (experiment.evaluation.stop_at_success is not None or any(
+            getattr(args, name, None) is not None for name in ("eval_every_s", "eval_episodes"))):
         raise TrainRefused("held-out evaluation does not run during a curriculum yet: drop --eval-every-s, "
                            "--eval-episodes and --stop-at-success, or --curriculum")
     world = get_world(experiment.curriculum.world)  # unknown world: one line, before anything starts

@@ -25,7 +25,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge
 from safetensors.torch import save as safetensors_bytes
 
 from curlnav.builder import D4PGBuilder
-from curlnav.config import ExperimentConfig
+from curlnav.config import ConfigError, ExperimentConfig, config_differences, config_to_dict
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, Weights
 from curlnav.service import Deployment, ServiceShell
@@ -66,6 +66,10 @@ class LearnerService:
         ckpt = self.data_dir / "latest.safetensors"
         if ckpt.exists():
             self.state, extra = load_checkpoint(ckpt)
+            if self.state.config != experiment.d4pg:
+                diffs = config_differences(config_to_dict(self.state.config), config_to_dict(experiment.d4pg), "d4pg.")
+                raise ConfigError(f"{ckpt} was trained with another d4pg config ({'; '.join(diffs[:3])}; checkpoint "
+                                  f"first): use the run's config, or another data folder")
             self.version = int(extra.get("version", 0))
             log.info("resumed from %s at %d updates, weights version %d", ckpt, self.state.steps, self.version)
         else:

@@ -199,7 +199,10 @@ class ReplayService:
                 time.sleep(0.001)
                 continue
             payload = self.backlog.popleft()
-            while not self.stop.is_set():
+            while True:
+                if self.stop.is_set():
+                    self.backlog.appendleft(payload)  # inserted (forced) with the rest at shutdown
+                    return
                 try:
                     self.handle_batch(payload, timeout=0.5)
                     break

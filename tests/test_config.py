@@ -15,7 +15,7 @@ import pytest
 
 from curlnav.cli import build_parser, main
 from curlnav.config import (ConfigError, ExperimentConfig, PRESETS, config_hash, config_to_dict, load_config,
-                            resolve_config)
+                            resolve_config, service_config_hash)
 from curlnav.launch import build_service, free_port
 from curlnav.proto.messages import RunConfig
 from curlnav.serial import SerialRunConfig, SerialTrainer
@@ -83,9 +83,11 @@ def test_a_changed_field_reaches_every_service(tmp_path, monkeypatch):
 def test_a_service_with_another_config_is_refused_naming_the_field():
     ours = ExperimentConfig()
     theirs = resolve_config(overrides=["d4pg.batch_size=512"], environ={})
-    same = RunConfig("learner", "0", config_hash(ours), json.dumps(config_to_dict(ours)))
+    same = RunConfig("learner", "0", service_config_hash(ours), json.dumps(config_to_dict(ours)))
     check_agreement(ours, [same])
-    other = RunConfig("learner", "0", config_hash(theirs), json.dumps(config_to_dict(theirs)))
+    longer = resolve_config(overrides=["budget.minutes=60"], environ={})  # the launcher's own section
+    check_agreement(ours, [RunConfig("learner", "0", service_config_hash(longer), json.dumps(config_to_dict(longer)))])
+    other = RunConfig("learner", "0", service_config_hash(theirs), json.dumps(config_to_dict(theirs)))
     with pytest.raises(ConfigMismatch) as info:
         check_agreement(ours, [same, other])
     message = str(info.value)
