@@ -93,7 +93,7 @@ class SerialTrainer:
         else:
             self.state = builder.make_learner_state()
             self.table = builder.make_replay_table()
-        env = builder.make_env()  # the held-out pairs excluded, as in every actor
+        env = builder.make_env(excluded_pairs=self.evaluation.excluded)  # held out, as in every actor
         self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1, stream=self.counters["env_steps"])
         self.policy.use_network(self.state.actor)
         self.policy.steps = self.counters["env_steps"]  # the warm-up is not repeated on resume
