@@ -83,6 +83,18 @@ def merge_cells_into_rectangles(occupancy: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True)
+def _first_crossing(p, i, d):
+    """Along one axis, for a ray at ``p`` (cells) in cell ``i`` going at ``d`` per unit length:
+    the cell step (+1, -1 or 0), the ray parameter of the first cell boundary and the parameter
+    between boundaries (inf when the ray runs parallel to the axis)."""
+    if d > 0.0:
+        return 1, (i + 1 - p) / d, 1.0 / d
+    if d < 0.0:
+        return -1, (p - i) / -d, -1.0 / d
+    return 0, np.inf, np.inf
+
+
+@numba.njit(cache=True)
 def _cast_grid(occ, resolution, u, v, angles, max_range, out):
     rows, cols = occ.shape
     px = u / resolution
@@ -100,30 +112,8 @@ def _cast_grid(occ, resolution, u, v, angles, max_range, out):
         dy = math.sin(angles[k])
         ix = ix0
         iy = iy0
-        if dx > 0.0:
-            step_x = 1
-            t_x = (ix + 1 - px) / dx
-            dt_x = 1.0 / dx
-        elif dx < 0.0:
-            step_x = -1
-            t_x = (px - ix) / -dx
-            dt_x = -1.0 / dx
-        else:
-            step_x = 0
-            t_x = np.inf
-            dt_x = np.inf
-        if dy > 0.0:
-            step_y = 1
-            t_y = (iy + 1 - py) / dy
-            dt_y = 1.0 / dy
-        elif dy < 0.0:
-            step_y = -1
-            t_y = (py - iy) / -dy
-            dt_y = -1.0 / dy
-        else:
-            step_y = 0
-            t_y = np.inf
-            dt_y = np.inf
+        step_x, t_x, dt_x = _first_crossing(px, ix, dx)
+        step_y, t_y, dt_y = _first_crossing(py, iy, dy)
         result = max_range
         while True:
             if t_x < t_y:
