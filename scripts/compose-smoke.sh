@@ -67,9 +67,16 @@ wait_for "2 live actors" 60 'len(actors) == 2'
 step "restart the learner; training resumes from its checkpoint"
 before=$(curl -s "$LEARNER/healthz" | "$PY" -c 'import json,sys; print(json.load(sys.stdin)["version"])')
 "${DC[@]}" restart learner
-sleep 3
-wait_for "learner back at version >= $before" 180 "(status['learner']['version'] or -1) >= $before"
-after=$(curl -s "$LEARNER/healthz" | "$PY" -c 'import json,sys; print(json.load(sys.stdin)["version"])')
+# Poll the restarted learner's own /healthz (the scheduler's /status may still show the version it
+# heard before the restart, and the learner's HTTP port answers only once it has loaded).
+after=""
+deadline=$(( $(date +%s) + 180 ))
+while [ "$(date +%s)" -lt "$deadline" ]; do
+  after=$(curl -s --max-time 3 "$LEARNER/healthz" 2>/dev/null | "$PY" -c 'import json,sys; print(json.load(sys.stdin)["version"])' 2>/dev/null) || after=""
+  if [ -n "$after" ] && [ "$after" -ge "$before" ]; then break; fi
+  sleep 2
+done
+if [ -z "$after" ]; then echo "TIMEOUT after 180s: the restarted learner's /healthz never answered"; "${DC[@]}" logs --tail 30 learner || true; exit 1; fi
 echo "learner version before restart $before, after $after"
 [ "$after" -ge "$before" ]
 
