@@ -89,9 +89,9 @@ def build_service(args):
 
         service = SchedulerService(SchedulerServiceConfig(deployment("scheduler", 8080), admin_token=args.admin_token),
                                    experiment)
-        for stage in service.core.curriculum.stages:
-            for world in stage.worlds:
-                get_world(world)
+        from curlnav.scheduler.curriculum import check_curriculum
+
+        check_curriculum(service.core.curriculum, experiment.curriculum.file)
         return service
     if args.role == "actor":
         from curlnav.actor.service import ActorService, ActorServiceConfig
@@ -134,15 +134,37 @@ def http_json(url: str, timeout: float = 2.0):
         return json.loads(response.read())
 
 
+def _die_with_launcher(launcher_pid: int):
+    """``preexec_fn`` of every service: SIGTERM when the launcher dies, even by SIGKILL (Linux
+    ``PR_SET_PDEATHSIG``), so a killed launcher leaves no orphan behind."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+
+    def preexec() -> None:
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        if os.getppid() != launcher_pid:  # the launcher died before prctl took effect
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return preexec
+
+
+#: the order in which a cluster stops: actors and the evaluator first, the router last
+STOP_ORDER = ("actor", "evaluator", "learner", "replay", "scheduler", "router")
+
+
 class LocalCluster:
     """Router, replay, learner, scheduler and N actors as local processes (one run folder).
 
     Every service reads the same experiment config, ``<run_dir>/config.yaml`` (written here
-    from ``experiment``), and gets only deployment options on its command line.
+    from ``experiment``), and gets only deployment options on its command line. The services
+    form one process group of their own (so a terminal's Ctrl-C or hang-up reaches only the
+    launcher, which stops them in order), and each gets SIGTERM if the launcher dies.
     """
 
     def __init__(self, run_dir: str | Path, experiment=None, actors: int = 2, run: str = "local",
-                 extra: dict[str, list[str]] | None = None, admin_token: str = "", learner_threads: int = 1) -> None:
+                 extra: dict[str, list[str]] | None = None, admin_token: str = "", learner_threads: int = 1,
+                 scheduler_port: int | None = None, learner_port: int | None = None) -> None:
         from .config import ExperimentConfig, config_to_yaml
 
         self.run_dir = Path(run_dir)
@@ -151,30 +173,57 @@ class LocalCluster:
         self.config_path = self.run_dir / "config.yaml"
         self.config_path.write_text(config_to_yaml(self.experiment))
         self.router_port = free_port()
-        self.scheduler_port = free_port()
+        self.scheduler_port = scheduler_port or free_port()
+        self.learner_http_port = learner_port or free_port()
         self.router = f"tcp/127.0.0.1:{self.router_port}"
         self.run, self.actors = run, actors
         self.extra = extra or {}
         self.admin_token = admin_token
         self.learner_threads = learner_threads
         self.processes: dict[str, subprocess.Popen] = {}
+        self.commands: dict[str, list[str]] = {}  # name -> command line (a restart runs the same)
+        self.pgid: int | None = None  # the services' process group
+
+    def service_command(self, role: str, *more: str) -> list[str]:
+        return [sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run, "--router", self.router,
+                "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir),
+                "--config", str(self.config_path), *self.extra.get(role, []), *more]
 
     def _spawn(self, name: str, role: str, *more: str) -> subprocess.Popen:
-        cmd = [sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run, "--router", self.router,
-               "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir),
-               "--config", str(self.config_path), *self.extra.get(role, []), *more]
-        log = open(self.run_dir / "logs" / f"{name}.log", "ab")
+        return self.spawn(name, self.service_command(role, *more))
+
+    def spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        """Start ``cmd`` as service ``name`` in the services' process group, its output appended
+        to ``logs/<name>.log``."""
+        self.commands[name] = list(cmd)
         # the services must not read the launcher's CURLNAV_* config variables: config.yaml is the config
         env = {k: v for k, v in os.environ.items() if not (k.startswith("CURLNAV_") and "__" in k)
                and k not in ("CURLNAV_PRESET", "CURLNAV_CONFIG", "CURLNAV_WORLD", "CURLNAV_CURRICULUM")}
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
+        with open(self.run_dir / "logs" / f"{name}.log", "ab") as log:
+            log.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} start: {' '.join(cmd[2:])}\n".encode())
+            log.flush()
+            kwargs = dict(stdout=log, stderr=subprocess.STDOUT, env=env, stdin=subprocess.DEVNULL,
+                          preexec_fn=_die_with_launcher(os.getpid()))
+            try:
+                proc = subprocess.Popen(cmd, process_group=self.pgid or 0, **kwargs)
+            except (PermissionError, ProcessLookupError, subprocess.SubprocessError):
+                proc = subprocess.Popen(cmd, process_group=0, **kwargs)  # every old member is gone
+                self.pgid = None
+        if self.pgid is None:
+            self.pgid = proc.pid
         self.processes[name] = proc
         return proc
+
+    def restart(self, name: str) -> subprocess.Popen:
+        """Start service ``name`` again with the command line it had."""
+        self.processes.pop(name, None)
+        return self.spawn(name, self.commands[name])
 
     def start(self) -> None:
         self._spawn("router", "router")
         self._spawn("replay", "replay")
-        self._spawn("learner", "learner", "--threads", str(self.learner_threads))
+        self._spawn("learner", "learner", "--threads", str(self.learner_threads),
+                    "--http-port", str(self.learner_http_port))
         sched = ["--http-port", str(self.scheduler_port)]
         if self.admin_token:
             sched += ["--admin-token", self.admin_token]
@@ -190,39 +239,72 @@ class LocalCluster:
     def status_url(self) -> str:
         return f"http://127.0.0.1:{self.scheduler_port}/status"
 
+    @property
+    def learner_url(self) -> str:
+        return f"http://127.0.0.1:{self.learner_http_port}"
+
     def status(self) -> dict | None:
         try:
             return http_json(self.status_url)
-        except OSError:
+        except (OSError, ValueError):
             return None
 
     def learner_port(self) -> int | None:
-        path = self.run_dir / "learner" / "http_port"
-        return int(path.read_text()) if path.exists() else None
+        return self.learner_http_port
 
     def dead(self) -> list[str]:
         return [name for name, p in self.processes.items() if p.poll() is not None]
 
+    def reap(self) -> list[tuple[str, int]]:
+        """The services that have exited since the last call, with their exit codes (removed
+        from ``processes``; ``restart(name)`` starts one again)."""
+        out = []
+        for name in self.dead():
+            out.append((name, self.processes.pop(name).returncode))
+        return out
+
+    def log_tail(self, name: str, lines: int = 12) -> list[str]:
+        path = self.run_dir / "logs" / f"{name}.log"
+        try:
+            with open(path, "rb") as f:
+                f.seek(max(0, os.path.getsize(path) - 16384))
+                return f.read().decode(errors="replace").splitlines()[-lines:]
+        except OSError:
+            return []
+
     def stop_process(self, name: str, timeout: float = 30.0) -> None:
-        proc = self.processes.pop(name)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
+        self._stop_all([name], timeout)
+
+    def _stop_all(self, names: list[str], timeout: float) -> None:
+        """SIGTERM to ``names`` together, then wait for each (SIGKILL after ``timeout``)."""
+        procs = [(n, self.processes.pop(n)) for n in names if n in self.processes]
+        for _, proc in procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        for _, proc in procs:
             try:
-                proc.wait(timeout)
+                proc.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+                proc.kill()
                 proc.wait()
 
     def kill_process(self, name: str) -> None:
         proc = self.processes.pop(name)
-        os.killpg(proc.pid, signal.SIGKILL)
+        proc.kill()
         proc.wait()
 
-    def stop(self) -> None:
-        order = [n for n in self.processes if n.startswith("actor")] + ["learner", "replay", "scheduler", "router"]
-        for name in order:
-            if name in self.processes:
-                self.stop_process(name)
+    def stop(self, timeout: float = 30.0) -> None:
+        """Stop every service, in ``STOP_ORDER`` (actors together), then make sure nothing of
+        the process group is left."""
+        for role in STOP_ORDER:
+            self._stop_all([n for n in list(self.processes) if n.split("-")[0] == role], timeout)
+        self._stop_all(list(self.processes), timeout)
+        if self.pgid is not None:
+            try:
+                os.killpg(self.pgid, signal.SIGKILL)  # a grandchild a service left behind
+            except (ProcessLookupError, PermissionError):
+                pass
 
     def __enter__(self) -> "LocalCluster":
         self.start()
@@ -230,81 +312,3 @@ class LocalCluster:
 
     def __exit__(self, *exc) -> None:
         self.stop()
-
-
-def train_embedded(run_dir: str | Path, experiment, actors: int, learner_threads: int = 1) -> dict:
-    """``curlnav train``: the services as local processes, progress every 5 s, the evaluation
-    protocol on the learner's latest artefact, clean shutdown on Ctrl-C, SIGTERM or the budget
-    (``budget.minutes`` or ``budget.max_env_steps`` transitions inserted in the replay)."""
-    from curlnav.evaluate import EvaluationProtocol
-    from curlnav.policy import PolicyArtefact
-
-    run_dir = Path(run_dir)
-    cluster = LocalCluster(run_dir, experiment, actors=actors, learner_threads=learner_threads)
-    evals: list[dict] = []
-    budget, evaluation = experiment.budget, experiment.evaluation
-    protocol = EvaluationProtocol(experiment) if not experiment.curriculum.file else None
-    start = time.monotonic()
-
-    def on_term(signum, frame):
-        raise KeyboardInterrupt  # SIGTERM stops the run as cleanly as Ctrl-C
-
-    signal.signal(signal.SIGTERM, on_term)
-    cluster.start()
-    print(f"services started: router {cluster.router}, scheduler {cluster.status_url}, logs in {run_dir / 'logs'}")
-    last_eval = time.monotonic()
-    stop_reason = "time budget"
-    try:
-        while time.monotonic() - start < budget.minutes * 60:
-            time.sleep(5.0)
-            dead = cluster.dead()
-            if dead:
-                stop_reason = f"service exited: {', '.join(dead)} (see {run_dir / 'logs'})"
-                break
-            s = cluster.status()
-            if s:
-                rate = s["success_last_100"]
-                replay, learner = s["replay"], s["learner"]
-                print(f"[{(time.monotonic() - start) / 60:5.1f} min] stage {s['stage']} sub-step {s['substep']} "
-                      f"episodes {s['episodes']} success {'-' if rate is None else f'{rate:.0%}'} "
-                      f"env steps/s {replay.get('insert_rate') or 0:.0f} updates/s {learner.get('updates_per_s') or 0:.1f} "
-                      f"learner v{learner.get('version')} replay {replay.get('size')} actors {len(s['live_actors'])}",
-                      flush=True)
-                if budget.max_env_steps is not None and (replay.get("inserted") or 0) >= budget.max_env_steps:
-                    stop_reason = "env step budget"
-                    break
-            port = cluster.learner_port()
-            if protocol and port and time.monotonic() - last_eval >= evaluation.every_s:
-                last_eval = time.monotonic()
-                folder = _download_latest(port, run_dir / "eval-policy")
-                if folder:
-                    result = protocol.run(PolicyArtefact(folder))
-                    row = {"wall_s": time.monotonic() - start, "version": PolicyArtefact(folder).version,
-                           **{k: getattr(result, k) for k in ("success_rate", "collisions_per_episode", "mean_time_to_goal_s")}}
-                    evals.append(row)
-                    print(f"[eval {row['wall_s'] / 60:5.1f} min, policy v{row['version']}] {result.line()}", flush=True)
-                    if evaluation.stop_at_success is not None and result.success_rate >= evaluation.stop_at_success:
-                        stop_reason = f"held-out success {result.success_rate:.0%}"
-                        break
-    except KeyboardInterrupt:
-        stop_reason = "interrupted"
-    finally:
-        print("stopping services (checkpoints and replay are saved)...", flush=True)
-        cluster.stop()
-        if protocol:
-            protocol.close()
-    summary = {"stop_reason": stop_reason, "wall_s": time.monotonic() - start, "evals": evals,
-               "first_eval_reaching_80": next((e for e in evals if e["success_rate"] >= 0.8), None),
-               "run_dir": str(run_dir)}
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
-
-
-def _download_latest(port: int, out: Path) -> Path | None:
-    """Fetch the learner's latest artefact over HTTP into ``out`` (sha256 checked on load)."""
-    from curlnav.pull import pull_policy
-
-    try:
-        return pull_policy(f"http://127.0.0.1:{port}", out)
-    except (OSError, ValueError):
-        return None

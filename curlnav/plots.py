@@ -11,17 +11,39 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
-def _read(path: Path) -> list[dict[str, float]]:
+def _read(path: Path) -> list[dict]:
+    """Rows of a CSV log: numbers as floats, other values (stage names, pairs) as strings."""
     if not path.exists():
         return []
     with open(path, newline="") as f:
         rows = []
         for row in csv.DictReader(f):
-            try:
-                rows.append({k: float(v) for k, v in row.items() if v not in ("", None)})
-            except ValueError:
-                continue
+            out: dict = {}
+            for k, v in row.items():
+                if v in ("", None) or k is None:
+                    continue
+                try:
+                    out[k] = float(v)
+                except ValueError:
+                    out[k] = v
+            rows.append(out)
         return rows
+
+
+def _evaluations(rows: list[dict]) -> tuple[list[dict], dict[str, list[tuple[dict, float]]]]:
+    """eval.csv rows grouped by evaluation: the mean over its (world, pair) rows, and each pair's
+    own series when an evaluation covers several pairs."""
+    groups: dict = {}
+    for r in rows:
+        if "success_rate" in r:
+            groups.setdefault(r.get("evaluation", len(groups)), []).append(r)
+    means, pairs = [], {}
+    for group in groups.values():
+        means.append({**group[0], "success_rate": sum(r["success_rate"] for r in group) / len(group)})
+        if len(group) > 1:
+            for r in group:
+                pairs.setdefault(f"{r.get('world', '')}/{r.get('pair', '')}", []).append((group[0], r["success_rate"]))
+    return means, pairs
 
 
 def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
@@ -29,7 +51,7 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
     and environment steps, plus critic loss. Writes ``learning_curve.png`` in the run folder."""
     run_dir = Path(run_dir)
     train = _read(run_dir / "metrics.csv")
-    evals = _read(run_dir / "eval.csv")
+    evals, pairs = _evaluations(_read(run_dir / "eval.csv"))
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), dpi=100)
     for ax, key, label in ((axes[0], "wall_s", "wall clock (min)"), (axes[1], "env_steps", "environment steps")):
         scale = 60.0 if key == "wall_s" else 1.0
@@ -37,8 +59,10 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
             ax.plot([r[key] / scale for r in train], [r.get("train_success_100", 0) for r in train],
                     label="training success (last 100 episodes, with noise)", color="tab:blue")
         if evals:
-            ax.plot([r[key] / scale for r in evals], [r["success_rate"] for r in evals], "o-",
-                    label="held-out evaluation success (greedy)", color="tab:red")
+            ax.plot([r.get(key, 0) / scale for r in evals], [r["success_rate"] for r in evals], "o-",
+                    label="evaluation success (greedy; mean over pairs)", color="tab:red")
+        for name, series in pairs.items():
+            ax.plot([r.get(key, 0) / scale for r, _ in series], [v for _, v in series], ".:", lw=0.8, label=name)
         ax.axhline(0.8, ls="--", color="grey", lw=0.8)
         ax.set_ylim(-0.02, 1.02)
         ax.set_xlabel(label)

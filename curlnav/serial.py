@@ -7,15 +7,17 @@ turn: step the environment while the limiter accepts inserts, update while it al
 Neither ever waits on the other, so it cannot deadlock.
 
 A run folder holds ``config.yaml`` (the experiment), ``metrics.csv`` (training), ``eval.csv``
-(held-out evaluations), ``learning_curve.png``, ``checkpoints/`` (learner + replay, resumable)
-and ``policy/`` (the latest exported artefact).
+(held-out evaluations), TensorBoard event files in ``tensorboard/``, ``learning_curve.png``,
+``summary.json`` (one entry per session), ``checkpoints/`` (learner + replay, resumable),
+``policy/`` (the latest exported artefact) and ``policy-best/`` (the best held-out evaluation).
+SIGINT, SIGTERM and SIGHUP stop it with a checkpoint (exit code 130 from ``curlnav train``).
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
+import signal
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -30,6 +32,9 @@ from curlnav.config import ExperimentConfig
 from curlnav.evaluate import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy
 from curlnav.learner.d4pg import TensorBatch, act, load_checkpoint, save_checkpoint, sgd_step
+from curlnav.record import EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, now_iso, strict_json
+
+SIGNAL_NAMES = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
 
 
 @dataclass(frozen=True)
@@ -40,33 +45,6 @@ class SerialRunConfig:
     save_replay: bool = True  # include the replay in checkpoints (needed for an exact resume)
     torch_threads: int = 2
     progress: bool = True  # a tqdm progress bar
-
-
-class CsvLog:
-    """Append-only CSV with a fixed header, flushed at every row."""
-
-    def __init__(self, path: Path, fields: list[str]) -> None:
-        self.path = path
-        self.fields = fields
-        new = not path.exists()
-        self._file = open(path, "a", newline="")
-        self._writer = csv.DictWriter(self._file, fieldnames=fields, extrasaction="ignore")
-        if new:
-            self._writer.writeheader()
-
-    def write(self, row: dict) -> None:
-        self._writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-        self._file.flush()
-
-    def close(self) -> None:
-        self._file.close()
-
-
-TRAIN_FIELDS = ["wall_s", "env_steps", "updates", "episodes", "train_success_100", "return_100",
-                "base_collisions_100", "env_steps_per_s", "updates_per_s", "losses/critic", "losses/actor",
-                "values/q_mean", "replay_size"]
-EVAL_FIELDS = ["wall_s", "env_steps", "updates", "train_episodes", "episodes", "success_rate", "collisions_per_episode",
-               "end_effector_collisions_per_episode", "mean_time_to_goal_s"]
 
 
 class SerialTrainer:
@@ -128,10 +106,26 @@ class SerialTrainer:
         self.state.actor.eval()
         result = self.evaluation.run(lambda o: act(self.state.actor, o))
         self.state.actor.train()
-        row = {"wall_s": time.monotonic() - start, "env_steps": self.counters["env_steps"], "updates": self.state.steps,
-               "train_episodes": self.counters["episodes"], **dataclasses.asdict(result)}
+        row = {"evaluation": len(self.counters["evals"]) + 1, "wall_s": time.monotonic() - start,
+               "env_steps": self.counters["env_steps"], "updates": self.state.steps,
+               "policy_version": self.state.steps, "stage_index": 0, "stage": "train", "substep": 0,
+               "world": Path(str(self.experiment.curriculum.world)).stem, "pair": "held-out",
+               **dataclasses.asdict(result)}
         self.eval_log.write(row)
-        self.counters["evals"].append(row)
+        self.counters["evals"].append(strict_json(row))
+        self.board.scalars({"eval/success_rate": result.success_rate,
+                            f"eval/success/{row['world']}/held-out": result.success_rate,
+                            f"eval/base_collisions_per_episode/{row['world']}/held-out": result.collisions_per_episode},
+                           self.counters["env_steps"])
+        best = self.counters.get("best_success")
+        if best is None or result.success_rate > best:
+            self.counters["best_success"] = result.success_rate
+            folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env,
+                                   worlds=[str(self.experiment.curriculum.world)], env_steps=self.counters["env_steps"])
+            (folder / "selected.json").write_text(json.dumps(strict_json(
+                {"why": "best held-out evaluation so far", "evaluation": row["evaluation"],
+                 "success_rate": result.success_rate, "env_steps": row["env_steps"], "updates": row["updates"],
+                 "wall_s": row["wall_s"]}), indent=2))
         self._print(f"[eval {row['wall_s'] / 60:5.1f} min, {self.counters['env_steps']} steps, {self.state.steps} "
                     f"updates] {result.line()}")
         return result
@@ -160,6 +154,15 @@ class SerialTrainer:
         experiment, budget = self.experiment, self.experiment.budget
         self.train_log = CsvLog(self.run_dir / "metrics.csv", TRAIN_FIELDS)
         self.eval_log = CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS)
+        self.board = TensorBoardLog(self.run_dir)
+        history = RunSummary(self.run_dir)
+        session = {"started": now_iso(), "mode": "serial", "env_steps_before": self.counters["env_steps"]}
+        session_start = time.monotonic()
+        received: list[int] = []
+        previous = {signum: signal.getsignal(signum) for signum in SIGNAL_NAMES}
+        for signum in SIGNAL_NAMES:
+            if previous[signum] is not signal.SIG_IGN:  # under nohup, SIGHUP stays ignored
+                signal.signal(signum, lambda signum, frame: received.append(signum))
         budget_s = budget.minutes * 60.0
         start = time.monotonic() - self.counters["elapsed_s"]
         self.bar = tqdm(total=int(budget_s), unit="s", disable=not self.run_cfg.progress,
@@ -171,6 +174,10 @@ class SerialTrainer:
         self._begin()
         try:
             while time.monotonic() - start < budget_s:
+                if received:
+                    stop_reason = f"interrupted by {SIGNAL_NAMES[received[0]]}"
+                    self._print(f"{stop_reason}: saving a checkpoint and the policy")
+                    break
                 if budget.max_env_steps is not None and self.counters["env_steps"] >= budget.max_env_steps:
                     stop_reason = "env step budget"
                     break
@@ -195,26 +202,36 @@ class SerialTrainer:
                     self.checkpoint(start)
                     last_ckpt = time.monotonic()
         except KeyboardInterrupt:
-            stop_reason = "interrupted"
+            stop_reason = "interrupted by SIGINT (Ctrl-C)"
             self._print("interrupted: saving a checkpoint and the policy")
         finally:
             self.bar.close()
             self.bar = None
-        if final is None:
-            final = self.evaluate(start)
-        self.checkpoint(start)
-        self.train_log.close()
-        self.eval_log.close()
-        plot_learning_curve(self.run_dir)
-        self.loop.close()
-        self.evaluation.close()
-        summary = {"stop_reason": stop_reason, "wall_s": time.monotonic() - start,
-                   "env_steps": self.counters["env_steps"], "updates": self.state.steps,
-                   "episodes": self.counters["episodes"], "final_eval": dataclasses.asdict(final),
-                   "first_eval_reaching_80": next((e for e in self.counters["evals"] if e["success_rate"] >= 0.8), None),
-                   "run_dir": str(self.run_dir)}
-        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-        return summary
+            for signum in SIGNAL_NAMES:  # a second signal must not cut the checkpoint short
+                signal.signal(signum, signal.SIG_IGN)
+        try:
+            if final is None:
+                final = self.evaluate(start)
+            self.checkpoint(start)
+            self.train_log.close()
+            self.eval_log.close()
+            self.board.close()
+            plot_learning_curve(self.run_dir)
+            self.loop.close()
+            self.evaluation.close()
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+        exit_code = 130 if stop_reason.startswith("interrupted") else 0
+        session.update({"stopped": now_iso(), "stop_reason": stop_reason, "exit_code": exit_code,
+                        "wall_s": time.monotonic() - session_start, "env_steps": self.counters["env_steps"],
+                        "updates": self.state.steps})
+        return history.close_session(
+            session, stop_reason=stop_reason, exit_code=exit_code, wall_s=time.monotonic() - start,
+            env_steps=self.counters["env_steps"], updates=self.state.steps, episodes=self.counters["episodes"],
+            final_eval=dataclasses.asdict(final), evals=self.counters["evals"],
+            first_eval_reaching_80=next((e for e in self.counters["evals"] if e["success_rate"] >= 0.8), None),
+            run_dir=str(self.run_dir), policy=str(self.run_dir / "policy"), policy_best=str(self.run_dir / "policy-best"))
 
     bar = None
 
@@ -223,16 +240,25 @@ class SerialTrainer:
         ups = (self.state.steps - at_log[1]) / dt
         recent = self.recent
         success = float(np.mean([r[0] for r in recent])) if recent else 0.0
-        self.train_log.write({"wall_s": now - start, "env_steps": self.counters["env_steps"], "updates": self.state.steps,
-                              "episodes": self.counters["episodes"], "train_success_100": success,
-                              "return_100": float(np.mean([r[1] for r in recent])) if recent else 0.0,
-                              "base_collisions_100": float(np.mean([r[2] for r in recent])) if recent else 0.0,
-                              "env_steps_per_s": sps, "updates_per_s": ups, "replay_size": self.table.size,
-                              **self.metrics})
+        row = {"wall_s": now - start, "env_steps": self.counters["env_steps"], "updates": self.state.steps,
+               "episodes": self.counters["episodes"], "train_success_100": success,
+               "return_100": float(np.mean([r[1] for r in recent])) if recent else 0.0,
+               "base_collisions_100": float(np.mean([r[2] for r in recent])) if recent else 0.0,
+               "env_steps_per_s": sps, "updates_per_s": ups, "replay_size": self.table.size,
+               "policy_version": self.state.steps, "policy_lag": 0, "stage_index": 0, "stage": "train", "substep": 0,
+               "live_actors": 1, **self.metrics}
+        self.train_log.write(row)
+        world = Path(str(self.experiment.curriculum.world)).stem
+        self.board.scalars({"train/success_last_100": success, "train/return_last_100": row["return_100"],
+                            "train/base_collisions_last_100": row["base_collisions_100"],
+                            f"train/success/{world}/random": success, "speed/env_steps_per_s": sps,
+                            "speed/updates_per_s": ups, "replay/size": self.table.size, "policy/lag_versions": 0,
+                            "curriculum/stage": 0, "curriculum/substep": 0, **self.metrics}, self.counters["env_steps"])
         if self.bar is not None:
             self.bar.n = min(int(now - start), int(budget_s))
             self.bar.set_postfix_str(f"steps {self.counters['env_steps']} ({sps:.0f}/s) updates {self.state.steps} "
-                                     f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%}")
+                                     f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%} "
+                                     f"| {max(budget_s - (now - start), 0) / 60:.1f} min left")
 
 
 def train_serial(run_dir: str | Path, experiment: ExperimentConfig, run: SerialRunConfig | None = None,

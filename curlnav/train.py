@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from .config import (ConfigError, ExperimentConfig, config_differences, config_hash, config_to_dict, config_to_yaml,
-                     experiment_from_dict, load_config)
+                     load_config)
 from .config import apply_overrides, overrides_from_environment
 from .experiment_cli import experiment_from_args, option_overrides
 
@@ -59,9 +59,27 @@ def resolve_train_config(args: argparse.Namespace, run_dir: Path) -> ExperimentC
     return experiment
 
 
-def run_train(args: argparse.Namespace) -> int:
+def check_before_start(experiment: ExperimentConfig) -> None:
+    """Everything the run will load, loaded now (one line, exit 2, nothing started): the world,
+    that it can draw pairs, and with a curriculum every world of every stage and every named
+    sub-step pair."""
     from .sim import get_world
     from .sim.pairs import check_pairs_possible
+
+    world = get_world(experiment.curriculum.world)
+    robot = experiment.env.robot
+    check_pairs_possible(world, (robot.base_length, robot.base_width))
+    if experiment.curriculum.file:
+        from curlnav.scheduler.curriculum import check_curriculum, load_curriculum
+
+        check_curriculum(load_curriculum(experiment.curriculum.file), experiment.curriculum.file)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """``curlnav train``. Exit codes: 0 the budget or the target was reached, 130 interrupted
+    (SIGINT, SIGTERM, SIGHUP), 1 a service failed past its restart budget, 2 refused before
+    starting (a bad config, curriculum or world, a busy run folder)."""
+    from .record import RunLock
 
     if args.serial and args.actors is not None:
         raise TrainRefused("--actors is for the distributed trainer; --serial runs one actor in the learner's process")
@@ -76,25 +94,48 @@ def run_train(args: argparse.Namespace) -> int:
         run_dir = Path(f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{Path(experiment.curriculum.world).stem}{suffix}")
     else:
         run_dir = Path(args.run_dir)
-    experiment = resolve_train_config(args, run_dir)
-    if args.serial and experiment.curriculum.file:
-        raise TrainRefused("a curriculum needs the distributed trainer (the scheduler): drop --serial")
-    if experiment.curriculum.file and (experiment.evaluation.stop_at_success is not None or any(
-            getattr(args, name, None) is not None for name in ("eval_every_s", "eval_episodes"))):
-        raise TrainRefused("held-out evaluation does not run during a curriculum yet: drop --eval-every-s, "
-                           "--eval-episodes and --stop-at-success, or --curriculum")
-    world = get_world(experiment.curriculum.world)  # unknown world: one line, before anything starts
-    robot = experiment.env.robot
-    check_pairs_possible(world, (robot.base_length, robot.base_width))
-    run_dir.mkdir(parents=True, exist_ok=True)
+    lock = RunLock(run_dir)
+    if run_dir.exists():
+        lock.acquire()  # first of all: a folder another launcher is using is not even read
+    try:
+        experiment = resolve_train_config(args, run_dir)
+        if args.serial and experiment.curriculum.file:
+            raise TrainRefused("a curriculum needs the distributed trainer (the scheduler): drop --serial")
+        check_before_start(experiment)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if not lock.held:
+            lock.acquire()
+        return _train_locked(args, run_dir, experiment, actors)
+    finally:
+        lock.release()
+
+
+def _train_locked(args, run_dir: Path, experiment: ExperimentConfig, actors: int) -> int:
+    """The run, once everything is checked and the run folder is this launcher's."""
+    from .record import RunSummary
+
+    used_s = RunSummary(run_dir).elapsed_before_s
+    if args.resume and used_s >= experiment.budget.minutes * 60:
+        raise TrainRefused(f"--resume: the run has used {used_s / 60:.1f} of its {experiment.budget.minutes:g} min "
+                           f"budget (earlier sessions count): raise --minutes to train on")
     (run_dir / "config.yaml").write_text(config_to_yaml(experiment))
     print(f"run folder: {run_dir}; config {config_hash(experiment)[:12]} (config.yaml), preset "
           f"{experiment.d4pg.preset}, world {experiment.curriculum.world}, curriculum "
-          f"{experiment.curriculum.file or 'none'}, {experiment.budget.minutes} min"
-          + ("" if args.serial else f", {actors} actors"))
+          f"{experiment.curriculum.file or 'none'}, {experiment.budget.minutes:g} min"
+          + (f" ({used_s / 60:.1f} used before)" if used_s else "")
+          + ("" if args.serial else f", {actors} actors"), flush=True)
     if args.serial:
         return _train_serial(args, run_dir, experiment)
     return _train_distributed(args, run_dir, experiment, actors)
+
+
+def _print_evaluations(summary: dict, run_dir: Path) -> None:
+    reached = summary.get("first_eval_reaching_80")
+    if reached:
+        print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
+    print(f"policy (newest): {run_dir / 'policy'}; policy (best evaluation): {run_dir / 'policy-best'}")
+    print(f"learning curve: {run_dir / 'learning_curve.png'}; metrics.csv, eval.csv, summary.json; "
+          f"tensorboard --logdir {run_dir / 'tensorboard'}")
 
 
 def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
@@ -105,28 +146,28 @@ def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
     print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min, {summary['env_steps']} env steps, "
           f"{summary['updates']} updates, {summary['episodes']} episodes")
     print(f"held-out evaluation: success {final['success_rate']:.0%} over {final['episodes']} episodes, "
-          f"{final['collisions_per_episode']:.2f} collisions/episode, time to goal {final['mean_time_to_goal_s']:.1f} s")
-    reached = summary["first_eval_reaching_80"]
-    if reached:
-        print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
-    print(f"policy artefact: {run_dir / 'policy'}; learning curve: {run_dir / 'learning_curve.png'}")
-    return 0
+          f"{final['collisions_per_episode']:.2f} collisions/episode, time to goal "
+          f"{final['mean_time_to_goal_s'] or float('nan'):.1f} s")
+    _print_evaluations(summary, run_dir)
+    return summary["exit_code"]
 
 
 def _train_distributed(args, run_dir: Path, experiment: ExperimentConfig, actors: int) -> int:
-    from .launch import train_embedded
+    from .supervise import say, train_distributed
 
-    summary = train_embedded(run_dir, experiment, actors, learner_threads=args.threads or 1)
-    print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min")
+    outcome = train_distributed(run_dir, experiment, actors, learner_threads=args.threads or 1)
+    summary = outcome.summary
+    say(f"stopped ({outcome.stop_reason}) after {summary['sessions'][-1]['wall_s'] / 60:.1f} min "
+        f"(run total {summary['elapsed_s'] / 60:.1f} min), exit code {outcome.exit_code}")
     if summary["evals"]:
         last = summary["evals"][-1]
-        print(f"last held-out evaluation: success {last['success_rate']:.0%}, "
-              f"{last['collisions_per_episode']:.2f} collisions/episode")
-    reached = summary["first_eval_reaching_80"]
-    if reached:
-        print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min (policy v{reached['version']})")
-    print(f"policy artefacts: {run_dir / 'learner' / 'artefacts'}")
-    return 0
+        say(f"last evaluation: success {last['success_rate']:.0%}, {last['collisions_per_episode']:.2f} "
+            f"collisions/episode (policy v{last['version']})")
+    try:
+        _print_evaluations(summary, run_dir)
+    except OSError:
+        pass
+    return outcome.exit_code
 
 
 def show_config(args: argparse.Namespace) -> int:

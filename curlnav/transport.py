@@ -136,12 +136,13 @@ class HttpServer:
 
 
 def stop_on_signals(stop: threading.Event) -> None:
-    """SIGTERM and SIGINT set ``stop``; services then save their state and exit cleanly."""
+    """SIGTERM, SIGINT and SIGHUP set ``stop``; services then save their state and exit cleanly."""
     def handler(signum, frame):
         stop.set()
 
-    signal.signal(signal.SIGTERM, handler)
-    signal.signal(signal.SIGINT, handler)
+    for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        if signal.getsignal(signum) is not signal.SIG_IGN:  # nohup: a hang-up stays ignored
+            signal.signal(signum, handler)
 
 
 class RateMeter:

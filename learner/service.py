@@ -103,6 +103,7 @@ class LearnerService:
         return self.metrics
 
     replay_size = 1  # transitions in the replay, from its status (importance weights)
+    env_steps = 0  # transitions the replay has accepted in the whole run, from its status
 
     def publish_version(self) -> bytes:
         self.version += 1
@@ -115,7 +116,7 @@ class LearnerService:
     def export(self) -> Path:
         folder = self.data_dir / "artefacts" / f"v{self.version}"
         export_policy(self.state, folder, self.experiment.env, worlds=[self.experiment.curriculum.world],
-                      version=self.version)
+                      version=self.version, env_steps=self.env_steps)
         versions = sorted(self.artefact_versions())
         for old in versions[:-self.cfg.keep_artefacts]:
             shutil.rmtree(self.data_dir / "artefacts" / f"v{old}", ignore_errors=True)
@@ -129,8 +130,11 @@ class LearnerService:
         return out
 
     def status(self) -> dict:
+        losses = {name: float(self.metrics[key]) for name, key in (("critic_loss", "losses/critic"),
+                                                                   ("actor_loss", "losses/actor"),
+                                                                   ("q_mean", "values/q_mean")) if key in self.metrics}
         return {"version": self.version, "updates": self.state.steps, "updates_per_s": self.update_rate.rate(),
-                "critic_loss": self.metrics.get("losses/critic", 0.0)}
+                "env_steps": self.env_steps, **losses}
 
     # -- HTTP ------------------------------------------------------------------------------------
     def _policy(self, request) -> tuple[int, str, bytes]:
@@ -215,7 +219,9 @@ class LearnerService:
 
     def _on_replay_status(self, sample) -> None:
         try:
-            self.replay_size = max(int(ServiceStatus.decode(sample.payload.to_bytes()).values.get("size", 1)), 1)
+            values = ServiceStatus.decode(sample.payload.to_bytes()).values
+            self.replay_size = max(int(values.get("size", 1)), 1)
+            self.env_steps = max(int(values.get("inserted", 0)), self.env_steps)
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
 

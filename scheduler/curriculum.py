@@ -101,6 +101,9 @@ def load_curriculum(path: str | Path) -> Curriculum:
         raise CurriculumError(f"{path}: not valid YAML: {exc}") from None
     if not isinstance(raw, dict) or not isinstance(raw.get("stages"), list) or not raw["stages"]:
         raise CurriculumError(f"{path}: a curriculum is a mapping with a non-empty 'stages' list")
+    unknown = set(raw) - {"name", "stages"}
+    if unknown:
+        raise CurriculumError(f"{path}: unknown keys {sorted(unknown)} (a curriculum has 'name' and 'stages')")
     stages = []
     for i, s in enumerate(raw["stages"]):
         where = f"stages[{i}]"
@@ -122,6 +125,28 @@ def load_curriculum(path: str | Path) -> Curriculum:
         stages.append(Stage(str(s.get("name", f"S{i + 1}")), tuple(worlds), _criterion(path, f"{where}.advance", s.get("advance")),
                             tuple(substeps), _criterion(path, f"{where}.substep_advance", s.get("substep_advance"))))
     return Curriculum(str(raw.get("name", path.stem)), tuple(stages))
+
+
+def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
+    """Everything a run will need from ``curriculum``, checked before anything starts: every
+    world of every stage loads, and every sub-step pair exists in each world of its stage.
+    Raises ``CurriculumError`` (one line naming the file, stage and world) otherwise."""
+    from curlnav.sim import get_world
+    from curlnav.sim.world import WorldError
+
+    where = f"{source or curriculum.name}"
+    for stage in curriculum.stages:
+        for name in stage.worlds:
+            try:
+                world = get_world(name)
+            except (WorldError, OSError, ValueError, KeyError) as exc:
+                raise CurriculumError(f"{where}: stage {stage.name}: world {name!r} does not load: "
+                                      f"{exc.args[0] if exc.args else exc}") from None
+            pairs = {p.name for p in world.pairs}
+            missing = [p for p in stage.substeps if p not in pairs]
+            if missing:
+                raise CurriculumError(f"{where}: stage {stage.name}: sub-step pair(s) {', '.join(missing)} do not exist "
+                                      f"in world {world.name} (it has {', '.join(sorted(pairs)) or 'no named pairs'})")
 
 
 def _worlds_from_ranking(path: Path, where: str, spec: dict) -> list[str]:

@@ -15,6 +15,7 @@ import json
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,10 @@ from curlnav.transport import json_response
 from .curriculum import Curriculum, CurriculumState, load_curriculum
 
 log = logging.getLogger("curlnav.scheduler")
+
+
+def mean(values: list[float]) -> float | None:
+    return sum(values) / len(values) if values else None
 
 
 @dataclass(frozen=True)
@@ -48,6 +53,7 @@ class SchedulerCore:
         self.lock = threading.RLock()
         self.actors: dict[str, dict] = {}  # live actors: id -> {assignment, last_report, episodes, joined}
         self.services: dict[str, dict] = {}  # role -> last status values
+        self.recent_episodes: deque = deque(maxlen=100)  # (return, base collisions) of the last 100 reports
         self.registry = CollectorRegistry()
         self.m_episodes = Counter("scheduler_episodes", "episodes reported", ["world", "pair", "outcome"],
                                   registry=self.registry)
@@ -86,6 +92,7 @@ class SchedulerCore:
             learner_version = self.services.get("learner", {}).get("version")
             if learner_version is not None:
                 self.m_lag.labels(r.actor_id).set(learner_version - r.weights_version)
+            self.recent_episodes.append((r.episode_return, r.base_collisions))
             advanced = self.state.record(r.world, r.pair, r.success, r.assignment_epoch)
             if advanced:
                 self.m_advances.inc()
@@ -120,6 +127,11 @@ class SchedulerCore:
                 self.m_advances.inc()
             return advanced
 
+    def _policy_lag(self, learner_version: int | None) -> float | None:
+        """Mean over live actors of (learner version - the weights version of its last episode)."""
+        versions = [a["last_report"]["weights_version"] for a in self.actors.values() if a.get("last_report")]
+        return None if learner_version is None or not versions else mean([learner_version - v for v in versions])
+
     def status(self) -> dict:
         with self.lock:
             st = self.state
@@ -134,10 +146,12 @@ class SchedulerCore:
                 "window_size": len(st.window), "criterion": None if st.criterion is None else vars(st.criterion),
                 "success_by_world_pair": rates, "advances": st.history,
                 "live_actors": {k: dict(v) for k, v in self.actors.items()},
-                "learner": {"version": learner.get("version"), "updates": learner.get("updates"),
-                            "updates_per_s": learner.get("updates_per_s")},
-                "replay": {"size": replay.get("size"), "insert_rate": replay.get("insert_rate"),
-                           "sample_rate": replay.get("sample_rate"), "rejected": replay.get("rejected")},
+                "return_last_100": mean([e[0] for e in self.recent_episodes]),
+                "base_collisions_last_100": mean([e[1] for e in self.recent_episodes]),
+                "policy_lag": self._policy_lag(learner.get("version")),
+                "learner": {k: learner.get(k) for k in ("version", "updates", "updates_per_s", "env_steps",
+                                                        "critic_loss", "actor_loss", "q_mean")},
+                "replay": {k: replay.get(k) for k in ("size", "inserted", "insert_rate", "sample_rate", "rejected")},
                 "rejected": {s.labels["reason"]: s.value for m in self.m_rejected.collect() for s in m.samples
                              if s.name.endswith("_total")},
             }

@@ -123,7 +123,7 @@ def test_services_carry_on_after_the_router_restarts(tmp_path):
         before = wait_for("learning under way", lambda: (st := c.status()) and (st["learner"]["version"] or 0) >= 2
                           and st["episodes"] > 0 and st, timeout=180)
         c.kill_process("router")
-        c._spawn("router", "router")
+        c.restart("router")
         wait_for("transitions, episodes and weights flowing again", lambda: (st := c.status())
                  and st["episodes"] > before["episodes"] + 2 and st["learner"]["version"] > before["learner"]["version"] + 2
                  and st["replay"]["size"] > before["replay"]["size"] and len(st["live_actors"]) == 1, timeout=180)

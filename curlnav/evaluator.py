@@ -1,0 +1,228 @@
+"""Evaluation beside a distributed run, in its own process (``python -m curlnav.evaluator``,
+started and supervised by ``curlnav train``).
+
+Every ``evaluation.every_s`` it takes the learner's newest policy artefact over HTTP (a version
+it has not evaluated yet), asks the scheduler where the curriculum stands and evaluates:
+
+- without a curriculum: the held-out pairs of the training world (``EvaluationProtocol``);
+- with a curriculum: each world of the current stage; in a stage with sub-steps (T-Maze p1..p4)
+  each sub-step's pair, ``max(5, evaluation.episodes // targets)`` episodes each, reported per
+  pair; in a stage without sub-steps, held-out random pairs of each world.
+
+It appends one row per (world, pair) to ``eval.csv`` (the launcher reads them for the console,
+TensorBoard and the stopping target) and keeps ``policy-best/``: the artefact with the best
+evaluation so far, ordered by (stage reached, sub-step, success rate).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import shutil
+import sys
+import threading
+import time
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+from curlnav.config import ExperimentConfig, load_config
+from curlnav.evaluate import EvaluationProtocol, evaluate
+from curlnav.record import EVAL_FIELDS, CsvLog, copy_policy, read_csv
+
+log = logging.getLogger("curlnav.evaluator")
+HELD_OUT = "held-out"
+
+
+class EvaluationStopped(Exception):
+    """The run is stopping: an evaluation in progress is dropped, not recorded."""
+
+
+@dataclass(frozen=True)
+class Target:
+    """One thing to evaluate: a world and a named pair, or ``held-out`` random pairs."""
+
+    stage_index: int
+    stage: str
+    substep: int
+    world: str
+    pair: str
+
+
+def targets_for(experiment: ExperimentConfig, curriculum, status: dict | None) -> list[Target]:
+    """What to evaluate now: the training world's held-out pairs, or the current stage's worlds
+    and sub-step pairs (``status``: the scheduler's ``/status``)."""
+    if curriculum is None:
+        return [Target(0, "train", 0, experiment.curriculum.world, HELD_OUT)]
+    index = int((status or {}).get("stage_index") or 0)
+    index = min(max(index, 0), len(curriculum.stages) - 1)
+    stage = curriculum.stages[index]
+    substep = int((status or {}).get("substep") or 0)
+    out = []
+    for world in stage.worlds:
+        for pair in (stage.substeps or (HELD_OUT,)):
+            out.append(Target(index, stage.name, substep, world, pair))
+    return out
+
+
+class BesideEvaluator:
+    """The evaluation loop's parts: ``evaluate(policy, targets)`` -> eval.csv rows."""
+
+    def __init__(self, run_dir: Path, experiment: ExperimentConfig, curriculum=None) -> None:
+        self.run_dir = run_dir
+        self.experiment = experiment
+        self.curriculum = curriculum
+        self._held_out: dict[str, EvaluationProtocol] = {}
+        self._named_envs: dict[str, object] = {}
+        rows = read_csv(run_dir / "eval.csv")
+        self.evaluations = max((int(r["evaluation"]) for r in rows if r.get("evaluation", "").isdigit()), default=0)
+        self.best = self._saved_best()
+
+    def _saved_best(self) -> tuple | None:
+        note = self.run_dir / "policy-best" / "selected.json"
+        try:
+            saved = json.loads(note.read_text())
+            return tuple(saved["rank"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
+    def evaluate(self, policy, targets: list[Target], stop: threading.Event | None = None) -> list[dict]:
+        """One row per target; raises ``EvaluationStopped`` as soon as ``stop`` is set."""
+        from curlnav.sim import NamoEnv, get_world
+
+        def check_stop(_episode: int, _info: dict) -> None:
+            if stop is not None and stop.is_set():
+                raise EvaluationStopped()
+
+        per_target = max(5, self.experiment.evaluation.episodes // max(len(targets), 1))
+        rows = []
+        for t in targets:
+            if t.pair == HELD_OUT:
+                protocol = self._held_out.get(t.world)
+                if protocol is None:
+                    protocol = self._held_out[t.world] = EvaluationProtocol(
+                        self.experiment, world=t.world,
+                        episodes=self.experiment.evaluation.episodes if len(targets) == 1 else per_target)
+                result = protocol.run(policy, on_episode=check_stop)
+            else:
+                world = get_world(t.world)
+                pair = next(p for p in world.pairs if p.name == t.pair)
+                env = self._named_envs.get(t.world)
+                if env is None:
+                    env = self._named_envs[t.world] = NamoEnv(world, self.experiment.eval_env)
+                result = evaluate(policy, world, [pair] * per_target, self.experiment.eval_env, env=env,
+                                  on_episode=check_stop)
+            rows.append({"stage_index": t.stage_index, "stage": t.stage, "substep": t.substep,
+                         "world": Path(t.world).stem, "pair": t.pair, **dataclasses.asdict(result)})
+        return rows
+
+    def record(self, rows: list[dict], *, wall_s: float, version: int, env_steps: int, updates: int,
+               artefact: Path) -> dict:
+        """Append ``rows`` as evaluation N+1 to eval.csv; keep policy-best. Returns the overall row."""
+        self.evaluations += 1
+        log_file = CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS)
+        try:
+            for row in rows:
+                log_file.write({"evaluation": self.evaluations, "wall_s": wall_s, "env_steps": env_steps,
+                                "updates": updates, "policy_version": version, **row})
+        finally:
+            log_file.close()
+        success = sum(r["success_rate"] for r in rows) / len(rows)
+        rank = (rows[0]["stage_index"], rows[0]["substep"], success)
+        if self.best is None or rank > self.best:
+            self.best = rank
+            copy_policy(artefact, self.run_dir / "policy-best",
+                        {"why": "best evaluation so far, ordered by (stage, sub-step, success rate)",
+                         "rank": list(rank), "evaluation": self.evaluations, "policy_version": version,
+                         "success_rate": success, "wall_s": wall_s, "env_steps": env_steps,
+                         "rows": [{k: r[k] for k in ("world", "pair", "success_rate")} for r in rows]})
+        return {"evaluation": self.evaluations, "success_rate": success, "version": version}
+
+    def close(self) -> None:
+        for protocol in self._held_out.values():
+            protocol.close()
+        for env in self._named_envs.values():
+            env.close()
+
+
+def _get_json(url: str, timeout: float = 5.0) -> dict | None:
+    try:
+        with urllib.request.urlopen(url, timeout=timeout) as response:
+            return json.loads(response.read())
+    except (OSError, ValueError):
+        return None
+
+
+def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, status_url: str,
+               run_started_unix: float, stop: threading.Event) -> None:
+    """The loop: wait ``every_s``, evaluate the newest unevaluated policy, record, repeat."""
+    from curlnav.policy import PolicyArtefact
+    from curlnav.pull import pull_policy
+
+    curriculum = None
+    if experiment.curriculum.file:
+        from curlnav.scheduler.curriculum import load_curriculum
+
+        curriculum = load_curriculum(experiment.curriculum.file)
+    evaluator = BesideEvaluator(run_dir, experiment, curriculum)
+    every_s = experiment.evaluation.every_s
+    last_version = -1
+    work = run_dir / ".evaluator"
+    try:
+        next_at = time.monotonic() + every_s
+        while not stop.wait(max(0.0, next_at - time.monotonic())):
+            listing = _get_json(f"{learner_url}/policy/latest")
+            version = int(listing["version"]) if listing and "version" in listing else -1
+            if version <= last_version or version < 1:
+                next_at = time.monotonic() + 2.0  # nothing new yet: look again soon
+                continue
+            try:
+                folder = pull_policy(learner_url, work / "policy")
+                policy = PolicyArtefact(folder)
+            except (OSError, ValueError) as exc:
+                log.warning("could not fetch policy v%d: %s", version, exc)
+                next_at = time.monotonic() + 2.0
+                continue
+            started = time.monotonic()
+            try:
+                rows = evaluator.evaluate(policy, targets_for(experiment, curriculum, _get_json(status_url)), stop)
+            except EvaluationStopped:
+                log.info("stopping: the evaluation of policy v%d in progress is dropped", policy.version)
+                break
+            training = policy.metadata.get("training", {})
+            overall = evaluator.record(rows, wall_s=time.time() - run_started_unix, version=policy.version,
+                                       env_steps=int(training.get("env_steps", 0)),
+                                       updates=int(training.get("learner_steps", 0)), artefact=folder)
+            log.info("evaluation %d of policy v%d: success %.0f%% (%.0f s)", overall["evaluation"], policy.version,
+                     100 * overall["success_rate"], time.monotonic() - started)
+            last_version = version
+            next_at = started + every_s
+    finally:
+        evaluator.close()
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from curlnav.transport import stop_on_signals
+
+    p = argparse.ArgumentParser(prog="python -m curlnav.evaluator", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run-dir", required=True, help="the run folder (eval.csv, policy-best/)")
+    p.add_argument("--config", required=True, help="the run's config.yaml")
+    p.add_argument("--learner-url", required=True, help="learner HTTP base URL (policy artefacts)")
+    p.add_argument("--status-url", required=True, help="the scheduler's /status URL")
+    p.add_argument("--run-started-unix", type=float, required=True,
+                   help="unix time at which the run's wall clock reads 0 (earlier sessions included)")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s evaluator %(levelname)s %(message)s")
+    stop = threading.Event()
+    stop_on_signals(stop)
+    run_beside(Path(args.run_dir), load_config(args.config), args.learner_url.rstrip("/"), args.status_url,
+               args.run_started_unix, stop)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,364 @@
+"""``curlnav train`` (distributed, the default): the launcher that owns a run's services.
+
+It starts router, replay, learner, scheduler, the actors and the evaluator (``curlnav.evaluator``)
+as one process group (``LocalCluster``), then supervises them every half second, never blocked by
+anything else (the scheduler's status is polled in a thread, evaluations run in their own
+process):
+
+- a service that exits is noticed at once and its last log lines are printed; an actor (or the
+  evaluator) is restarted, a crashed router, replay, learner or scheduler is restarted from its
+  saved state (checkpoint, replay file, curriculum state), each within a restart budget
+  (``RESTART_BUDGET``); a service that exits 2 (it refused its configuration) or one past its
+  budget stops the run with exit code 1 and the reason;
+- SIGINT, SIGTERM and SIGHUP stop every service in order (checkpoint and replay saved), exit 130;
+- the budget (``budget.minutes`` of the run, earlier sessions included, or ``budget.max_env_steps``
+  transitions accepted by the replay) or the held-out target ends it with exit 0.
+
+The run folder gets ``run.json`` (URLs, pids), ``metrics.csv``, ``eval.csv`` (written by the
+evaluator), TensorBoard event files, ``learning_curve.png``, ``summary.json``, ``policy/`` (the
+learner's newest artefact) and ``policy-best/`` (the evaluator's best).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from .launch import LocalCluster, http_json
+from .record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, copy_policy, now_iso,
+                     read_csv)
+
+#: restarts allowed per service name before the run stops (an actor, as RLlib restarts env runners)
+RESTART_BUDGET = {"actor": 5, "evaluator": 3, "router": 3, "replay": 3, "learner": 3, "scheduler": 3}
+EXIT_DONE, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
+SIGNAL_NAMES = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
+
+
+def say(line: str) -> None:
+    """Print for the person watching; a closed terminal (after SIGHUP) must not stop the shutdown."""
+    try:
+        print(line, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
+def detach_from_terminal() -> None:
+    """After a hang-up the terminal is gone: send stdout and stderr to /dev/null so that the
+    orderly stop (and the interpreter's last flush) cannot fail on it."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    if os.isatty(1) or os.isatty(2):
+        null = os.open(os.devnull, os.O_WRONLY)
+        for fd in (1, 2):
+            if os.isatty(fd):
+                os.dup2(null, fd)
+        os.close(null)
+
+
+def port_is_free(port: int | None) -> bool:
+    if not port:
+        return False
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+            return True
+        except OSError:
+            return False
+
+
+class StatusPoller(threading.Thread):
+    """The scheduler's ``/status`` every ``period_s`` in a thread: ``latest`` is never stale by
+    more than a few seconds, and the supervisor never waits on HTTP."""
+
+    def __init__(self, url: str, period_s: float = 2.0) -> None:
+        super().__init__(daemon=True, name="status-poller")
+        self.url, self.period_s = url, period_s
+        self.latest: dict | None = None
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            try:
+                self.latest = http_json(self.url, timeout=2.0)
+            except (OSError, ValueError):
+                pass
+            self.stop.wait(self.period_s)
+
+
+@dataclass
+class RunOutcome:
+    exit_code: int
+    stop_reason: str
+    summary: dict
+
+
+class DistributedRun:
+    """One session of a distributed run in ``run_dir`` (see the module docstring)."""
+
+    def __init__(self, run_dir: Path, experiment, actors: int, learner_threads: int = 1,
+                 progress_every_s: float = 5.0) -> None:
+        self.run_dir = Path(run_dir)
+        self.experiment = experiment
+        self.actors = actors
+        self.progress_every_s = progress_every_s
+        self.history = RunSummary(self.run_dir)
+        self.elapsed_before_s = self.history.elapsed_before_s
+        saved = self._saved_run_json()
+        # the evaluator evaluates the newest artefact: export a few times per evaluation period
+        export_every_s = min(60.0, max(10.0, experiment.evaluation.every_s / 4))
+        self.cluster = LocalCluster(
+            self.run_dir, experiment, actors=actors, learner_threads=learner_threads,
+            extra={"learner": ["--export-every-s", f"{export_every_s:g}"]},
+            scheduler_port=saved.get("scheduler_port") if port_is_free(saved.get("scheduler_port")) else None,
+            learner_port=saved.get("learner_port") if port_is_free(saved.get("learner_port")) else None)
+        self.restarts: dict[str, int] = {}
+        self.signal_received: int | None = None
+        self.eval_rows_seen = len(read_csv(self.run_dir / "eval.csv"))
+        self.evals: list[dict] = []
+        self.policy_version = -1
+        self.last_status: dict | None = None
+
+    def _saved_run_json(self) -> dict:
+        try:
+            return json.loads((self.run_dir / "run.json").read_text())
+        except (OSError, ValueError):
+            return {}
+
+    # -- bookkeeping -----------------------------------------------------------------------------
+    def write_run_json(self) -> None:
+        c = self.cluster
+        info = {"pid": os.getpid(), "status_url": c.status_url, "learner_url": c.learner_url, "router": c.router,
+                "scheduler_port": c.scheduler_port, "learner_port": c.learner_http_port, "process_group": c.pgid,
+                "services": {name: p.pid for name, p in c.processes.items()}, "started": now_iso()}
+        tmp = self.run_dir / "run.json.tmp"
+        tmp.write_text(json.dumps(info, indent=2))
+        tmp.replace(self.run_dir / "run.json")
+
+    def wall_s(self) -> float:
+        """The run's training wall clock (s), earlier sessions included."""
+        return self.elapsed_before_s + time.monotonic() - self.started
+
+    def _on_signal(self, signum, frame) -> None:
+        self.signal_received = signum
+
+    def start_evaluator(self) -> None:
+        c = self.cluster
+        c.spawn("evaluator", [sys.executable, "-m", "curlnav.evaluator", "--run-dir", str(self.run_dir),
+                              "--config", str(c.config_path), "--learner-url", c.learner_url,
+                              "--status-url", c.status_url,
+                              "--run-started-unix", f"{time.time() - self.wall_s():.3f}"])
+
+    # -- supervision -----------------------------------------------------------------------------
+    def handle_exits(self) -> str | None:
+        """Restart what exited, within budget; the reason to stop the run otherwise."""
+        for name, code in self.cluster.reap():
+            role = name.split("-")[0]
+            tail = self.cluster.log_tail(name)
+            say(f"!! {name} exited with code {code}; last lines of {self.run_dir / 'logs' / (name + '.log')}:")
+            for line in tail:
+                say(f"   | {line}")
+            if code == 2:
+                return f"{name} refused to run (exit 2): {tail[-1] if tail else 'see its log'}"
+            used = self.restarts.get(name, 0)
+            if used >= RESTART_BUDGET.get(role, 0):
+                return f"{name} exited with code {code} after {used} restarts (restart budget {RESTART_BUDGET[role]})"
+            self.restarts[name] = used + 1
+            self.cluster.restart(name)
+            self.write_run_json()
+            saved = {"learner": "its checkpoint", "replay": "its saved replay", "scheduler": "its curriculum state"}
+            say(f"!! restarted {name} ({used + 1} of {RESTART_BUDGET[role]} restarts)"
+                + (f", from {saved[role]}" if role in saved else ""))
+        return None
+
+    def sync_policy(self) -> None:
+        """``policy/``: a copy of the learner's newest artefact, with its true step counts."""
+        folder = self.run_dir / "learner" / "artefacts"
+        versions = [int(p.name[1:]) for p in folder.glob("v*") if p.name[1:].isdigit() and (p / "metadata.json").exists()]
+        if not versions or max(versions) <= self.policy_version:
+            return
+        version = max(versions)
+        try:
+            copy_policy(folder / f"v{version}", self.run_dir / "policy",
+                        {"why": "the learner's newest artefact", "policy_version": version, "wall_s": self.wall_s()})
+            self.policy_version = version
+        except OSError:
+            pass  # pruned by the learner while copying: the next one comes soon
+
+    def record_progress(self, status: dict, rate: dict, metrics: CsvLog, board: TensorBoardLog) -> str | None:
+        """One metrics.csv row, TensorBoard scalars, a progress line; a budget reason or None."""
+        learner, replay = status.get("learner") or {}, status.get("replay") or {}
+        env_steps = int(replay.get("inserted") or learner.get("env_steps") or 0)
+        wall = self.wall_s()
+        row = {"wall_s": wall, "env_steps": env_steps, "updates": learner.get("updates"),
+               "episodes": status.get("episodes"), "train_success_100": status.get("success_last_100"),
+               "return_100": status.get("return_last_100"), "base_collisions_100": status.get("base_collisions_last_100"),
+               "env_steps_per_s": replay.get("insert_rate"), "updates_per_s": learner.get("updates_per_s"),
+               "losses/critic": learner.get("critic_loss"), "losses/actor": learner.get("actor_loss"),
+               "values/q_mean": learner.get("q_mean"), "replay_size": replay.get("size"),
+               "policy_version": learner.get("version"), "policy_lag": status.get("policy_lag"),
+               "stage_index": status.get("stage_index"), "stage": status.get("stage"), "substep": status.get("substep"),
+               "live_actors": len(status.get("live_actors") or {})}
+        metrics.write(row)
+        scalars = {"train/success_last_100": row["train_success_100"], "train/return_last_100": row["return_100"],
+                   "train/base_collisions_last_100": row["base_collisions_100"],
+                   "losses/critic": row["losses/critic"], "losses/actor": row["losses/actor"],
+                   "values/q_mean": row["values/q_mean"], "speed/env_steps_per_s": row["env_steps_per_s"],
+                   "speed/updates_per_s": row["updates_per_s"], "policy/lag_versions": row["policy_lag"],
+                   "policy/version": row["policy_version"], "replay/size": row["replay_size"],
+                   "curriculum/stage": row["stage_index"], "curriculum/substep": row["substep"],
+                   "actors/live": row["live_actors"]}
+        for key, value in (status.get("success_by_world_pair") or {}).items():
+            world, _, pair = key.rpartition("/")
+            done = value.get("episodes") or 0
+            before = rate.get(key, (0, 0.0))
+            successes = (value.get("success_rate") or 0.0) * done
+            if done > before[0]:  # success over the episodes since the last row
+                scalars[f"train/success/{Path(world).stem}/{pair or 'random'}"] = (successes - before[1]) / (done - before[0])
+            rate[key] = (done, successes)
+        board.scalars(scalars, env_steps)
+        budget = self.experiment.budget
+        left_s = budget.minutes * 60 - wall
+        success = status.get("success_last_100")
+        pair = status.get("substep_pair")
+        say(f"[{wall / 60:5.1f} min, {max(left_s, 0) / 60:4.1f} left] stage {status.get('stage')}"
+            + (f" sub-step {status.get('substep')} ({pair})" if pair else "")
+            + f" | episodes {status.get('episodes')} success {'-' if success is None else f'{success:.0%}'}"
+            + f" | env steps {env_steps} ({replay.get('insert_rate') or 0:.0f}/s) updates {learner.get('updates') or 0}"
+            + f" ({learner.get('updates_per_s') or 0:.1f}/s) | policy v{learner.get('version') or 0}"
+            + f" | replay {replay.get('size') or 0} | actors {len(status.get('live_actors') or {})}")
+        if budget.max_env_steps is not None and env_steps >= budget.max_env_steps:
+            return f"env step budget ({env_steps} >= {budget.max_env_steps})"
+        return None
+
+    def read_evaluations(self, board: TensorBoardLog) -> str | None:
+        """New eval.csv rows (written by the evaluator): console, TensorBoard, stopping target."""
+        rows = read_csv(self.run_dir / "eval.csv")
+        new, self.eval_rows_seen = rows[self.eval_rows_seen:], len(rows)
+        by_eval: dict[str, list[dict]] = {}
+        for r in new:
+            by_eval.setdefault(r["evaluation"], []).append(r)
+        reason = None
+        for number, group in by_eval.items():
+            success = sum(float(r["success_rate"]) for r in group) / len(group)
+            first = group[0]
+            env_steps = int(float(first.get("env_steps") or 0))
+            scalars = {"eval/success_rate": success}
+            for r in group:
+                scalars[f"eval/success/{r['world']}/{r['pair']}"] = float(r["success_rate"])
+                scalars[f"eval/base_collisions_per_episode/{r['world']}/{r['pair']}"] = float(r["collisions_per_episode"])
+            board.scalars(scalars, env_steps)
+            per_pair = ", ".join(f"{r['world']}/{r['pair']} {float(r['success_rate']):.0%}" for r in group)
+            say(f"[eval {number} at {float(first['wall_s']) / 60:5.1f} min, policy v{first['policy_version']}, "
+                f"stage {first['stage']}] success {success:.0%} ({per_pair})")
+            self.evals.append({"evaluation": int(number), "wall_s": float(first["wall_s"]), "env_steps": env_steps,
+                               "version": int(float(first["policy_version"])), "success_rate": success,
+                               "collisions_per_episode": sum(float(r["collisions_per_episode"]) for r in group) / len(group),
+                               "per_pair": {f"{r['world']}/{r['pair']}": float(r["success_rate"]) for r in group}})
+            target = self.experiment.evaluation.stop_at_success
+            if target is not None and success >= target:
+                reason = f"held-out success {success:.0%} >= {target:.0%}"
+        return reason
+
+    # -- the session -----------------------------------------------------------------------------
+    def run(self) -> RunOutcome:
+        from .plots import plot_learning_curve
+
+        budget = self.experiment.budget
+        previous = {signum: signal.getsignal(signum) for signum in SIGNAL_NAMES}
+        for signum in SIGNAL_NAMES:
+            if signal.getsignal(signum) is not signal.SIG_IGN:  # under nohup, SIGHUP stays ignored
+                signal.signal(signum, self._on_signal)
+        metrics = CsvLog(self.run_dir / "metrics.csv", TRAIN_FIELDS)
+        CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS).close()  # the header, before the evaluator appends
+        board = TensorBoardLog(self.run_dir)
+        self.started = time.monotonic()
+        session = {"started": now_iso(), "mode": "distributed", "actors": self.actors}
+        c = self.cluster
+        poller = StatusPoller(c.status_url)
+        exit_code, stop_reason = EXIT_DONE, "time budget"
+        try:
+            c.start()
+            self.start_evaluator()
+            self.write_run_json()
+            say(f"services started ({len(c.processes)} processes, process group {c.pgid}); logs in {self.run_dir / 'logs'}")
+            say(f"status:  {c.status_url}   (curlnav status {self.run_dir})")
+            say(f"policy:  {c.learner_url}/policy/latest   (curlnav pull --from {c.learner_url}); "
+                f"copies in {self.run_dir / 'policy'} and {self.run_dir / 'policy-best'}")
+            say(f"tensorboard --logdir {self.run_dir / 'tensorboard'}")
+            poller.start()
+            rate: dict = {}
+            last_progress = last_sync = time.monotonic()
+            while True:
+                if self.signal_received is not None:
+                    exit_code, stop_reason = EXIT_INTERRUPTED, f"interrupted by {SIGNAL_NAMES[self.signal_received]}"
+                    break
+                failure = self.handle_exits()
+                if failure:
+                    exit_code, stop_reason = EXIT_FAILED, failure
+                    break
+                if self.wall_s() >= budget.minutes * 60:
+                    stop_reason = f"time budget ({budget.minutes:g} min)"
+                    break
+                now = time.monotonic()
+                if now - last_progress >= self.progress_every_s and poller.latest is not None:
+                    last_progress = now
+                    self.last_status = poller.latest
+                    reason = self.record_progress(poller.latest, rate, metrics, board)
+                    if reason:
+                        stop_reason = reason
+                        break
+                reason = self.read_evaluations(board)
+                if reason:
+                    stop_reason = reason
+                    break
+                if now - last_sync >= 10.0:
+                    self.sync_policy()
+                    last_sync = now
+                time.sleep(0.5)
+        finally:
+            say(f"stopping ({stop_reason}): services stop in order, checkpoint and replay are saved...")
+            poller.stop.set()
+            # a second Ctrl-C must not cut the orderly stop short
+            for signum in SIGNAL_NAMES:
+                signal.signal(signum, signal.SIG_IGN)
+            if self.signal_received == signal.SIGHUP:
+                detach_from_terminal()
+            c.stop()
+            self.read_evaluations(board)
+            self.sync_policy()
+            metrics.close()
+            board.close()
+            try:
+                plot_learning_curve(self.run_dir)
+            except Exception as exc:  # a picture must never hide the run's outcome
+                say(f"learning curve not drawn: {exc}")
+            for signum in SIGNAL_NAMES:
+                signal.signal(signum, previous[signum])
+        status = self.last_status or {}
+        session.update({"stopped": now_iso(), "stop_reason": stop_reason, "exit_code": exit_code,
+                        "wall_s": time.monotonic() - self.started, "restarts": dict(self.restarts),
+                        "env_steps": int(((status.get("replay") or {}).get("inserted")) or 0),
+                        "updates": (status.get("learner") or {}).get("updates"),
+                        "policy_version": self.policy_version})
+        summary = self.history.close_session(
+            session, stop_reason=stop_reason, exit_code=exit_code, run_dir=str(self.run_dir),
+            env_steps=session["env_steps"], updates=session["updates"], policy=str(self.run_dir / "policy"),
+            policy_best=str(self.run_dir / "policy-best"), evals=self.evals,
+            first_eval_reaching_80=next((e for e in self.evals if e["success_rate"] >= 0.8), None),
+            last_status=status)
+        return RunOutcome(exit_code, stop_reason, summary)
+
+
+def train_distributed(run_dir: str | Path, experiment, actors: int, learner_threads: int = 1) -> RunOutcome:
+    """``curlnav train``: one supervised session of the distributed run in ``run_dir``."""
+    return DistributedRun(Path(run_dir), experiment, actors, learner_threads).run()
