@@ -98,7 +98,9 @@ def load_curriculum(path: str | Path) -> Curriculum:
     except OSError as exc:
         raise CurriculumError(f"{path}: cannot read curriculum: {exc.strerror or exc}") from None
     except yaml.YAMLError as exc:
-        raise CurriculumError(f"{path}: not valid YAML: {exc}") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise CurriculumError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', None) or exc}") from None
     if not isinstance(raw, dict) or not isinstance(raw.get("stages"), list) or not raw["stages"]:
         raise CurriculumError(f"{path}: a curriculum is a mapping with a non-empty 'stages' list")
     unknown = set(raw) - {"name", "stages"}
