@@ -253,3 +253,41 @@ def test_serial_run_stops_on_sigterm_with_exit_130_and_resumes_with_curves_and_p
         meta = json.loads((run_dir / folder / "metadata.json").read_text())
         assert meta["training"]["env_steps"] > 0
     assert (run_dir / "learning_curve.png").exists() and (run_dir / "eval.csv").exists()
+
+
+# -- evaluation beside a curriculum ----------------------------------------------------------------
+def test_the_evaluator_follows_the_curriculum_reports_each_substep_pair_and_keeps_the_best_policy(tmp_path):
+    from curlnav.builder import D4PGBuilder
+    from curlnav.config import resolve_config
+    from curlnav.evaluator import BesideEvaluator, targets_for
+    from curlnav.learner.artefact import export_policy
+    from curlnav.policy import PolicyArtefact
+    from curlnav.record import read_csv
+    from curlnav.scheduler.curriculum import load_curriculum
+
+    file = ROOT / "scheduler" / "curricula" / "s1+s2.yaml"
+    experiment = resolve_config(overrides=[f"curriculum.file={file}", "evaluation.episodes=8",
+                                           "evaluation.max_episode_steps=40"])
+    curriculum = load_curriculum(file)
+    assert [t.pair for t in targets_for(experiment, curriculum, {"stage_index": 0})] == ["held-out"]
+    targets = targets_for(experiment, curriculum, {"stage_index": 1, "substep": 2})
+    assert [(t.stage, t.pair) for t in targets] == [("S2", "p1"), ("S2", "p2"), ("S2", "p3"), ("S2", "p4")]
+    artefact = export_policy(D4PGBuilder(experiment).make_learner_state(), tmp_path / "v7", experiment.env,
+                             worlds=["t-maze-0"], version=7, env_steps=1234)
+    evaluator = BesideEvaluator(tmp_path, experiment, curriculum)
+    try:
+        rows = evaluator.evaluate(PolicyArtefact(artefact), targets)
+        evaluator.record(rows, wall_s=60.0, version=7, env_steps=1234, updates=99, artefact=artefact)
+        # an evaluation in an earlier stage never replaces a policy that reached a later one
+        s1 = evaluator.evaluate(PolicyArtefact(artefact), targets_for(experiment, curriculum, {"stage_index": 0}))
+        evaluator.record([{**s1[0], "success_rate": 1.0}], wall_s=90.0, version=8, env_steps=2000, updates=150,
+                         artefact=artefact)
+    finally:
+        evaluator.close()
+    written = read_csv(tmp_path / "eval.csv")
+    assert [(r["evaluation"], r["pair"]) for r in written] == [("1", "p1"), ("1", "p2"), ("1", "p3"), ("1", "p4"),
+                                                              ("2", "held-out")]
+    assert all(r["episodes"] == "5" and r["env_steps"] == "1234" for r in written[:4])
+    selected = json.loads((tmp_path / "policy-best" / "selected.json").read_text())
+    assert selected["evaluation"] == 1 and selected["rank"][0] == 1
+    assert (tmp_path / "policy-best" / "actor.onnx").exists()
