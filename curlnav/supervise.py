@@ -323,6 +323,10 @@ class DistributedRun:
                     break
                 if now - last_sync >= 10.0:
                     self.sync_policy()
+                    # the session so far: even a launcher killed outright leaves its history
+                    self.history.write({**session, "stop_reason": "running (or the launcher was killed)",
+                                        "wall_s": time.monotonic() - self.started}, stop_reason="running",
+                                       run_dir=str(self.run_dir), last_status=self.last_status)
                     last_sync = now
                 time.sleep(0.5)
         finally:
