@@ -7,15 +7,20 @@ import sys
 from pathlib import Path
 
 
-def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: str) -> int:
-    """One episode of ``policy`` (observation -> action) in ``world``, drawn to a PNG in ``out``."""
+def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: str, gif: bool = False) -> int:
+    """One episode of ``policy`` (observation -> action) in ``world``, drawn to a PNG in ``out``
+    (and, with ``gif``, animated step by step in a GIF beside it)."""
+    from .animation import EpisodeRecorder
     from .sim import NamoEnv
     from .sim.render import save_env_picture
 
     env = NamoEnv(world, cfg)
     obs, info = env.reset(seed=seed, options={"pair": pair} if pair is not None else None)
+    recorder = EpisodeRecorder(env) if gif else None
     total = 0.0
     while True:
+        if recorder is not None:
+            recorder.record()
         obs, reward, terminated, truncated, info = env.step(policy(obs))
         total += reward
         if terminated or truncated:
@@ -30,6 +35,10 @@ def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: s
     save_env_picture(env, picture, title=summary.replace(" after", "\nafter", 1))
     print(summary)
     print(f"picture: {picture}")
+    if recorder is not None:
+        recorder.record()
+        animation = recorder.save_gif(picture.with_suffix(".gif"), title=f"{label} on {env.world.name}/{info['pair']}")
+        print(f"animation: {animation}")
     env.close()
     return 0
 
@@ -66,18 +75,39 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     return show_config(args)
 
 
+POLICY_EXPECTED = "expected a policy artefact folder or a checkpoint .safetensors written by curlnav train"
+
+
 def _load_policy(path: str):
     """A policy callable from an artefact folder or a training checkpoint (.safetensors)."""
     p = Path(path)
     if not p.exists():
-        raise ValueError(f"no policy at {path}: expected an artefact folder or a checkpoint .safetensors")
+        raise ValueError(f"no policy at {path}: {POLICY_EXPECTED}")
     if p.is_dir() or p.name == "metadata.json":
         from .policy import PolicyArtefact
 
         return PolicyArtefact(p if p.is_dir() else p.parent)
+    return _checkpoint_policy(p)
+
+
+def _checkpoint_policy(p: Path):
+    """The actor of a D4PG checkpoint; ``ValueError`` naming the file when it is not one."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(p), framework="pt") as f:
+            meta = f.metadata() or {}
+    except SafetensorError as exc:
+        raise ValueError(f"{p}: not a safetensors file ({exc}); {POLICY_EXPECTED}") from None
+    if "curlnav" not in meta:
+        raise ValueError(f"{p}: a safetensors file without curlnav checkpoint metadata; {POLICY_EXPECTED}")
     from curlnav.learner.d4pg import act, load_checkpoint
 
-    state, _ = load_checkpoint(p)
+    try:
+        state, _ = load_checkpoint(p)
+    except (SafetensorError, KeyError, TypeError, RuntimeError) as exc:
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{p}: a damaged or incompatible curlnav checkpoint ({detail})") from None
     state.actor.eval()
     return lambda obs: act(state.actor, obs)
 
@@ -103,7 +133,7 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
 
     policy = PolicyArtefact(args.artefact)
     return _drive_and_draw(policy, args.world, args.pair, args.seed, evaluation_config(), args.out,
-                           f"policy-v{policy.version}")
+                           f"policy-v{policy.version}", gif=args.gif)
 
 
 def _cmd_bench_learner(args: argparse.Namespace) -> int:
@@ -224,15 +254,21 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _cmd_pull(args: argparse.Namespace) -> int:
     from .policy import PolicyArtefact
-    from .pull import pull_policy
+    from .pull import pull_policy, unreachable_reason
 
     try:
         folder = pull_policy(args.source, args.out, args.version)
     except OSError as exc:
-        raise ValueError(f"cannot reach {args.source}: {exc}") from None
+        raise ValueError(f"cannot reach {args.source} ({unreachable_reason(exc)}): is the learner running?") from None
     policy = PolicyArtefact(folder)
     print(f"pulled policy v{policy.version} into {folder} (sha256 verified)")
     return 0
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from .status import run_status
+
+    return run_status(args.target, raw_json=args.json)
 
 
 def _cmd_bench_transport(args: argparse.Namespace) -> int:
@@ -249,8 +285,42 @@ def _cmd_bench_metrics(args: argparse.Namespace) -> int:
     return 0
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Help that shows each option's default (unless it has none to show or says it itself)."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False or action.default == "" or "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser with ``_HelpFormatter``; its sub-command parsers are of this class too."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
+def package_version() -> str:
+    """The installed distribution's version, else the one in the source tree's pyproject.toml."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("curlnav")
+    except PackageNotFoundError:
+        import tomllib
+
+        pyproject = Path(__file__).resolve().parent.parent / "pyproject.toml"
+        try:
+            return tomllib.loads(pyproject.read_text())["project"]["version"]
+        except (OSError, KeyError, tomllib.TOMLDecodeError):
+            return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="curlnav", description=__doc__)
+    parser = _Parser(prog="curlnav", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"curlnav {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_training_commands(sub)
     _add_world_commands(sub)
@@ -281,18 +351,19 @@ def _add_training_commands(sub) -> None:
 
     p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs")
     p.add_argument("policy", help="policy artefact folder or checkpoint .safetensors")
-    p.add_argument("--world", default="open-room")
-    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--world", default="open-room", help="built-in world name or world YAML path")
+    p.add_argument("--episodes", type=int, default=50, help="held-out start/goal pairs, one episode each")
     p.set_defaults(func=_cmd_eval)
 
     policy = sub.add_parser("policy", help="use exported policy artefacts")
     policy_sub = policy.add_subparsers(dest="policy_command", required=True)
     p = policy_sub.add_parser("run", help="drive the robot with an artefact and draw the trajectory")
     p.add_argument("artefact", help="artefact folder (with metadata.json, actor.onnx)")
-    p.add_argument("--world", default="open-room")
-    p.add_argument("--pair", default=None)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="runs/policy-run")
+    p.add_argument("--world", default="open-room", help="built-in world name or world YAML path")
+    p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
+    p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
+    p.add_argument("--out", default="runs/policy-run", help="folder for the picture")
+    p.add_argument("--gif", action="store_true", help="also write an animated GIF of the episode beside the picture")
     p.set_defaults(func=_cmd_policy_run)
 
     p = sub.add_parser("serve", help="run one service (the container entry point)")
@@ -303,9 +374,15 @@ def _add_training_commands(sub) -> None:
 
     p = sub.add_parser("pull", help="download a policy artefact from a learner")
     p.add_argument("--from", dest="source", required=True, help="learner URL, e.g. http://localhost:8081")
-    p.add_argument("--version", default="latest")
-    p.add_argument("--out", default="policy")
+    p.add_argument("--version", default="latest", help="policy version: a number or latest")
+    p.add_argument("--out", default="policy", help="artefact folder to write")
     p.set_defaults(func=_cmd_pull)
+
+    p = sub.add_parser("status", help="where a distributed run's curriculum, learner, replay and actors stand")
+    p.add_argument("target", nargs="?", default=None,
+                   help="run folder (with run.json) or the scheduler's URL (default: newest run under runs/ with a run.json)")
+    p.add_argument("--json", action="store_true", help="print the scheduler's /status JSON as it is")
+    p.set_defaults(func=_cmd_status)
 
 
 def _add_world_commands(sub) -> None:
@@ -314,7 +391,7 @@ def _add_world_commands(sub) -> None:
     p.add_argument("--world", default="door-corridor", help="built-in world name or world YAML path")
     p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
     p.add_argument("--steps", type=int, default=300, help="episode length limit (steps of 0.2 s)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
     p.add_argument("--out", default="runs/rollout", help="folder for the picture")
     p.set_defaults(func=_cmd_rollout)
 
@@ -322,10 +399,10 @@ def _add_world_commands(sub) -> None:
     worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)
     p = worlds_sub.add_parser("generate", help="write generated worlds as world files")
     p.add_argument("family", help="barn, barn-3x3, t-maze, cave, forest, garage, indoor, office, campus, auditorium")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the first world")
     p.add_argument("--count", type=int, default=1, help="worlds with seeds seed, seed+1, ...")
     p.add_argument("--param", action="append", help="generator parameter KEY=VALUE (e.g. fill_pct=0.3)")
-    p.add_argument("--out", default="worlds")
+    p.add_argument("--out", default="worlds", help="folder for the world files")
     p.set_defaults(func=_cmd_worlds_generate)
     p = worlds_sub.add_parser("show", help="draw a world with its pairs and their shortest paths")
     p.add_argument("world", help="built-in name, world YAML, or FAMILY:SEED")
@@ -342,7 +419,7 @@ def _add_world_commands(sub) -> None:
     p.set_defaults(func=_cmd_worlds_scatter_balls)
     p = worlds_sub.add_parser("rank", help="Table I and the MDS picture for a set of worlds")
     p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")
-    p.add_argument("--out", default="runs/ranking")
+    p.add_argument("--out", default="runs/ranking", help="folder for the table (CSV, JSON) and the picture")
     p.set_defaults(func=_cmd_worlds_rank)
 
 
@@ -351,20 +428,20 @@ def _add_bench_commands(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks that print their figures")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     p = bench_sub.add_parser("env", help="environment steps/s on one core vs a bare PyBullet loop")
-    p.add_argument("--steps", type=int, default=5000)
+    p.add_argument("--steps", type=int, default=5000, help="timed environment steps per world")
     p.add_argument("--world", action="append",
                    help="world to measure (repeat for several): built-in, YAML or FAMILY:SEED "
                         f"(default: {', '.join(DEFAULT_BENCH_WORLDS)})")
     p.add_argument("--no-pin", action="store_true", help="do not pin the process to one CPU core")
     p.set_defaults(func=_cmd_bench_env)
     p = bench_sub.add_parser("learner", help="D4PG learner updates/s per preset")
-    p.add_argument("--presets", default="default,paper")
+    p.add_argument("--presets", default="default,paper", help="comma-separated config presets")
     p.add_argument("--seconds", type=float, default=20.0, help="timed seconds per preset")
-    p.add_argument("--batch", type=int, default=256)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--batch", type=int, default=256, help="batch size")
+    p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.set_defaults(func=_cmd_bench_learner)
     p = bench_sub.add_parser("transport", help="replay service throughput from 4 publishers, sampling, weight latency")
-    p.add_argument("--publishers", type=int, default=4)
+    p.add_argument("--publishers", type=int, default=4, help="publishing processes")
     p.add_argument("--batches", type=int, default=400, help="batches of 64 transitions per publisher")
     p.set_defaults(func=_cmd_bench_transport)
     p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")

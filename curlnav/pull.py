@@ -11,7 +11,9 @@ import urllib.request
 from pathlib import Path
 
 
-def _get(url: str, timeout: float = 30.0) -> bytes:
+def http_get(url: str, timeout: float = 30.0) -> bytes:
+    """The body of ``GET url``. Raises ``ValueError`` on an HTTP error status (with the server's
+    reply), ``OSError`` when the server cannot be reached (see ``unreachable_reason``)."""
     try:
         with urllib.request.urlopen(url, timeout=timeout) as response:
             return response.read()
@@ -20,17 +22,25 @@ def _get(url: str, timeout: float = 30.0) -> bytes:
         raise ValueError(f"{url}: HTTP {exc.code} {detail}") from None
 
 
+def unreachable_reason(exc: OSError) -> str:
+    """Why a connection failed, in a few words ("Connection refused", "timed out")."""
+    reason = exc.reason if isinstance(exc, urllib.error.URLError) else exc
+    if isinstance(reason, OSError) and reason.strerror:
+        return reason.strerror
+    return str(reason) or type(reason).__name__
+
+
 def pull_policy(base_url: str, out_dir: str | Path, version: str = "latest") -> Path:
     """Write the artefact of ``version`` ("latest" or a number) to ``out_dir``; returns it.
     Raises ``ValueError`` on a checksum mismatch or an HTTP error, ``OSError`` when unreachable."""
     base = base_url.rstrip("/")
-    listing = json.loads(_get(f"{base}/policy/{version}"))
+    listing = json.loads(http_get(f"{base}/policy/{version}"))
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=out_dir.name + ".", dir=out_dir.parent))
     try:
         for name, info in listing["files"].items():
-            data = _get(base + info["url"])
+            data = http_get(base + info["url"])
             expected = info.get("sha256")
             if expected and hashlib.sha256(data).hexdigest() != expected:
                 raise ValueError(f"{name}: sha256 mismatch (download corrupted)")

@@ -33,6 +33,7 @@ from curlnav.layout import ObservationLayout
 from .nstep import FrameBatch
 
 TRANSITION_BYTES_FIXED = 8 + 8 + 3 * 4 + 4 + 4 + 8 + 8 + 4
+REPLAY_FILE_VERSION = 2  # 1: every slot of the rings; 2: only the frames and transitions held
 
 
 class ReplayInputError(ValueError):
@@ -386,13 +387,24 @@ class ReplayTable:
             return int(live.sum())
 
     # -- persistence -----------------------------------------------------------------------
+    _FRAME_ARRAYS = ("f_ranges", "f_labels", "f_goal", "f_prev")
+    _TRANSITION_ARRAYS = ("t_obs", "t_next", "t_action", "t_reward", "t_discount", "t_priority", "t_sampled")
+
+    def _live_frame_slots(self) -> np.ndarray:
+        """Ring slots of the frames still held, oldest first."""
+        return np.arange(self._oldest_frame(), self._next_frame) % self.frame_capacity
+
     def save(self, path: str | Path) -> Path:
-        """Write the table to ``path`` (a ``.npz`` of arrays plus JSON metadata, no pickle)."""
+        """Write the table to ``path`` (a ``.npz`` of arrays plus JSON metadata, no pickle).
+
+        Format version 2: only what the table holds (live frames oldest first, live transitions
+        oldest first, with their priorities and sample counts), so the file grows with the
+        content, not with the capacity; ``restore`` puts them back in their ring slots."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with self._cond:
             meta = {
-                "format": "curlnav-replay", "version": 1, "layout": self.layout.to_dict(),
+                "format": "curlnav-replay", "version": REPLAY_FILE_VERSION, "layout": self.layout.to_dict(),
                 "max_size": self.max_size, "frame_capacity": self.frame_capacity, "sampler": self.sampler,
                 "priority_exponent": self.priority_exponent, "action_size": self.action_size,
                 "next_frame": self._next_frame, "first_key": self._first_key, "next_key": self._next_key,
@@ -400,29 +412,42 @@ class ReplayTable:
                 "total_sampled": self.total_sampled, "rejected": self.rejected,
                 "streams": {name: [[k, v] for k, v in ids.items()] for name, ids in self._streams.items()},
             }
+            frames, slots = self._live_frame_slots(), self._live_slots()
+            arrays = {name: getattr(self, "_" + name)[frames] for name in self._FRAME_ARRAYS}
+            arrays.update({name: getattr(self, "_" + name)[slots] for name in self._TRANSITION_ARRAYS})
             tmp = path.with_name(path.name + ".tmp.npz")
-            np.savez(tmp, meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8),
-                     f_ranges=self._f_ranges, f_labels=self._f_labels, f_goal=self._f_goal, f_prev=self._f_prev,
-                     t_obs=self._t_obs, t_next=self._t_next, t_action=self._t_action, t_reward=self._t_reward,
-                     t_discount=self._t_discount, t_priority=self._t_priority, t_sampled=self._t_sampled)
+            np.savez(tmp, meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
             tmp.replace(path)
         return path
 
     @classmethod
     def restore(cls, path: str | Path, rate_limiter: SampleToInsertRatio | None = None, seed: int = 0) -> "ReplayTable":
-        """Load a table written by ``save``. The limiter is re-centred (see ``SampleToInsertRatio``)."""
+        """Load a table written by ``save`` (format version 2, or 1: the whole capacity) into a
+        table of the saved capacity. The limiter is re-centred (see ``SampleToInsertRatio``)."""
         with np.load(Path(path), allow_pickle=False) as data:
             meta = json.loads(bytes(data["meta"]).decode())
-            if meta.get("format") != "curlnav-replay" or meta.get("version") != 1:
-                raise ValueError(f"{path}: not a curlnav replay file of version 1")
+            version = meta.get("version")
+            if meta.get("format") != "curlnav-replay" or version not in (1, REPLAY_FILE_VERSION):
+                raise ValueError(f"{path}: not a curlnav replay file (format version 1 or {REPLAY_FILE_VERSION}, "
+                                 f"found {meta.get('format')!r} version {version!r})")
             table = cls(ObservationLayout(**meta["layout"]), meta["max_size"], rate_limiter, meta["sampler"],
                         meta["priority_exponent"], meta["frame_capacity"], seed, meta["action_size"])
-            for name in ("f_ranges", "f_labels", "f_goal", "f_prev", "t_obs", "t_next", "t_action", "t_reward",
-                         "t_discount", "t_priority", "t_sampled"):
-                getattr(table, "_" + name)[...] = data[name]
-        table._next_frame = meta["next_frame"]
-        table._first_key = meta["first_key"]
-        table._next_key = meta["next_key"]
+            table._next_frame = meta["next_frame"]
+            table._first_key = meta["first_key"]
+            table._next_key = meta["next_key"]
+            if version == 1:  # every slot of the rings, as they were
+                frames = slots = slice(None)
+            else:
+                frames, slots = table._live_frame_slots(), table._live_slots()
+            for names, where in ((cls._FRAME_ARRAYS, frames), (cls._TRANSITION_ARRAYS, slots)):
+                for name in names:
+                    target = getattr(table, "_" + name)
+                    saved = data[name]
+                    expected = (target.shape[0] if isinstance(where, slice) else len(where),) + target.shape[1:]
+                    if saved.shape != expected:
+                        raise ValueError(f"{path}: {name} has shape {saved.shape}, its metadata says {expected} "
+                                         "(a damaged replay file)")
+                    target[where] = saved
         table._max_priority = meta["max_priority"]
         table.total_inserted = meta["total_inserted"]
         table.total_sampled = meta["total_sampled"]

@@ -15,8 +15,8 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as pb
 
+from .bullet import import_pybullet
 from .config import EnvConfig
 from .env import NamoEnv
 from .geometry import merge_cells_into_rectangles
@@ -24,7 +24,7 @@ from .pairs import check_pairs_possible
 from .scene import RAY_MASK, Scene
 from .world import World
 
-
+pb = import_pybullet()
 
 
 @dataclass(frozen=True)

@@ -222,7 +222,9 @@ class NamoEnv(gym.Env):
             self._scene.close()
             self._scene = None
         if self._client is not None:
-            import pybullet as pb
+            from .bullet import import_pybullet
+
+            pb = import_pybullet()
             try:
                 pb.disconnect(physicsClientId=self._client)
             except pb.error:

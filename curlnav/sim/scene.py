@@ -23,11 +23,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pybullet as pb
 
+from .bullet import import_pybullet
 from .config import EnvConfig
 from .geometry import cast_grid, cast_movable, face_segments, wall_faces
 from .world import Ball, Box, Door, World
+
+pb = import_pybullet()
 
 # Collision filter groups. A pair collides when each one's group is in the other's mask. Bit 1
 # is Bullet's DefaultFilter, the group of PyBullet's ray queries: every mask keeps it so that

@@ -1,0 +1,124 @@
+"""``curlnav status``: the curriculum scheduler's ``/status`` of a distributed run, for a person.
+
+The target is the scheduler's URL, or a run folder whose ``run.json`` (written by the launcher)
+names it; by default the newest run folder under ``runs/`` that has one.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from .pull import http_get, unreachable_reason
+
+
+def newest_run(root: str | Path = "runs") -> Path:
+    """The run folder under ``root`` whose ``run.json`` was written last."""
+    files = sorted(Path(root).glob("*/run.json"), key=lambda p: p.stat().st_mtime) if Path(root).is_dir() else []
+    if not files:
+        raise ValueError(f"no run folder with a run.json under {root}/: give a run folder or the scheduler's URL "
+                         "(distributed runs write one; serial runs have no scheduler)")
+    return files[-1].parent
+
+
+def status_url(target: str | None, root: str | Path = "runs") -> str:
+    """The ``/status`` URL for ``target``: a URL (``/status`` added when it has no path), a run
+    folder (its ``run.json``'s ``status_url``), or None (the newest run folder)."""
+    if target is not None and target.startswith(("http://", "https://")):
+        return target.rstrip("/") + "/status" if urlsplit(target).path in ("", "/") else target
+    folder = newest_run(root) if target is None else Path(target)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: no such run folder (give a run folder or the scheduler's URL, http://...)")
+    run_json = folder / "run.json"
+    if not run_json.is_file():
+        raise ValueError(f"no run.json in {folder}: is it a distributed run folder (serial runs have no scheduler)?")
+    try:
+        info = json.loads(run_json.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{run_json}: cannot read it as JSON: {exc}") from None
+    url = info.get("status_url") if isinstance(info, dict) else None
+    if not isinstance(url, str) or not url:
+        raise ValueError(f"{run_json}: no status_url (the scheduler's /status URL)")
+    return url
+
+
+def fetch_status(url: str, timeout: float = 5.0) -> dict:
+    """The scheduler's status as a dict; ``ValueError`` (one line) when it cannot be had."""
+    try:
+        body = http_get(url, timeout=timeout)
+    except OSError as exc:
+        raise ValueError(f"cannot reach {url} ({unreachable_reason(exc)}): is the run still going?") from None
+    try:
+        status = json.loads(body)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        status = None
+    if not isinstance(status, dict) or "stage" not in status:
+        raise ValueError(f"{url}: not a curlnav scheduler status (expected the JSON of the scheduler's /status)")
+    return status
+
+
+def _percent(rate) -> str:
+    return "-" if rate is None else f"{rate:.0%}"
+
+
+def _world_name(world: str) -> str:
+    """A world file's stem, a built-in world's name."""
+    return Path(world).stem if world.endswith((".yaml", ".yml")) else world
+
+
+def _table(header: tuple[str, ...], rows: list[tuple]) -> list[str]:
+    cells = [tuple(str(c) for c in header)] + [tuple(str(c) for c in row) for row in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(header))]
+    return ["  " + "  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in cells]
+
+
+def format_status(s: dict) -> str:
+    """The status as lines of text for a terminal."""
+    pair = s.get("substep_pair")
+    lines = [f"curriculum {s.get('curriculum')}: stage {s.get('stage_index')} {s.get('stage')}, sub-step {s.get('substep')}"
+             + (f" (pair {pair})" if pair else " (the world's own pairs)") + f", epoch {s.get('epoch')}"]
+    criterion = s.get("criterion")
+    goal = ("never advances (last stage)" if not criterion else
+            f"advances at {criterion['compare']} {criterion['success_rate']:.0%} over {criterion['window']} episodes")
+    lines.append(f"episodes {s.get('episodes')}: window success {_percent(s.get('window_success_rate'))} over "
+                 f"{s.get('window_size')} episodes, {goal}; last 100 episodes {_percent(s.get('success_last_100'))}")
+    learner, replay = s.get("learner") or {}, s.get("replay") or {}
+    rate = learner.get("updates_per_s")
+    lines.append(f"learner: version {learner.get('version', '-')}, {learner.get('updates', '-')} updates, "
+                 f"{'-' if rate is None else f'{rate:.1f}'} updates/s")
+    inserts = replay.get("insert_rate")
+    lines.append(f"replay: {replay.get('size', '-')} transitions, "
+                 f"{'-' if inserts is None else f'{inserts:.0f}'} inserts/s")
+    actors = s.get("live_actors") or {}
+    lines.append(f"live actors: {len(actors)}")
+    if actors:
+        rows = []
+        for name, actor in sorted(actors.items()):
+            a = actor.get("assignment") or {}
+            last = actor.get("last_report") or {}
+            rows.append((name, _world_name(a.get("world", "-")) if a else "-", (a.get("pair") or "random") if a else "-",
+                         actor.get("episodes", 0),
+                         ("success" if last.get("success") else "failure") if last else "-",
+                         f"v{last['weights_version']}" if "weights_version" in last else "-"))
+        lines += _table(("actor", "world", "pair", "episodes", "last episode", "weights"), rows)
+    rates = s.get("success_by_world_pair") or {}
+    if rates:
+        lines.append("success by world/pair:")
+        rows = []
+        for key, v in sorted(rates.items()):
+            world, _, pair = key.rpartition("/")
+            rows.append((_world_name(world), pair or "random", v.get("episodes"), _percent(v.get("success_rate"))))
+        lines += _table(("world", "pair", "episodes", "success"), rows)
+    advances = s.get("advances") or []
+    lines.append(f"advances: {len(advances) or 'none yet'}")
+    for a in advances:
+        lines.append(f"  epoch {a.get('epoch')}: to stage {a.get('stage')} sub-step {a.get('substep')} "
+                     f"after {a.get('episodes')} episodes ({a.get('reason')})")
+    return "\n".join(lines)
+
+
+def run_status(target: str | None, raw_json: bool = False) -> int:
+    status = fetch_status(status_url(target))
+    print(json.dumps(status, indent=2) if raw_json else format_status(status))
+    return 0
