@@ -462,7 +462,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (WorldError, KeyError, ArtefactError, MetricsError, ValueError, RouterUnreachable, ConfigMismatch) as exc:
-        print(f"curlnav: error: {exc.args[0] if exc.args else exc}", file=sys.stderr)
+        message = " ".join(str(exc.args[0] if exc.args else exc).split())  # one line, whatever the library said
+        print(f"curlnav: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("curlnav: interrupted", file=sys.stderr)
