@@ -23,7 +23,7 @@ import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.builder import D4PGBuilder
-from curlnav.config import D4PGConfig, ExperimentConfig
+from curlnav.config import ConfigError, D4PGConfig, ExperimentConfig
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
 from curlnav.service import Deployment, ServiceShell
@@ -58,7 +58,14 @@ class ActorCore:
         self.default_world = experiment.curriculum.world
         self.rng = np.random.default_rng([experiment.seed, cfg.actor_index, 1])
         self.weights_version = -1
-        self.seq = 0
+        # sequence numbers start at this process's start time in microseconds, so a restarted
+        # actor's batches always number above its predecessor's (the replay drops resends by seq)
+        self.seq = time.time_ns() // 1000
+        max_batch = experiment.replay.insert_batch
+        if cfg.batch_steps + experiment.d4pg.n_step > max_batch:
+            raise ConfigError(f"actor batches of {cfg.batch_steps} steps (plus the n-step tail of "
+                              f"{experiment.d4pg.n_step}) exceed replay.insert_batch = {max_batch}, the most one "
+                              f"batch may carry: lower --batch-steps or raise replay.insert_batch")
 
     @property
     def steps(self) -> int:
@@ -95,6 +102,10 @@ class ActorService:
         self.m_rate.set_function(self.step_rate.rate)
         self._pending_weights: Weights | None = None
         self._credit = (1_000_000, 0.0)  # (transitions the replay accepts now, when heard)
+        self.acked_seq = -1  # the highest of this actor's batch seqs the replay has accepted (logged)
+        self.m_unacked = Gauge("actor_batches_unacknowledged", "batches sent that the replay has not yet accepted",
+                               registry=self.registry)
+        self.m_unacked.set_function(lambda: max(0, self.core.seq - 1 - self.acked_seq) if self.acked_seq >= 0 else 0)
         self._lock = threading.Lock()
         self.stop = threading.Event()
 
@@ -113,6 +124,9 @@ class ActorService:
         try:
             msg = ServiceStatus.decode(sample.payload.to_bytes())
             self._credit = (int(msg.values.get("allowed", 0)), time.monotonic())
+            acked = msg.values.get(f"ack/{self.cfg.actor_id}")
+            if acked is not None:
+                self.acked_seq = max(self.acked_seq, int(acked))
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
 
@@ -128,7 +142,10 @@ class ActorService:
     def _apply_weights(self) -> None:
         with self._lock:
             msg, self._pending_weights = self._pending_weights, None
-        if msg is None or msg.version == self.core.weights_version:
+        if msg is None:
+            return
+        if msg.version <= self.core.weights_version:  # versions only go forward
+            self.m_rejected.labels("stale_weights").inc()
             return
         try:
             self.core.load_weights(msg)

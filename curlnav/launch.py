@@ -47,7 +47,8 @@ def add_serve_arguments(p) -> None:
                    help="actor: actors in the run (each takes this share of the warm-up)")
     p.add_argument("--publish-every", type=int, default=env_default("publish_every", 50), help="learner: updates per broadcast")
     p.add_argument("--export-every-s", type=float, default=env_default("export_every_s", 60.0))
-    p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 60.0))
+    p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 30.0),
+                   help="learner: s between checkpoints (a crash loses at most this much learning)")
     p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
     p.add_argument("--router-timeout-s", type=float, default=env_default("router_timeout_s", 60.0),
                    help="give up (exit 2) when the router does not answer within this at start; -1 waits forever")

@@ -26,8 +26,11 @@ class TrainRefused(ValueError):
 
 
 def _saved_state(run_dir: Path, serial: bool) -> Path | None:
-    candidates = ([run_dir / "checkpoints" / "latest.safetensors"] if serial else
-                  [run_dir / "learner" / "latest.safetensors", run_dir / "replay" / "replay.npz"])
+    if serial:
+        candidates = [run_dir / "checkpoints" / "latest.safetensors"]
+    else:
+        candidates = [run_dir / "learner" / "latest.safetensors",
+                      *sorted((run_dir / "replay" / "wal").glob("seg-*.log"))[:1], run_dir / "replay" / "replay.npz"]
     return next((p for p in candidates if p.exists()), None)
 
 

@@ -1,15 +1,23 @@
-"""The replay service: ``ReplayTable`` behind Zenoh.
+"""The replay service: ``ReplayTable`` behind Zenoh, crash-safe.
 
 Transition batches arrive on ``transitions/*`` (reliable, BLOCK) on a Zenoh session of their
-own and wait in a deque for one insert thread. Backpressure is explicit: every 20 ms the service
-publishes an insert credit (what the rate limiter accepts now, minus the backlog) and actors pause
-while it is exhausted. Zenoh's blocking puts remain the safety net, but they never have to block
-for long (a put blocked for seconds makes Zenoh take the link down). Sampling is a
-queryable (``replay/sample``) answered from its own thread. Malformed batches are counted by
-reason and dropped; accepted ones are never lost: the table is saved every ``persist_every_s``
-and on SIGTERM, and restored on start. With a prioritized replay, the learner's
-``PriorityUpdate`` messages set the sampled items' new priorities. The table and its rate limiter
-come from ``D4PGBuilder`` (the experiment config), exactly as in the serial trainer.
+own and wait in a deque (the receive queue). The **accept** thread drains it: each batch is
+decoded and checked (at most ``replay.insert_batch`` transitions: the one batch limit, which the
+rate limiter is sized to always admit eventually; a larger or malformed batch is refused and
+counted by reason, never retried), duplicates of batches already accepted are dropped, the rest
+are written to the segment log (``replay/wal.py``) and the log is fsync'd once per drain. From
+then on a batch is **accepted**: a ``kill -9`` does not lose it, because the service re-inserts
+the log at start. The **insert** thread then puts accepted batches into the table, waiting on the
+rate limiter for the learner (backpressure, not a retry: an accepted batch always fits).
+
+Every 20 ms the service publishes an insert credit (what the rate limiter accepts now, minus
+what waits) and, per actor, the highest sequence number accepted (the acknowledgement); actors
+pause while the credit is exhausted. Sampling is a queryable (``replay/sample``) answered from
+its own thread, never stalled by persistence (there is no snapshot to write: the log is the
+state; segments whose transitions have left the table are deleted). With a prioritized replay,
+the learner's ``PriorityUpdate`` messages set the sampled items' new priorities (priorities are
+not persisted: restored items start at the maximum). The table and its rate limiter come from
+``D4PGBuilder`` (the experiment config), exactly as in the serial trainer.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ from curlnav.service import Deployment, ServiceShell
 from curlnav.transport import RateMeter
 
 from .table import RateLimiterTimeout, ReplayInputError
+from .wal import SegmentLog
 
 log = logging.getLogger("curlnav.replay")
 
@@ -41,7 +50,8 @@ class ReplayServiceConfig:
     """Deployment of the replay service (what it holds comes from the experiment config)."""
 
     deployment: Deployment = Deployment(data_dir="runs/service/replay")
-    persist_every_s: float = 120.0  # s between saves of the whole table
+    prune_every_s: float = 30.0  # s between deletions of log segments that left the table
+    fsync: bool = True  # fsync the log before a batch counts as accepted (off: only for benchmarks)
 
 
 class ReplayService:
@@ -52,12 +62,11 @@ class ReplayService:
         self.layout = builder.layout
         self.data_dir = Path(cfg.deployment.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        path = self.data_dir / "replay.npz"
-        if path.exists():
-            self.table = builder.restore_replay_table(path)
-            log.info("restored %d transitions from %s", self.table.size, path)
-        else:
-            self.table = builder.make_replay_table()
+        self.table = builder.make_replay_table()
+        self.max_batch = experiment.replay.insert_batch
+        self.log = SegmentLog(self.data_dir / "wal", fsync=cfg.fsync)
+        self.accepted_total = 0  # transitions accepted in the run's lifetime (the log's index)
+        self.acked: dict[str, int] = {}  # actor id -> highest batch seq accepted
         self.registry = CollectorRegistry()
         self.m_in = Counter("replay_transitions_inserted", "transitions accepted", registry=self.registry)
         self.m_batches = Counter("replay_batches_received", "transition batches received", registry=self.registry)
@@ -67,22 +76,64 @@ class ReplayService:
         self.m_size.set_function(lambda: self.table.size)
         self.insert_rate = RateMeter()
         self.sample_rate = RateMeter()
-        self.backlog: deque[bytes] = deque()  # received batches not yet inserted
+        self.backlog: deque[bytes] = deque()  # received batches, not yet accepted
+        self.accepted: deque[TransitionBatch] = deque()  # accepted (in the log), not yet in the table
         self.mean_batch = 32.0  # transitions per batch, running mean, to size the backlog
         self.last_seq: dict[str, int] = {}
         self.seq_gaps = 0
         self.stop = threading.Event()
+        self.restored = self._restore()
 
     # -- pure handlers (tested without a network) --------------------------------------------
-    def handle_batch(self, payload: bytes, timeout: float | None = None, force: bool = False) -> int:
-        """Decode and insert one batch; returns transitions added (0 when rejected)."""
-        self.m_batches.inc()
-        try:
+    def _restore(self) -> int:
+        """Re-insert the log's batches (the accepted ones, in order); returns transitions restored."""
+        restored = 0
+        for first, payload in self.log.records():
             msg = TransitionBatch.decode(payload, beams=self.layout.beams)
-            added = self.table.insert(msg.batch, stream=msg.actor_id, timeout=timeout, force=force)
-        except (ProtoError, ReplayInputError) as exc:
-            self.m_rejected.labels(exc.reason).inc()
-            return 0
+            restored += self.table.insert(msg.batch, stream=msg.actor_id, force=True)
+            self.accepted_total = first + msg.batch.num_transitions
+            self.acked[msg.actor_id] = max(self.acked.get(msg.actor_id, -1), msg.seq)
+            self.last_seq[msg.actor_id] = msg.seq
+        if restored:
+            self.table.total_inserted = self.accepted_total
+            self.table.rate_limiter.recentre(self.table.size)
+            log.info("restored %d transitions from the log (%d accepted in the run)", self.table.size,
+                     self.accepted_total)
+        elif (self.data_dir / "replay.npz").exists():
+            log.warning("%s is a replay file of an earlier version: not restored (the log is the state now)",
+                        self.data_dir / "replay.npz")
+        return restored
+
+    def accept_batches(self, payloads: list[bytes]) -> list[TransitionBatch]:
+        """Decode and check ``payloads``; write the good ones to the log and commit (fsync):
+        from here on they are accepted. Refused ones are counted by reason."""
+        good = []
+        for payload in payloads:
+            self.m_batches.inc()
+            try:
+                msg = TransitionBatch.decode(payload, beams=self.layout.beams)
+                if msg.batch.num_transitions > self.max_batch:
+                    raise ReplayInputError("too_large", f"{msg.batch.num_transitions} transitions in one batch, "
+                                                        f"at most replay.insert_batch = {self.max_batch}")
+                self.table.validate(msg.batch)
+            except (ProtoError, ReplayInputError) as exc:
+                self.m_rejected.labels(exc.reason).inc()
+                continue
+            if msg.seq <= self.acked.get(msg.actor_id, -1):
+                self.m_rejected.labels("duplicate").inc()  # a resend of a batch already accepted
+                continue
+            self.log.append(payload, self.accepted_total)
+            self.accepted_total += msg.batch.num_transitions
+            self.acked[msg.actor_id] = msg.seq
+            good.append(msg)
+        if good:
+            self.log.commit()
+        return good
+
+    def insert_accepted(self, msg: TransitionBatch, timeout: float | None = None, force: bool = False) -> int:
+        """Insert one accepted batch into the table (waits on the rate limiter, up to
+        ``timeout``: ``RateLimiterTimeout``)."""
+        added = self.table.insert(msg.batch, stream=msg.actor_id, timeout=timeout, force=force)
         last = self.last_seq.get(msg.actor_id)
         if last is not None and msg.seq != last + 1:
             self.seq_gaps += 1
@@ -91,6 +142,10 @@ class ReplayService:
         self.insert_rate.add(added)
         self.mean_batch = 0.9 * self.mean_batch + 0.1 * msg.batch.num_transitions
         return added
+
+    def handle_batch(self, payload: bytes, timeout: float | None = None, force: bool = False) -> int:
+        """Accept and insert one batch at once; returns transitions added (0 when refused)."""
+        return sum(self.insert_accepted(msg, timeout, force) for msg in self.accept_batches([payload]))
 
     def handle_sample(self, payload: bytes) -> bytes:
         try:
@@ -122,16 +177,18 @@ class ReplayService:
         """Transitions the limiter would accept now (actors pace themselves on it instead of
         spinning in a blocked put); large when the table is still filling."""
         limiter = self.table.rate_limiter
-        backlog = len(self.backlog) * self.mean_batch
+        backlog = (len(self.backlog) + len(self.accepted)) * self.mean_batch
         if self.table.size < limiter.min_size_to_sample or limiter.window[1] > 1e15:
             return int(max(limiter.min_size_to_sample - self.table.size, 0) + 100_000 - backlog)
         return int((limiter.window[1] - limiter.error) // limiter.samples_per_insert - backlog)
 
     def status(self) -> dict:
         info = self.table.info()
-        return {"size": info["size"], "inserted": info["total_inserted"], "sampled": info["total_sampled"],
+        return {"size": info["size"], "inserted": self.accepted_total, "accepted": self.accepted_total,
+                "in_table": info["total_inserted"], "sampled": info["total_sampled"], "waiting": len(self.accepted),
                 "insert_rate": self.insert_rate.rate(), "sample_rate": self.sample_rate.rate(),
-                "rejected": sum(self.rejected().values()), "seq_gaps": self.seq_gaps}
+                "rejected": sum(self.rejected().values()), "seq_gaps": self.seq_gaps,
+                "log_bytes": self.log.bytes_written, "restored": self.restored}
 
     def rejected(self) -> dict[str, float]:
         out = {}
@@ -141,8 +198,15 @@ class ReplayService:
                     out[s.labels["reason"]] = s.value
         return out
 
-    def save(self) -> None:
-        self.table.save(self.data_dir / "replay.npz")
+    def prune_log(self) -> int:
+        """Delete log segments whose transitions have all left the table (FIFO)."""
+        return self.log.drop_before(self.accepted_total - len(self.accepted) - self.table.max_size)
+
+    def credit_message(self) -> bytes:
+        """The insert credit, the run's accepted count and each actor's acknowledged seq."""
+        acks = dict(list(self.acked.items())[-256:])  # bounded: the most recently seen actors
+        return ServiceStatus("replay-credit", {"allowed": self.insert_credit(), "accepted": self.accepted_total,
+                                               **{f"ack/{actor}": seq for actor, seq in acks.items()}}).encode()
 
     # -- shell -----------------------------------------------------------------------------------
     def run(self) -> None:
@@ -167,47 +231,58 @@ class ReplayService:
             shell.on_close("sample queryable", queryable.undeclare)
             status_pub = session.declare_publisher(topo.status("replay"))
             credit_pub = session.declare_publisher(topo.credit)
-            threads = [threading.Thread(target=self._insert_loop, daemon=True),
+            threads = [threading.Thread(target=self._accept_loop, daemon=True, name="accept"),
+                       threading.Thread(target=self._insert_loop, daemon=True, name="insert"),
                        threading.Thread(target=self._sample_loop, args=(queryable, topo.sample), daemon=True)]
             for t in threads:
                 t.start()
-            last_save = last_status = time.monotonic()
+            last_prune = last_status = time.monotonic()
             try:
                 while not self.stop.wait(0.02):
-                    credit_pub.put(ServiceStatus("replay-credit", {"allowed": self.insert_credit()}).encode())
+                    credit_pub.put(self.credit_message())
                     if time.monotonic() - last_status < 1.0:
                         continue
                     last_status = time.monotonic()
                     status_pub.put(ServiceStatus("replay", self.status()).encode())
-                    if time.monotonic() - last_save >= cfg.persist_every_s:
-                        self.save()
-                        last_save = time.monotonic()
+                    if time.monotonic() - last_prune >= cfg.prune_every_s:
+                        self.prune_log()
+                        last_prune = time.monotonic()
             finally:
                 self.stop.set()
+                subscriber.undeclare()
                 for t in threads:
                     t.join(timeout=5)
-                subscriber.undeclare()
-                # insert what Zenoh already delivered before saving: accepted data is never lost
+                # accept what Zenoh already delivered, then put every accepted batch in the table
+                # (the log has them all anyway: this only spares the next start the work)
                 while self.backlog:
-                    self.handle_batch(self.backlog.popleft(), force=True)
-                self.save()
-                log.info("replay saved %d transitions", self.table.size)
+                    self.accepted.extend(self.accept_batches([self.backlog.popleft() for _ in range(
+                        min(len(self.backlog), 256))]))
+                while self.accepted:
+                    self.insert_accepted(self.accepted.popleft(), force=True)
+                self.log.close()
+                log.info("replay stopped: %d transitions held, %d accepted in the run", self.table.size,
+                         self.accepted_total)
 
-    def _insert_loop(self) -> None:
+    def _accept_loop(self) -> None:
+        """Drain the receive queue: decode, check, log, fsync once per drain (group commit)."""
         while not self.stop.is_set():
             if not self.backlog:
                 time.sleep(0.001)
                 continue
-            payload = self.backlog.popleft()
-            while True:
-                if self.stop.is_set():
-                    self.backlog.appendleft(payload)  # inserted (forced) with the rest at shutdown
-                    return
-                try:
-                    self.handle_batch(payload, timeout=0.5)
-                    break
-                except RateLimiterTimeout:
-                    continue  # the learner has not caught up: hold the batch (and the channel)
+            payloads = [self.backlog.popleft() for _ in range(min(len(self.backlog), 256))]
+            self.accepted.extend(self.accept_batches(payloads))
+
+    def _insert_loop(self) -> None:
+        """Accepted batches into the table, as fast as the rate limiter lets them in."""
+        while not self.stop.is_set():
+            if not self.accepted:
+                time.sleep(0.001)
+                continue
+            try:
+                self.insert_accepted(self.accepted[0], timeout=0.5)
+                self.accepted.popleft()
+            except RateLimiterTimeout:
+                continue  # the learner has not caught up: the batch waits, accepted and logged
 
     def _sample_loop(self, queryable, key: str) -> None:
         while not self.stop.is_set():

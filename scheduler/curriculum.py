@@ -240,7 +240,7 @@ class CurriculumState:
     def to_dict(self) -> dict:
         return {"stage": self.stage, "substep": self.substep, "epoch": self.epoch, "episodes": self.episodes,
                 "window": [int(x) for x in self.window], "per_world": self.per_world, "history": self.history,
-                "next_world": self._next_world}
+                "next_world": self._next_world, "recent": [int(x) for x in self.recent]}
 
     @staticmethod
     def from_dict(curriculum: Curriculum, d: dict) -> "CurriculumState":
@@ -254,4 +254,5 @@ class CurriculumState:
         state.per_world = {k: list(v) for k, v in d.get("per_world", {}).items()}
         state.history = list(d.get("history", []))
         state._next_world = int(d.get("next_world", 0))
+        state.recent.extend(bool(x) for x in d.get("recent", []))
         return state

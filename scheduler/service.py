@@ -13,6 +13,7 @@ from __future__ import annotations
 import hmac
 import json
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -44,12 +45,26 @@ class SchedulerServiceConfig:
     admin_token: str = ""  # empty: the admin call is refused
 
 
-class SchedulerCore:
-    """Everything the scheduler decides, without a network: assignments, reports, status."""
+#: bounds on what the scheduler keeps, whatever arrives
+MAX_ACTORS = 1024  # live actors tracked (liveliness tokens beyond it are counted and ignored)
+STATUS_ROLES = ("replay", "learner")  # services whose status the scheduler keeps
 
-    def __init__(self, curriculum: Curriculum, state: CurriculumState | None = None) -> None:
+
+class SchedulerCore:
+    """Everything the scheduler decides, without a network: assignments, reports, status.
+
+    Its state is bounded: actors exist only through their liveliness token (at most
+    ``MAX_ACTORS``); a report from an id without one, or about a world or pair that is not in the
+    curriculum, is refused and counted; per-(world, pair) counts are keyed by the curriculum's own
+    worlds and pairs; only the replay's and learner's status values are kept.
+    """
+
+    def __init__(self, curriculum: Curriculum, state: CurriculumState | None = None,
+                 extra_worlds: tuple[str, ...] = ()) -> None:
         self.curriculum = curriculum
         self.state = state or CurriculumState(curriculum)
+        self.known_worlds = {w for stage in curriculum.stages for w in stage.worlds} | set(extra_worlds)
+        self.known_pairs = {""} | {p for stage in curriculum.stages for p in stage.substeps}
         self.lock = threading.RLock()
         self.actors: dict[str, dict] = {}  # live actors: id -> {assignment, last_report, episodes, joined}
         self.services: dict[str, dict] = {}  # role -> last status values
@@ -70,9 +85,10 @@ class SchedulerCore:
             world, pair = self.state.assign()
             st = self.state
             assignment = Assignment(request.actor_id, world, pair, st.current.name, st.substep, st.epoch)
-            entry = self.actors.setdefault(request.actor_id, {"episodes": 0, "last_report": None, "joined": time.time()})
-            entry["assignment"] = {"world": world, "pair": pair, "stage": st.current.name, "substep": st.substep,
-                                   "epoch": st.epoch}
+            entry = self.actors.get(request.actor_id)  # an id without a liveliness token is not kept
+            if entry is not None:
+                entry["assignment"] = {"world": world, "pair": pair, "stage": st.current.name, "substep": st.substep,
+                                       "epoch": st.epoch}
         return assignment.encode()
 
     def report(self, payload: bytes) -> bool:
@@ -83,8 +99,13 @@ class SchedulerCore:
             self.m_rejected.labels(exc.reason).inc()
             return False
         with self.lock:
+            entry = self.actors.get(r.actor_id)
+            reason = ("unknown_actor" if entry is None else "unknown_world" if r.world not in self.known_worlds
+                      else "unknown_pair" if r.pair not in self.known_pairs else None)
+            if reason:
+                self.m_rejected.labels(reason).inc()
+                return False
             self.m_episodes.labels(r.world, r.pair or "random", "success" if r.success else "failure").inc()
-            entry = self.actors.setdefault(r.actor_id, {"episodes": 0, "assignment": None, "joined": time.time()})
             entry["episodes"] += 1
             entry["last_report"] = {"world": r.world, "pair": r.pair, "success": r.success, "return": r.episode_return,
                                     "collisions": r.base_collisions, "steps": r.steps,
@@ -104,11 +125,17 @@ class SchedulerCore:
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
             return
+        if s.role not in STATUS_ROLES:
+            self.m_rejected.labels("unknown_role").inc()
+            return
         with self.lock:
             self.services[s.role] = {**s.values, "time": time.time()}
 
     def actor_joined(self, actor_id: str) -> None:
         with self.lock:
+            if actor_id not in self.actors and len(self.actors) >= MAX_ACTORS:
+                self.m_rejected.labels("too_many_actors").inc()
+                return
             self.actors.setdefault(actor_id, {"episodes": 0, "assignment": None, "last_report": None,
                                               "joined": time.time()})
 
@@ -176,15 +203,21 @@ class SchedulerService:
             if saved.get("curriculum") == curriculum.name:
                 state = CurriculumState.from_dict(curriculum, saved["state"])
                 log.info("resumed curriculum %s at stage %s", curriculum.name, state.current.name)
-        self.core = SchedulerCore(curriculum, state)
+        self.core = SchedulerCore(curriculum, state, extra_worlds=(experiment.curriculum.world,))
+        self.saved_episodes = self.core.state.episodes
         self.stop = threading.Event()
 
     def save(self) -> None:
         path = self.data_dir / "state.json"
         tmp = path.with_suffix(".tmp")
         with self.core.lock:
-            tmp.write_text(json.dumps({"curriculum": self.core.curriculum.name, "state": self.core.state.to_dict()}))
-        tmp.replace(path)
+            self.saved_episodes = self.core.state.episodes
+            text = json.dumps({"curriculum": self.core.curriculum.name, "state": self.core.state.to_dict()})
+            with open(tmp, "w") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+            tmp.replace(path)
 
     def _admin(self, request) -> tuple[int, str, bytes]:
         token = self.cfg.admin_token
@@ -219,8 +252,10 @@ class SchedulerService:
                     query.reply_err(str(exc).encode())
 
             def on_report(sample):
-                if core.report(sample.payload.to_bytes()):
-                    self.save()
+                advanced = core.report(sample.payload.to_bytes())
+                if core.state.episodes != self.saved_episodes:
+                    self.save()  # every counted episode is on disk at once: a kill -9 loses none
+                if advanced:
                     log.info("curriculum advanced to %s, sub-step %d", core.state.current.name, core.state.substep)
 
             def on_alive(sample):

@@ -183,6 +183,7 @@ def scheduler_status():
 
     core = SchedulerCore(load_curriculum(REPO / "scheduler" / "curricula" / "s1+s2.yaml"))
     assert core.force_advance()  # S1 -> S2, sub-step p1
+    core.actor_joined("actor-0")
     assignment = Assignment.decode(core.assign(AssignmentRequest("actor-0").encode()))
     for i in range(6):
         core.report(EpisodeReport("actor-0", assignment.world, assignment.pair, i % 2 == 0, 1.0, 0, 0, 50, 7,

@@ -10,27 +10,18 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from curlnav.cli import main
 from curlnav.launch import http_json
+from test_service import wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = ["--set", "replay.min_size=200", "--set", "d4pg.batch_size=128", "--set", "replay.samples_per_insert=8",
         "--warmup-steps", "200"]
 
-
-def wait_for(what: str, predicate, timeout: float, every: float = 0.5):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(every)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for: {what}")
 
 
 def alive(pid: int) -> bool:
@@ -166,7 +157,7 @@ def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_res
     wait_for("every process of the run gone", lambda: not any(alive(p) for p in pids), timeout=30)
     with pytest.raises(ProcessLookupError):
         os.killpg(group, 0)
-    assert (run_dir / "replay" / "replay.npz").exists() and (run_dir / "learner" / "latest.safetensors").exists()
+    assert list((run_dir / "replay" / "wal").glob("seg-*.log")) and (run_dir / "learner" / "latest.safetensors").exists()
 
     summary = strict_load(run_dir / "summary.json")
     assert summary["exit_code"] == 130 and "SIGHUP" in summary["stop_reason"]

@@ -1,0 +1,181 @@
+"""Nothing accepted is lost: the replay's segment log, the one batch limit, weights versions that
+only go forward, and the same through kill -9 of real service processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+from curlnav.config import resolve_config
+from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.replay.wal import SegmentLog
+from curlnav.service import Deployment
+from test_proto_and_cores import a_batch
+from test_service import wait_for
+
+SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])
+
+
+def replay_in(folder: Path, experiment=SMALL) -> ReplayService:
+    return ReplayService(ReplayServiceConfig(Deployment(data_dir=str(folder))), experiment)
+
+
+def table_contents(service: ReplayService) -> dict[str, np.ndarray]:
+    t = service.table
+    keys = (t._first_key + np.arange(t.size)) % t.max_size
+    frames = t._t_obs[keys] % t.frame_capacity
+    return {"action": t._t_action[keys].copy(), "reward": t._t_reward[keys].copy(),
+            "ranges": t._f_ranges[frames].copy()}
+
+
+def test_every_accepted_batch_survives_a_crash_in_order(tmp_path):
+    service = replay_in(tmp_path)
+    for seq in range(5):
+        batch = a_batch(seq=seq)
+        batch.batch.reward[:] = seq  # tell the batches apart
+        assert service.handle_batch(batch.encode()) == 6
+    before = table_contents(service)
+    # kill -9: nothing closed, nothing saved; only what the log committed
+    restored = replay_in(tmp_path)
+    after = table_contents(restored)
+    assert restored.table.size == 30 and restored.accepted_total == 30
+    np.testing.assert_array_equal(after["reward"], before["reward"])
+    np.testing.assert_array_equal(after["action"], before["action"])
+    np.testing.assert_array_equal(after["ranges"], before["ranges"])
+    assert restored.acked == {"a": 4}
+
+
+def test_a_resent_batch_is_dropped_as_a_duplicate_and_a_restarted_actor_is_not(tmp_path):
+    service = replay_in(tmp_path)
+    assert service.handle_batch(a_batch(seq=10).encode()) == 6
+    assert service.handle_batch(a_batch(seq=10).encode()) == 0  # the same batch again
+    assert service.rejected() == {"duplicate": 1}
+    restored = replay_in(tmp_path)
+    assert restored.handle_batch(a_batch(seq=10).encode()) == 0  # remembered across a restart
+    assert restored.handle_batch(a_batch(seq=11).encode()) == 6
+
+
+def test_a_batch_above_the_one_limit_is_refused_once_and_counted_not_retried(tmp_path):
+    limit = SMALL.replay.insert_batch
+    service = replay_in(tmp_path)
+    big = a_batch(seq=0, steps=limit + 10)
+    assert big.batch.num_transitions > limit
+    start = time.monotonic()
+    assert service.handle_batch(big.encode(), timeout=0.1) == 0
+    assert time.monotonic() - start < 1.0
+    assert service.rejected() == {"too_large": 1}
+    assert service.handle_batch(a_batch(seq=1).encode()) == 6  # the next batch goes in at once
+
+
+def test_the_rate_limiter_always_admits_a_batch_of_the_limit():
+    from curlnav.builder import D4PGBuilder
+
+    for preset in ("default", "paper"):
+        experiment = resolve_config(preset=preset)
+        limiter = D4PGBuilder(experiment).make_rate_limiter()
+        lo, hi = limiter.window
+        assert hi - lo >= limiter.samples_per_insert * experiment.replay.insert_batch + experiment.d4pg.batch_size
+
+
+def test_a_torn_record_at_the_end_is_cut_off_and_the_rest_restored(tmp_path):
+    service = replay_in(tmp_path)
+    for seq in range(3):
+        service.handle_batch(a_batch(seq=seq).encode())
+    segment = sorted((tmp_path / "wal").glob("seg-*.log"))[-1]
+    with open(segment, "ab") as f:
+        f.write(b"\x40\x00\x00\x00garbage-of-a-write-cut-short")
+    restored = replay_in(tmp_path)
+    assert restored.table.size == 18
+    assert restored.handle_batch(a_batch(seq=3).encode()) == 6
+    assert replay_in(tmp_path).table.size == 24
+
+
+def test_segments_that_left_the_table_are_deleted_and_a_restore_keeps_the_table(tmp_path):
+    log = SegmentLog(tmp_path / "wal", segment_bytes=1)  # one record per segment
+    service = replay_in(tmp_path)
+    service.log = log
+    for seq in range(40):  # 240 transitions through a table of 60 (no learner: past the rate limiter)
+        service.handle_batch(a_batch(seq=seq).encode(), force=True)
+    before = table_contents(service)
+    dropped = service.prune_log()
+    assert dropped > 25 and len(log.segments()) <= 40 - dropped
+    restored = replay_in(tmp_path)
+    assert restored.table.size == 60 and restored.accepted_total == 240
+    np.testing.assert_array_equal(table_contents(restored)["action"], before["action"])
+
+
+def test_a_restarted_learner_numbers_its_weights_above_every_version_published(tmp_path):
+    from curlnav.learner.service import LearnerService, LearnerServiceConfig
+
+    experiment = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"])
+    cfg = LearnerServiceConfig(Deployment(data_dir=str(tmp_path)))
+    first = LearnerService(cfg, experiment)
+    first.checkpoint()  # the checkpoint says version 0
+    for _ in range(7):
+        first.publish_version()  # versions 1..7 go out, then kill -9 before the next checkpoint
+    second = LearnerService(cfg, experiment)
+    assert second.version == 8
+    third = LearnerService(cfg, experiment)  # and again, without publishing anything
+    assert third.version == 9
+
+
+# -- real processes ---------------------------------------------------------------------------------
+
+def get_json(url):
+    try:
+        with urllib.request.urlopen(url, timeout=3) as r:
+            return json.loads(r.read())
+    except (OSError, ValueError):
+        return None
+
+
+def test_kill_9_of_replay_learner_and_scheduler_loses_nothing_accepted(tmp_path):
+    """A training cluster of real processes; each stateful service is killed with SIGKILL and
+    started again: the replay holds every transition it had accepted, the learner's versions
+    only go forward, the curriculum keeps its episodes."""
+    from curlnav.launch import LocalCluster
+
+    experiment = resolve_config(overrides=["replay.min_size=200", "replay.samples_per_insert=8", "d4pg.batch_size=128",
+                                           "exploration.warmup_steps=200"])
+    cluster = LocalCluster(tmp_path / "run", experiment, actors=2, run="crash",
+                           extra={"learner": ["--publish-every", "5", "--checkpoint-every-s", "2"]})
+    cluster.start()
+    try:
+        status = cluster.status
+        wait_for("learning under way", lambda: (s := status()) and (s["learner"]["version"] or 0) >= 3
+                 and s["episodes"] >= 2 and s, timeout=240)
+        replay_port = int((cluster.run_dir / "replay" / "http_port").read_text())
+        # replay: what it reported accepted just before the kill is all there after the restart
+        accepted = get_json(f"http://127.0.0.1:{replay_port}/healthz")["accepted"]
+        cluster.kill_process("replay")
+        cluster.restart("replay")
+        replay_port = wait_for("replay back", lambda: (p := cluster.run_dir / "replay" / "http_port").exists()
+                               and get_json(f"http://127.0.0.1:{int(p.read_text())}/healthz") and int(p.read_text()),
+                               timeout=120)
+        health = get_json(f"http://127.0.0.1:{replay_port}/healthz")
+        assert health["restored"] >= accepted > 0 and health["accepted"] >= accepted
+        # learner: versions go on above the last one published
+        learner_url = cluster.learner_url
+        before = get_json(f"{learner_url}/healthz")["version"]
+        os.kill(cluster.processes["learner"].pid, signal.SIGKILL)
+        cluster.processes.pop("learner").wait()
+        cluster.restart("learner")
+        after = wait_for("learner back", lambda: (h := get_json(f"{learner_url}/healthz")) and h["version"], timeout=120)
+        assert after > before
+        # scheduler: the episodes it counted are still counted
+        episodes = status()["episodes"]
+        cluster.kill_process("scheduler")
+        cluster.restart("scheduler")
+        back = wait_for("scheduler back", lambda: status(), timeout=120)
+        assert back["episodes"] >= episodes
+        wait_for("training goes on", lambda: (s := status()) and s["learner"]["version"] > after
+                 and s["replay"]["size"] > health["size"], timeout=180)
+        assert cluster.dead() == []
+    finally:
+        cluster.stop()
