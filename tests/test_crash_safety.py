@@ -174,8 +174,8 @@ def test_kill_9_of_replay_learner_and_scheduler_loses_nothing_accepted(tmp_path)
         cluster.restart("scheduler")
         back = wait_for("scheduler back", lambda: status(), timeout=120)
         assert back["episodes"] >= episodes
-        wait_for("training goes on", lambda: (s := status()) and s["learner"]["version"] > after
-                 and s["replay"]["size"] > health["size"], timeout=180)
+        wait_for("training goes on", lambda: (s := status()) and (s["learner"]["version"] or 0) > after
+                 and (s["replay"]["size"] or 0) > health["size"], timeout=180)
         assert cluster.dead() == []
     finally:
         cluster.stop()
