@@ -39,6 +39,8 @@ def add_serve_arguments(p) -> None:
                    help="router: other routers to join, comma-separated endpoints (multi-host)")
     p.add_argument("--data-dir", default=env_default("data_dir", "runs/service"), help="state folder (per role below it)")
     p.add_argument("--http-port", type=int, default=env_default("http_port", 0))
+    p.add_argument("--http-host", default=env_default("http_host", "0.0.0.0"),
+                   help="HTTP bind address (containers: all interfaces; `curlnav train` passes 127.0.0.1)")
     p.add_argument("--admin-token", default=env_default("admin_token", ""), help="scheduler: admin bearer token")
     p.add_argument("--actor-id", default=env_default("actor_id", ""), help="actor: id (default host-pid)")
     p.add_argument("--actor-index", type=int, default=env_default("actor_index", -1),
@@ -72,7 +74,7 @@ def build_service(args):
 
     def deployment(folder: str, default_port: int = 0) -> Deployment:
         return Deployment(run=args.run, router=args.router, data_dir=str(data / folder) if folder else "",
-                          http_port=args.http_port or default_port)
+                          http_host=args.http_host, http_port=args.http_port or default_port)
 
     if args.role == "replay":
         from curlnav.replay.service import ReplayService, ReplayServiceConfig
@@ -188,7 +190,7 @@ class LocalCluster:
     def service_command(self, role: str, *more: str) -> list[str]:
         return [sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run, "--router", self.router,
                 "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir),
-                "--config", str(self.config_path), *self.extra.get(role, []), *more]
+                "--http-host", "127.0.0.1", "--config", str(self.config_path), *self.extra.get(role, []), *more]
 
     def _spawn(self, name: str, role: str, *more: str) -> subprocess.Popen:
         return self.spawn(name, self.service_command(role, *more))

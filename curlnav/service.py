@@ -43,7 +43,7 @@ class Deployment:
     run: str = "default"  # run name: the Zenoh key prefix
     router: str = "tcp/127.0.0.1:7447"  # Zenoh router endpoint
     data_dir: str = "runs/service"  # the service's own state folder
-    http_host: str = "0.0.0.0"  # HTTP bind address (/healthz, /metrics, /config, ...)
+    http_host: str = "127.0.0.1"  # HTTP bind address (/healthz, /metrics, /config, ...); `curlnav serve`: 0.0.0.0
     http_port: int = 0  # 0: any free port (written to <data_dir>/http_port)
 
 

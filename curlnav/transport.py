@@ -80,57 +80,122 @@ def json_response(obj, status: int = 200) -> tuple[int, str, bytes]:
 
 class HttpServer:
     """A threaded HTTP server. ``routes`` maps (method, path prefix) to handlers; the longest
-    matching prefix wins. Unknown paths get 404, bad methods 405, handler errors 500; the
-    server keeps running in every case."""
+    matching prefix wins. Unknown paths get 404, other methods (HEAD, PUT, ...) 405, handler
+    errors 500; the server keeps running in every case.
+
+    Limits, so that no client can hold the service: a listen backlog of ``backlog`` connections
+    (with 128, a third of a burst of 200 connects waited for the kernel's 1 s SYN retry); every
+    socket operation of a connection times out after ``timeout_s`` (a silent or slow client is
+    dropped); at most ``max_threads`` connections are handled at once, and beyond that new
+    connections wait in the backlog until a handler thread is free (no 503: a burst is served
+    late rather than refused). One request per connection (HTTP/1.0). A
+    ``Content-Length`` that is not a non-negative integer gets 400, a body above ``max_body``
+    bytes 413 (not read); malformed request lines and headers 400/431. Every error is JSON,
+    and client mistakes are never logged as tracebacks."""
 
     def __init__(self, host: str, port: int, routes: dict[tuple[str, str], Route],
-                 registry: CollectorRegistry | None = None) -> None:
+                 registry: CollectorRegistry | None = None, *, backlog: int = 1024, timeout_s: float = 10.0,
+                 max_threads: int = 64, max_body: int = 1 << 20) -> None:
         routes = dict(routes)
         if registry is not None:
             routes[("GET", "/metrics")] = lambda req: (200, CONTENT_TYPE_LATEST, generate_latest(registry))
         table = sorted(routes.items(), key=lambda item: -len(item[0][1]))
 
+        def respond(path: str, method: str, request: Callable[[], Request]) -> tuple[int, str, bytes]:
+            matched = [(m, fn) for (m, prefix), fn in table
+                       if path == prefix or (prefix.endswith("/") and path.startswith(prefix))]
+            if not matched:
+                return json_response({"error": f"no such path {path}"}, 404)
+            chosen = [fn for m, fn in matched if m == method]
+            if not chosen:
+                return json_response({"error": f"{method} not allowed on {path}"}, 405)
+            try:
+                return chosen[0](request())
+            except Exception as exc:  # a handler bug must not take the service down
+                log.exception("HTTP handler failed for %s", path)
+                return json_response({"error": f"{type(exc).__name__}: {exc}"}, 500)
+
         class Handler(BaseHTTPRequestHandler):
-            def _handle(self, method: str) -> None:
-                path = self.path.split("?", 1)[0]
-                length = int(self.headers.get("Content-Length") or 0)
-                body = self.rfile.read(min(length, 1 << 20)) if length > 0 else b""
-                matched = [(m, prefix, fn) for (m, prefix), fn in table
-                           if path == prefix or (prefix.endswith("/") and path.startswith(prefix))]
-                if not matched:
-                    status, ctype, payload = json_response({"error": f"no such path {path}"}, 404)
-                else:
-                    chosen = [fn for m, _, fn in matched if m == method]
-                    if not chosen:
-                        status, ctype, payload = json_response({"error": f"{method} not allowed on {path}"}, 405)
-                    else:
-                        try:
-                            status, ctype, payload = chosen[0](Request(method, path, dict(self.headers), body))
-                        except Exception as exc:  # a handler bug must not take the service down
-                            log.exception("HTTP handler failed for %s", path)
-                            status, ctype, payload = json_response({"error": f"{type(exc).__name__}: {exc}"}, 500)
+            timeout = timeout_s  # every recv/send of the connection (StreamRequestHandler.setup)
+
+            def _reply(self, status: int, ctype: str, payload: bytes) -> None:
                 self.send_response(status)
                 self.send_header("Content-Type", ctype)
                 self.send_header("Content-Length", str(len(payload)))
+                if status >= 400:
+                    self.send_header("Connection", "close")
                 self.end_headers()
-                self.wfile.write(payload)
+                if self.command != "HEAD":
+                    self.wfile.write(payload)
 
-            def do_GET(self):  # noqa: N802
-                self._handle("GET")
+            def _handle(self) -> None:
+                method, path = self.command, self.path.split("?", 1)[0]
+                if self.headers.get("Transfer-Encoding"):
+                    return self._reply(*json_response({"error": "send the body with Content-Length"}, 400))
+                lengths = {v.strip() for v in self.headers.get_all("Content-Length") or []}
+                raw = next(iter(lengths)) if len(lengths) == 1 else "0" if not lengths else ", ".join(sorted(lengths))
+                if not (raw.isascii() and raw.isdigit() and len(raw) < 20):
+                    return self._reply(*json_response({"error": f"bad Content-Length {raw[:40]!r}"}, 400))
+                length = int(raw)
+                if length > max_body:
+                    return self._reply(*json_response({"error": f"body of {length} bytes, above {max_body}"}, 413))
+                try:
+                    body = self.rfile.read(length) if length else b""
+                except TimeoutError:  # a slow or silent client: answered (if it still listens) and dropped
+                    return self._reply(*json_response({"error": f"no body within {timeout_s:g} s"}, 408))
+                if len(body) < length:  # the client closed before sending its body
+                    return self._reply(*json_response({"error": "body shorter than Content-Length"}, 400))
+                self._reply(*respond(path, method, lambda: Request(method, path, dict(self.headers), body)))
 
-            def do_POST(self):  # noqa: N802
-                self._handle("POST")
+            def __getattr__(self, name: str):
+                if name.startswith("do_"):  # every method: GET/POST routes, 404 or 405 for the rest
+                    return self._handle
+                raise AttributeError(name)
+
+            def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
+                """http.server's own errors (bad request line, headers, ...) as JSON."""
+                short = self.responses.get(code, ("error",))[0]
+                self.close_connection = True
+                if not str(getattr(self, "request_version", "")).startswith("HTTP/1."):
+                    self.request_version = "HTTP/1.0"  # a broken request line still gets a status line
+                self._reply(*json_response({"error": message or short}, code))
 
             def log_message(self, *args):  # quiet
                 pass
 
-        self.server = ThreadingHTTPServer((host, port), Handler)
-        self.server.daemon_threads = True
+        class Server(ThreadingHTTPServer):
+            request_queue_size = backlog
+            daemon_threads = True
+            slots = threading.BoundedSemaphore(max_threads)
+            closing = threading.Event()
+
+            def process_request(self, request, client_address):
+                while not self.slots.acquire(timeout=0.2):  # all threads busy: the backlog waits
+                    if self.closing.is_set():
+                        self.shutdown_request(request)
+                        return
+                try:
+                    super().process_request(request, client_address)
+                except BaseException:
+                    self.slots.release()
+                    raise
+
+            def process_request_thread(self, request, client_address):
+                try:
+                    self.finish_request(request, client_address)
+                except Exception as exc:  # a reset or timed-out client: one line, no traceback
+                    log.debug("HTTP connection from %s dropped: %r", client_address, exc)
+                finally:
+                    self.shutdown_request(request)
+                    self.slots.release()
+
+        self.server = Server((host, port), Handler)
         self.port = self.server.server_address[1]
         self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
         self.thread.start()
 
     def close(self) -> None:
+        self.server.closing.set()
         self.server.shutdown()
         self.server.server_close()
 

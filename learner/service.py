@@ -169,29 +169,47 @@ class LearnerService:
 
     # -- HTTP ------------------------------------------------------------------------------------
     def _policy(self, request) -> tuple[int, str, bytes]:
+        """Artefacts only from real folders and files inside ``<data_dir>/artefacts``: a symlink
+        anywhere on the way (version folder or file) or a path resolving outside is a 404."""
+        base = self.data_dir / "artefacts"
+        root = os.path.realpath(base)
+
+        def inside(path: Path, folder: bool) -> bool:  # no symlink, resolves where it lies, right kind
+            real = os.path.realpath(path)
+            return (not path.is_symlink() and real == os.path.join(root, *path.relative_to(base).parts)
+                    and (os.path.isdir(real) if folder else os.path.isfile(real)))
+
+        def folder_of(v: int) -> Path:
+            return base / f"v{v}"
+
         parts = request.path.strip("/").split("/")  # policy, <version|latest>[, file]
-        versions = self.artefact_versions()
+        versions = [v for v in self.artefact_versions() if inside(folder_of(v), folder=True)
+                    and inside(folder_of(v) / "metadata.json", folder=False)]
         if len(parts) < 2:
             return json_response({"error": "use /policy/latest or /policy/<version>"}, 404)
         if parts[1] == "latest":
             if not versions:
                 return json_response({"error": "no policy exported yet"}, 404)
             version = max(versions)
-        elif re.fullmatch(r"v?\d{1,12}", parts[1]):
+        elif re.fullmatch(r"v?[0-9]{1,12}", parts[1]):
             version = int(parts[1].lstrip("v"))
         else:
-            return json_response({"error": f"bad version {parts[1]!r}"}, 400)
-        folder = self.data_dir / "artefacts" / f"v{version}"
+            return json_response({"error": f"bad version {parts[1][:40]!r}"}, 400)
+        folder = folder_of(version)
         if version not in versions:
             return json_response({"error": f"no policy version {version}", "available": sorted(versions)}, 404)
-        meta = json.loads((folder / "metadata.json").read_text())
+        try:
+            meta = json.loads((folder / "metadata.json").read_text())
+            listed = set(meta["files"]) | {"metadata.json"}
+        except (OSError, ValueError, KeyError, TypeError):
+            return json_response({"error": f"policy version {version} is unreadable"}, 404)
         if len(parts) == 2:
             files = {name: {"sha256": sha, "url": f"/policy/{version}/{name}"} for name, sha in meta["files"].items()}
             files["metadata.json"] = {"url": f"/policy/{version}/metadata.json"}
             return json_response({"version": version, "files": files, "metadata": meta})
         name = parts[2]
-        if len(parts) != 3 or name not in set(meta["files"]) | {"metadata.json"}:
-            return json_response({"error": f"no file {'/'.join(parts[2:])!r} in version {version}"}, 404)
+        if len(parts) != 3 or name not in listed or name in ("", ".", "..") or not inside(folder / name, folder=False):
+            return json_response({"error": f"no file {'/'.join(parts[2:])[:200]!r} in version {version}"}, 404)
         return 200, "application/octet-stream", (folder / name).read_bytes()
 
     # -- shell -----------------------------------------------------------------------------------
