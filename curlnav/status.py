@@ -91,7 +91,8 @@ def format_status(s: dict) -> str:
     lines.append(f"replay: {replay.get('size', '-')} transitions, "
                  f"{'-' if inserts is None else f'{inserts:.0f}'} inserts/s")
     actors = s.get("live_actors") or {}
-    lines.append(f"live actors: {len(actors)}")
+    count = s.get("live_actor_count", len(actors))
+    lines.append(f"live actors: {count}" + (f" (the {len(actors)} that reported last below)" if count > len(actors) else ""))
     if actors:
         rows = []
         for name, actor in sorted(actors.items()):

@@ -207,7 +207,7 @@ class DistributedRun:
                "values/q_mean": learner.get("q_mean"), "replay_size": replay.get("size"),
                "policy_version": learner.get("version"), "policy_lag": status.get("policy_lag"),
                "stage_index": status.get("stage_index"), "stage": status.get("stage"), "substep": status.get("substep"),
-               "live_actors": len(status.get("live_actors") or {})}
+               "live_actors": status.get("live_actor_count", len(status.get("live_actors") or {}))}
         metrics.write(row)
         scalars = {"train/success_last_100": row["train_success_100"], "train/return_last_100": row["return_100"],
                    "train/base_collisions_last_100": row["base_collisions_100"],
@@ -235,7 +235,7 @@ class DistributedRun:
             + f" | episodes {status.get('episodes')} success {'-' if success is None else f'{success:.0%}'}"
             + f" | env steps {env_steps} ({replay.get('insert_rate') or 0:.0f}/s) updates {learner.get('updates') or 0}"
             + f" ({learner.get('updates_per_s') or 0:.1f}/s) | policy v{learner.get('version') or 0}"
-            + f" | replay {replay.get('size') or 0} | actors {len(status.get('live_actors') or {})}")
+            + f" | replay {replay.get('size') or 0} | actors {row['live_actors']}")
         if budget.max_env_steps is not None and env_steps >= budget.max_env_steps:
             return f"env step budget ({env_steps} >= {budget.max_env_steps})"
         return None

@@ -47,6 +47,7 @@ class SchedulerServiceConfig:
 
 #: bounds on what the scheduler keeps, whatever arrives
 MAX_ACTORS = 1024  # live actors tracked (liveliness tokens beyond it are counted and ignored)
+STATUS_ACTORS = 64  # actors detailed in /status (the rest are counted in live_actor_count)
 STATUS_ROLES = ("replay", "learner")  # services whose status the scheduler keeps
 
 
@@ -154,6 +155,13 @@ class SchedulerCore:
                 self.m_advances.inc()
             return advanced
 
+    def _shown_actors(self) -> list[str]:
+        """The ``STATUS_ACTORS`` actors ``/status`` details: those that reported last."""
+        if len(self.actors) <= STATUS_ACTORS:
+            return list(self.actors)
+        return sorted(self.actors, key=lambda k: (self.actors[k].get("last_report") or {}).get("time", 0.0),
+                      reverse=True)[:STATUS_ACTORS]
+
     def _policy_lag(self, learner_version: int | None) -> float | None:
         """Mean over live actors of (learner version - the weights version of its last episode)."""
         versions = [a["last_report"]["weights_version"] for a in self.actors.values() if a.get("last_report")]
@@ -172,7 +180,8 @@ class SchedulerCore:
                 "success_last_100": sum(st.recent) / len(st.recent) if st.recent else None,
                 "window_size": len(st.window), "criterion": None if st.criterion is None else vars(st.criterion),
                 "success_by_world_pair": rates, "advances": st.history,
-                "live_actors": {k: dict(v) for k, v in self.actors.items()},
+                "live_actor_count": len(self.actors),
+                "live_actors": {k: dict(self.actors[k]) for k in self._shown_actors()},
                 "return_last_100": mean([e[0] for e in self.recent_episodes]),
                 "base_collisions_last_100": mean([e[1] for e in self.recent_episodes]),
                 "policy_lag": self._policy_lag(learner.get("version")),

@@ -179,3 +179,41 @@ def test_kill_9_of_replay_learner_and_scheduler_loses_nothing_accepted(tmp_path)
         assert cluster.dead() == []
     finally:
         cluster.stop()
+
+
+# -- bounded state -----------------------------------------------------------------------------------
+def test_a_burst_of_reports_with_random_ids_keeps_status_small_and_memory_bounded():
+    import tracemalloc
+    import uuid
+
+    from curlnav.proto.messages import EpisodeReport
+    from curlnav.scheduler.curriculum import load_curriculum
+    from curlnav.scheduler.service import SchedulerCore
+
+    root = Path(__file__).resolve().parents[1]
+    curriculum = load_curriculum(root / "scheduler" / "curricula" / "s1+s2.yaml")
+    core = SchedulerCore(curriculum)
+    core.actor_joined("actor-0")
+    world = curriculum.stages[0].worlds[0]
+    core.report(EpisodeReport("actor-0", world, "", True, 10.0, 0, 0, 50, 1, 0).encode())
+
+    def burst(n: int) -> None:
+        for i in range(n):
+            forged = EpisodeReport(uuid.uuid4().hex, world if i % 2 else f"/x/{uuid.uuid4().hex}.yaml",
+                                   uuid.uuid4().hex[:8] if i % 3 == 0 else "", True, 1.0, 0, 0, 10, 1, 0)
+            core.report(forged.encode())
+            core.actor_joined(f"fake-{uuid.uuid4().hex}") if i % 5 == 0 else None
+
+    tracemalloc.start()
+    burst(2_000)
+    first = tracemalloc.get_traced_memory()[0]
+    burst(10_000)
+    after = tracemalloc.get_traced_memory()[0]
+    tracemalloc.stop()
+    status = json.dumps(core.status())
+    assert len(status) < 100_000, f"/status is {len(status)} bytes after the burst"
+    assert core.status()["episodes"] == 1  # no forged report counted
+    assert len(core.actors) <= 1024 and len(core.state.per_world) == 1
+    assert after - first < 2_000_000, f"memory grew by {after - first} bytes over 10,000 more forged reports"
+    rejected = core.status()["rejected"]
+    assert rejected["unknown_actor"] >= 10_000 and rejected["too_many_actors"] > 0
