@@ -278,6 +278,14 @@ def _cmd_bench_transport(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_faults(args: argparse.Namespace) -> int:
+    from .bench_faults import run_fault_bench
+
+    rows = run_fault_bench(actors=args.actors, warm_s=args.warm_s, run_dir=args.run_dir)
+    return 0 if all(r.get("lost", 0) == 0 and r.get("forward", True) and r.get("back_s") is not None
+                    for r in rows) else 1
+
+
 def _cmd_bench_metrics(args: argparse.Namespace) -> int:
     from .worlds.bench import run_metrics_bench
 
@@ -447,6 +455,12 @@ def _add_bench_commands(sub) -> None:
     p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
     p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
     p.set_defaults(func=_cmd_bench_metrics)
+    p = bench_sub.add_parser("faults", help="kill -9 replay, learner and scheduler of a local run: what was lost")
+    p.add_argument("--actors", type=int, default=2)
+    p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")
+    p.add_argument("--run-dir", default="runs/bench-faults")
+    p.set_defaults(func=_cmd_bench_faults)
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()

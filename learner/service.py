@@ -116,6 +116,7 @@ class LearnerService:
         self.metrics: dict[str, float] = {}
         self.pending_priorities: PriorityUpdate | None = None  # for the replay, when prioritized
         self.stop = threading.Event()
+        self.started = time.monotonic()
 
     # -- pure parts ----------------------------------------------------------------------------
     def learn_from(self, payload: bytes) -> dict[str, float]:
@@ -165,7 +166,7 @@ class LearnerService:
                                                                    ("actor_loss", "losses/actor"),
                                                                    ("q_mean", "values/q_mean")) if key in self.metrics}
         return {"version": self.version, "updates": self.state.steps, "updates_per_s": self.update_rate.rate(),
-                "env_steps": self.env_steps, **losses}
+                "env_steps": self.env_steps, "uptime_s": time.monotonic() - self.started, **losses}
 
     # -- HTTP ------------------------------------------------------------------------------------
     def _policy(self, request) -> tuple[int, str, bytes]:

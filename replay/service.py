@@ -83,6 +83,7 @@ class ReplayService:
         self.seq_gaps = 0
         self.stop = threading.Event()
         self.restored = self._restore()
+        self.started = time.monotonic()
 
     # -- pure handlers (tested without a network) --------------------------------------------
     def _restore(self) -> int:
@@ -188,7 +189,8 @@ class ReplayService:
                 "in_table": info["total_inserted"], "sampled": info["total_sampled"], "waiting": len(self.accepted),
                 "insert_rate": self.insert_rate.rate(), "sample_rate": self.sample_rate.rate(),
                 "rejected": sum(self.rejected().values()), "seq_gaps": self.seq_gaps,
-                "log_bytes": self.log.bytes_written, "restored": self.restored}
+                "log_bytes": self.log.bytes_written, "restored": self.restored,
+                "uptime_s": time.monotonic() - self.started}
 
     def rejected(self) -> dict[str, float]:
         out = {}

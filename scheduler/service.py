@@ -186,8 +186,9 @@ class SchedulerCore:
                 "base_collisions_last_100": mean([e[1] for e in self.recent_episodes]),
                 "policy_lag": self._policy_lag(learner.get("version")),
                 "learner": {k: learner.get(k) for k in ("version", "updates", "updates_per_s", "env_steps",
-                                                        "critic_loss", "actor_loss", "q_mean")},
-                "replay": {k: replay.get(k) for k in ("size", "inserted", "insert_rate", "sample_rate", "rejected")},
+                                                        "critic_loss", "actor_loss", "q_mean", "uptime_s")},
+                "replay": {k: replay.get(k) for k in ("size", "inserted", "accepted", "restored", "insert_rate",
+                                                      "sample_rate", "rejected", "uptime_s")},
                 "rejected": {s.labels["reason"]: s.value for m in self.m_rejected.collect() for s in m.samples
                              if s.name.endswith("_total")},
             }

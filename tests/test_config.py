@@ -187,7 +187,7 @@ LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.cli": 2, "curlnav.launch": 2, "curlnav.train": 2, "curlnav.serial": 2, "curlnav.experiment_cli": 2,
     "curlnav.bench_transport": 2, "curlnav.plots": 2, "curlnav.pull": 2, "curlnav.learner.bench": 2,
     "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2, "curlnav.evaluator": 2, "curlnav.supervise": 2,
-    "curlnav.status": 2, "curlnav.animation": 2,
+    "curlnav.status": 2, "curlnav.animation": 2, "curlnav.bench_faults": 2,
 }
 FOLDERS = {"curlnav": "curlnav", "proto": "curlnav.proto", "replay": "curlnav.replay", "learner": "curlnav.learner",
            "actor": "curlnav.actor", "scheduler": "curlnav.scheduler"}
