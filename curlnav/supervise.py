@@ -243,7 +243,15 @@ class DistributedRun:
     def read_evaluations(self, board: TensorBoardLog) -> str | None:
         """New eval.csv rows (written by the evaluator): console, TensorBoard, stopping target."""
         rows = read_csv(self.run_dir / "eval.csv")
-        new, self.eval_rows_seen = rows[self.eval_rows_seen:], len(rows)
+        new = []
+        for r in rows[self.eval_rows_seen:]:
+            try:  # a row the evaluator is still writing is read again next time
+                float(r["success_rate"]), float(r["collisions_per_episode"]), float(r["wall_s"])
+                float(r["env_steps"]), float(r["policy_version"])
+            except (KeyError, TypeError, ValueError):
+                break
+            new.append(r)
+        self.eval_rows_seen += len(new)
         by_eval: dict[str, list[dict]] = {}
         for r in new:
             by_eval.setdefault(r["evaluation"], []).append(r)
