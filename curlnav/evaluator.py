@@ -126,7 +126,7 @@ class BesideEvaluator:
         try:
             for row in rows:
                 log_file.write({"evaluation": self.evaluations, "wall_s": wall_s, "env_steps": env_steps,
-                                "updates": updates, "policy_version": version, **row})
+                                "updates": updates, "policy_version": version, "rows": len(rows), **row})
         finally:
             log_file.close()
         success = sum(r["success_rate"] for r in rows) / len(rows)

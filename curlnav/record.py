@@ -24,7 +24,7 @@ TRAIN_FIELDS = ["wall_s", "env_steps", "updates", "episodes", "train_success_100
 #: eval.csv columns: one row per (evaluation, world, pair); pair "held-out" is the held-out draw
 EVAL_FIELDS = ["evaluation", "wall_s", "env_steps", "updates", "policy_version", "stage_index", "stage", "substep",
                "world", "pair", "episodes", "success_rate", "collisions_per_episode",
-               "end_effector_collisions_per_episode", "mean_time_to_goal_s"]
+               "end_effector_collisions_per_episode", "mean_time_to_goal_s", "rows"]  # rows: of this evaluation
 
 
 class RunFolderBusy(ValueError):

@@ -109,7 +109,7 @@ class SerialTrainer:
         row = {"evaluation": len(self.counters["evals"]) + 1, "wall_s": time.monotonic() - start,
                "env_steps": self.counters["env_steps"], "updates": self.state.steps,
                "policy_version": self.state.steps, "stage_index": 0, "stage": "train", "substep": 0,
-               "world": Path(str(self.experiment.curriculum.world)).stem, "pair": "held-out",
+               "world": Path(str(self.experiment.curriculum.world)).stem, "pair": "held-out", "rows": 1,
                **dataclasses.asdict(result)}
         self.eval_log.write(row)
         self.counters["evals"].append(strict_json(row))

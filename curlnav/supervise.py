@@ -243,18 +243,21 @@ class DistributedRun:
     def read_evaluations(self, board: TensorBoardLog) -> str | None:
         """New eval.csv rows (written by the evaluator): console, TensorBoard, stopping target."""
         rows = read_csv(self.run_dir / "eval.csv")
-        new = []
+        by_eval: dict[str, list[dict]] = {}
         for r in rows[self.eval_rows_seen:]:
             try:  # a row the evaluator is still writing is read again next time
                 float(r["success_rate"]), float(r["collisions_per_episode"]), float(r["wall_s"])
-                float(r["env_steps"]), float(r["policy_version"])
+                float(r["env_steps"]), float(r["policy_version"]), int(r["rows"])
             except (KeyError, TypeError, ValueError):
                 break
-            new.append(r)
-        self.eval_rows_seen += len(new)
-        by_eval: dict[str, list[dict]] = {}
-        for r in new:
             by_eval.setdefault(r["evaluation"], []).append(r)
+        complete = {}
+        for number, group in by_eval.items():
+            if len(group) < int(group[0]["rows"]):
+                break  # the rest of this evaluation is not written yet
+            complete[number] = group
+            self.eval_rows_seen += len(group)
+        by_eval = complete
         reason = None
         for number, group in by_eval.items():
             success = sum(float(r["success_rate"]) for r in group) / len(group)
