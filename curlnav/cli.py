@@ -331,6 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"curlnav {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_training_commands(sub)
+    _add_bus_commands(sub)
     _add_world_commands(sub)
     _add_bench_commands(sub)
     return parser
@@ -391,6 +392,30 @@ def _add_training_commands(sub) -> None:
                    help="run folder (with run.json) or the scheduler's URL (default: newest run under runs/ with a run.json)")
     p.add_argument("--json", action="store_true", help="print the scheduler's /status JSON as it is")
     p.set_defaults(func=_cmd_status)
+
+
+def _add_bus_commands(sub) -> None:
+    """bus credentials: the run's Zenoh users and access control (curlnav.bus_security)."""
+    from .launch import env_default
+
+    def credentials(args: argparse.Namespace) -> int:
+        from .bus_security import acl_table, make_credentials
+
+        done = make_credentials(args.out, args.run)
+        print(f"bus credentials of run {args.run!r} in {args.out}: "
+              + ", ".join(f"{role} ({state})" for role, state in done.items()))
+        print(f"give `--bus-credentials {args.out}` (CURLNAV_BUS_CREDENTIALS) to every `curlnav serve`, or to each "
+              f"service only its own folder {args.out}/<role>")
+        print("access control, default deny (keys under curlnav/<run>/):\n" + acl_table())
+        return 0
+
+    bus = sub.add_parser("bus", help="the bus's security: Zenoh users and access control of a run")
+    bus_sub = bus.add_subparsers(dest="bus_command", required=True)
+    p = bus_sub.add_parser("credentials", help="write a run's bus credentials: one user per role with a random "
+                                              "password, the router's dictionary and access control")
+    p.add_argument("--out", required=True, help="folder to write (0700, files 0600); passwords already there are kept")
+    p.add_argument("--run", default=env_default("run", "default"), help="the run (Zenoh key prefix) they are for")
+    p.set_defaults(func=credentials)
 
 
 def _add_world_commands(sub) -> None:

@@ -52,6 +52,10 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 30.0),
                    help="learner: s between checkpoints (a crash loses at most this much learning)")
     p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
+    p.add_argument("--bus-credentials", default=env_default("bus_credentials", ""),
+                   help="the run's bus credentials folder (`curlnav bus credentials`) or this role's own: "
+                        "services authenticate as their role, the router admits only the run's users and "
+                        "applies its access control (default: none, an open bus)")
     p.add_argument("--router-timeout-s", type=float, default=env_default("router_timeout_s", 60.0),
                    help="give up (exit 2) when the router does not answer within this at start; -1 waits forever")
     add_config_arguments(p)
@@ -74,7 +78,8 @@ def build_service(args):
 
     def deployment(folder: str, default_port: int = 0) -> Deployment:
         return Deployment(run=args.run, router=args.router, data_dir=str(data / folder) if folder else "",
-                          http_host=args.http_host, http_port=args.http_port or default_port)
+                          http_host=args.http_host, http_port=args.http_port or default_port,
+                          credentials=args.bus_credentials)
 
     if args.role == "replay":
         from curlnav.replay.service import ReplayService, ReplayServiceConfig
@@ -118,7 +123,7 @@ def serve(args) -> int:
     if args.role == "router":
         peers = [e.strip() for e in args.connect.split(",") if e.strip()]
         logging.info("router listening on %s%s", args.listen, f", joining {peers}" if peers else "")
-        run_router(args.listen, stop, connect=peers or None)
+        run_router(args.listen, stop, connect=peers or None, credentials=args.bus_credentials)
         return 0
     service = build_service(args)
     service.stop = stop
@@ -179,6 +184,11 @@ class LocalCluster:
         self.scheduler_port = scheduler_port or free_port()
         self.learner_http_port = learner_port or free_port()
         self.router = f"tcp/127.0.0.1:{self.router_port}"
+        # the bus credentials of the run: made once, kept across --resume, given to every service
+        from .bus_security import make_credentials
+
+        self.bus_dir = self.run_dir / "bus"
+        make_credentials(self.bus_dir, run)
         self.run, self.actors = run, actors
         self.extra = extra or {}
         self.admin_token = admin_token
@@ -190,7 +200,15 @@ class LocalCluster:
     def service_command(self, role: str, *more: str) -> list[str]:
         return [sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run, "--router", self.router,
                 "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir),
-                "--http-host", "127.0.0.1", "--config", str(self.config_path), *self.extra.get(role, []), *more]
+                "--http-host", "127.0.0.1", "--config", str(self.config_path), "--bus-credentials", str(self.bus_dir),
+                *self.extra.get(role, []), *more]
+
+    def bus_session(self, role: str, connect_timeout_s: float = 10.0):
+        """A Zenoh session to this cluster's router, authenticated as ``role`` (tests, tools)."""
+        from .bus_security import load_user
+        from .transport import open_session
+
+        return open_session(self.router, connect_timeout_s, user=load_user(self.bus_dir, role, self.run))
 
     def _spawn(self, name: str, role: str, *more: str) -> subprocess.Popen:
         return self.spawn(name, self.service_command(role, *more))

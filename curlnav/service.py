@@ -21,6 +21,7 @@ from typing import Callable
 
 from prometheus_client import CollectorRegistry
 
+from curlnav.bus_security import load_user
 from curlnav.config import ExperimentConfig, config_differences, config_to_dict, service_config_hash
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import RunConfig
@@ -45,6 +46,7 @@ class Deployment:
     data_dir: str = "runs/service"  # the service's own state folder
     http_host: str = "127.0.0.1"  # HTTP bind address (/healthz, /metrics, /config, ...); `curlnav serve`: 0.0.0.0
     http_port: int = 0  # 0: any free port (written to <data_dir>/http_port)
+    credentials: str = ""  # the run's bus credentials folder (or this role's): "" = no bus authentication
 
 
 def _shared_part(config: dict) -> dict:
@@ -131,7 +133,9 @@ class ServiceShell:
 
     def new_session(self):
         """Another Zenoh session to the router, closed with the shell."""
-        session = open_session(self.deployment.router)
+        credentials = self.deployment.credentials
+        user = load_user(credentials, self.role, self.deployment.run) if credentials else None
+        session = open_session(self.deployment.router, user=user)
         self.on_close("Zenoh session", session.close)
         return session
 

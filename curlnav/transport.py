@@ -15,6 +15,8 @@ import zenoh
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
+from curlnav.bus_security import BusUser, RouterAuth, load_router
+
 log = logging.getLogger("curlnav")
 
 
@@ -23,9 +25,12 @@ class RouterUnreachable(ConnectionError):
 
 
 def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
-                 connect_timeout_s: float = -1) -> zenoh.Config:
+                 connect_timeout_s: float = -1, user: BusUser | None = None,
+                 guard: RouterAuth | None = None) -> zenoh.Config:
     """Multicast scouting off (Docker networks carry none). Clients wait ``connect_timeout_s``
-    for their router at start (-1: forever), so services can start in any order."""
+    for their router at start (-1: forever), so services can start in any order. ``user``: the
+    bus user this session authenticates as (Zenoh usrpwd); ``guard``: a router's dictionary of
+    users and access control (``curlnav.bus_security``)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -34,23 +39,41 @@ def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen:
         conf.insert_json5("connect/timeout_ms", str(-1 if connect_timeout_s < 0 else int(connect_timeout_s * 1000)))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
+    user = guard.user if guard is not None else user
+    if user is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user.user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(user.password))
+    if guard is not None:
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(guard.users_file)))
+        conf.insert_json5("access_control", json.dumps(guard.access_control))
     return conf
 
 
 ROUTER_TIMEOUT_S = -1.0  # set by `curlnav serve --router-timeout-s`
 
 
-def open_session(router: str, connect_timeout_s: float | None = None) -> zenoh.Session:
+def open_session(router: str, connect_timeout_s: float | None = None, user: BusUser | None = None) -> zenoh.Session:
+    """A client session to ``router``, authenticated as ``user`` when given."""
     timeout = ROUTER_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
     try:
-        return zenoh.open(zenoh_config("client", connect=[router], connect_timeout_s=timeout))
+        return zenoh.open(zenoh_config("client", connect=[router], connect_timeout_s=timeout, user=user))
     except zenoh.ZError as exc:
-        raise RouterUnreachable(f"cannot reach the Zenoh router at {router} within {timeout:.0f} s: {exc}") from None
+        refused = f" (or it refused the bus user {user.user!r}: another run's credentials?)" if user else ""
+        raise RouterUnreachable(f"cannot reach the Zenoh router at {router} within {timeout:.0f} s{refused}: "
+                                f"{exc}") from None
 
 
-def run_router(listen: str, stop: threading.Event, connect: list[str] | None = None) -> None:
-    """A Zenoh router (a Python session in router mode) until ``stop`` is set."""
-    session = zenoh.open(zenoh_config("router", connect=connect, listen=[listen]))
+def run_router(listen: str, stop: threading.Event, connect: list[str] | None = None, credentials: str = "") -> None:
+    """A Zenoh router (a Python session in router mode) until ``stop`` is set. ``credentials``:
+    a run's bus credentials folder (or the router's own): the router then admits only the run's
+    users and applies the run's access control."""
+    guard = load_router(credentials) if credentials else None
+    if guard is not None:
+        log.info("bus: user-password authentication (%d users), access control for run %r, default deny",
+                 sum(1 for line in guard.users_file.read_text().splitlines() if line.strip()), guard.user.run)
+    else:
+        log.warning("bus: no credentials: anyone who reaches this router may publish and query (--bus-credentials)")
+    session = zenoh.open(zenoh_config("router", connect=connect, listen=[listen], guard=guard))
     try:
         stop.wait()
     finally:

@@ -5,7 +5,8 @@
 #   build -> up with 3 actors -> /status shows 3 actors with episodes and learner version >= 1
 #   -> stop one actor container, it leaves /status -> restart the learner, its version does not
 #   go back -> pull the latest policy and run it -> bad configuration exits with one line
-#   -> down -v -> the same services on a single-node swarm (docker stack deploy) -> clean up.
+#   -> the bus refuses a service without credentials -> down -v -> the same services on a
+#   single-node swarm (docker stack deploy, bus credentials as Docker secrets) -> clean up.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export COMPOSE_PROJECT_NAME=${COMPOSE_PROJECT_NAME:-curlnavsmoke}
@@ -41,6 +42,7 @@ cleanup() {
   "${DC[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
   docker stack rm curlnav >/dev/null 2>&1 || true
   docker swarm leave --force >/dev/null 2>&1 || true
+  [ -z "${bus_tmp:-}" ] || rm -rf "$bus_tmp"
 }
 trap cleanup EXIT
 cleanup  # leftovers of an interrupted run (a compose project, a stack, a swarm)
@@ -93,11 +95,22 @@ docker run --rm curlnav:latest scheduler --curriculum /nonexistent.yaml 2>&1 | t
 timeout 60 docker run --rm -e CURLNAV_ROUTER_TIMEOUT_S=5 curlnav:latest replay --router tcp/127.0.0.1:7447 2>&1 | tail -n 1
 set -e
 
+step "the bus refuses a service without the run's credentials"
+set +e
+refused=$(timeout 90 docker run --rm --network "${COMPOSE_PROJECT_NAME}_default" -e CURLNAV_ROUTER=tcp/router:7447 \
+  -e CURLNAV_ROUTER_TIMEOUT_S=5 curlnav:latest replay 2>&1 | tail -n 1)
+set -e
+echo "$refused"
+echo "$refused" | grep -q "cannot reach the Zenoh router at tcp/router:7447"
+
 step "down -v"
 "${DC[@]}" down -v --remove-orphans
 
 step "the same services on a single-node swarm (docker stack deploy -c docker-stack.yml)"
 docker swarm init --advertise-addr 127.0.0.1 >/dev/null
+bus_tmp=$(mktemp -d)
+export CURLNAV_BUS=$bus_tmp/bus  # the stack's secrets are read from here
+"$CLI" bus credentials --run compose --out "$CURLNAV_BUS" | sed -n 1p
 CURLNAV_CURRICULA=$PWD/scheduler/curricula docker stack deploy -c docker-stack.yml curlnav
 wait_for "swarm: 2 live actors with episodes, learner version >= 1" 420 \
   'len(actors) == 2 and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'

@@ -181,7 +181,7 @@ def test_curlnav_and_proto_plus_install_and_import_side_by_side():
 # -- layering: imports point down only ------------------------------------------------------------
 LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.sim": 0, "curlnav.worlds": 0, "curlnav.proto": 0, "curlnav.layout": 0, "curlnav.config": 0,
-    "curlnav.transport": 0, "curlnav.policy": 0, "curlnav.record": 0,
+    "curlnav.transport": 0, "curlnav.bus_security": 0, "curlnav.policy": 0, "curlnav.record": 0,
     "curlnav.replay": 1, "curlnav.learner": 1, "curlnav.scheduler": 1, "curlnav.actor": 1, "curlnav.builder": 1,
     "curlnav.service": 1, "curlnav.evaluate": 1,
     "curlnav.cli": 2, "curlnav.launch": 2, "curlnav.train": 2, "curlnav.serial": 2, "curlnav.experiment_cli": 2,

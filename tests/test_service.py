@@ -10,7 +10,7 @@ import pytest
 
 from curlnav.config import resolve_config
 from curlnav.launch import LocalCluster, http_json
-from curlnav.transport import open_session, reliable_publisher
+from curlnav.transport import reliable_publisher
 from curlnav.proto.topology import Topology
 
 CURRICULUM = """
@@ -82,21 +82,24 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
     with pytest.raises(urllib.error.HTTPError) as info:
         urllib.request.urlopen(req, timeout=5)
     assert info.value.code == 401
-    # 1000 malformed messages on each input key: counted, nobody dies
+    # 1000 malformed messages on each input key, each from the role allowed to send it (the bus
+    # refuses everyone else: tests/test_bus_auth.py): counted, nobody dies
     topo = Topology("itest")
-    session = open_session(cluster.router)
+    sessions = {role: cluster.bus_session(role) for role in ("actor", "learner", "replay")}
     try:
-        publishers = [reliable_publisher(session, k) for k in
-                      (topo.transitions("evil"), topo.episodes("evil"), topo.status("evil"), topo.weights)]
+        publishers = [reliable_publisher(sessions[role], k) for role, k in
+                      (("actor", topo.transitions("evil")), ("actor", topo.episodes("evil")),
+                       ("replay", topo.status("replay")), ("learner", topo.weights))]
         for i in range(1000):
             for pub in publishers:
                 pub.put(b"\x93garbage" + bytes([i % 256]))
         for i in range(1000):
-            for key in (topo.assign, topo.sample):
-                for _ in session.get(key, payload=b"\xc1", timeout=5.0):
+            for role, key in (("actor", topo.assign), ("learner", topo.sample)):
+                for _ in sessions[role].get(key, payload=b"\xc1", timeout=5.0):
                     pass
     finally:
-        session.close()
+        for session in sessions.values():
+            session.close()
     learner_port = cluster.learner_port()
     wait_for("replay rejections counted", lambda: (status()["replay"]["rejected"] or 0) >= 2000, timeout=60)
     wait_for("scheduler rejections counted", lambda: sum(status()["rejected"].values()) >= 3000, timeout=60)
