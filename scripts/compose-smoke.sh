@@ -3,8 +3,8 @@
 # 1.29 `docker-compose` or v2 `docker compose`, and curl; CURLNAV_CLI: a host curlnav command).
 #
 #   build -> up with 3 actors -> /status shows 3 actors with episodes and learner version >= 1
-#   -> stop one actor container, it leaves /status -> restart the learner, its version does not
-#   go back -> pull the latest policy and run it -> bad configuration exits with one line
+#   -> stop one actor container, it leaves /status -> restart the learner, its version goes on
+#   above -> kill -9 replay, learner, scheduler (Docker SDK): nothing accepted lost -> pull the latest policy and run it -> bad configuration exits with one line
 #   -> the bus refuses a service without credentials -> down -v -> the same services on a
 #   single-node swarm (docker stack deploy, bus credentials as Docker secrets) -> clean up.
 set -euo pipefail
@@ -80,7 +80,10 @@ while [ "$(date +%s)" -lt "$deadline" ]; do
 done
 if [ -z "$after" ]; then echo "TIMEOUT after 180s: the restarted learner's /healthz never answered"; "${DC[@]}" logs --tail 30 learner || true; exit 1; fi
 echo "learner version before restart $before, after $after"
-[ "$after" -ge "$before" ]
+[ "$after" -gt "$before" ]  # a restarted learner numbers its weights above every version published
+
+step "fault injection (Docker SDK): kill -9 replay, learner, scheduler in turn; nothing accepted lost"
+"$PY" scripts/compose_faults.py --project "$COMPOSE_PROJECT_NAME" --status "$STATUS"
 
 step "pull the latest policy (curlnav pull, and the same with curl) and run it"
 curl -sf "$LEARNER/policy/latest" | "$PY" -c 'import json,sys; d=json.load(sys.stdin); print("policy", d["version"], {k: v.get("sha256", "")[:12] for k, v in d["files"].items()})'
