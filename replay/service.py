@@ -202,7 +202,8 @@ class ReplayService:
 
     def prune_log(self) -> int:
         """Delete log segments whose transitions have all left the table (FIFO)."""
-        return self.log.drop_before(self.accepted_total - len(self.accepted) - self.table.max_size)
+        waiting = sum(msg.batch.num_transitions for msg in list(self.accepted))  # logged, not yet in the table
+        return self.log.drop_before(self.accepted_total - waiting - self.table.max_size)
 
     def credit_message(self) -> bytes:
         """The insert credit, the run's accepted count and each actor's acknowledged seq."""
