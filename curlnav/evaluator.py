@@ -205,6 +205,7 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
 
 
 def main(argv: list[str] | None = None) -> int:
+    from curlnav.launch import die_with_launcher
     from curlnav.transport import stop_on_signals
 
     p = argparse.ArgumentParser(prog="python -m curlnav.evaluator", description=__doc__,
@@ -219,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s evaluator %(levelname)s %(message)s")
     stop = threading.Event()
     stop_on_signals(stop)
+    die_with_launcher()
     run_beside(Path(args.run_dir), load_config(args.config), args.learner_url.rstrip("/"), args.status_url,
                args.run_started_unix, stop)
     return 0

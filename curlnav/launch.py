@@ -120,15 +120,34 @@ def serve(args) -> int:
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {args.role} %(levelname)s %(message)s")
     stop = threading.Event()
     stop_on_signals(stop)
+    die_with_launcher()
     if args.role == "router":
         peers = [e.strip() for e in args.connect.split(",") if e.strip()]
         logging.info("router listening on %s%s", args.listen, f", joining {peers}" if peers else "")
         run_router(args.listen, stop, connect=peers or None, credentials=args.bus_credentials)
         return 0
-    service = build_service(args)
+    service = build_service(args)  # bad input raises here: one line, exit 2 (refused)
     service.stop = stop
-    service.run()
+    try:
+        service.run()
+    except REFUSALS:
+        raise  # the run's config, credentials or router refused at start: exit 2
+    except (ValueError, KeyError) as exc:  # anything else while running is a failure, not a refusal
+        logging.exception("%s failed: %s", args.role, exc)
+        return 1
     return 0
+
+
+def _refusals() -> tuple[type, ...]:
+    from .bus_security import BusCredentialsError
+    from .config import ConfigError
+    from .service import ConfigMismatch
+    from .transport import RouterUnreachable
+
+    return ConfigError, ConfigMismatch, RouterUnreachable, BusCredentialsError
+
+
+REFUSALS = _refusals()
 
 
 def free_port() -> int:
@@ -142,19 +161,21 @@ def http_json(url: str, timeout: float = 2.0):
         return json.loads(response.read())
 
 
-def _die_with_launcher(launcher_pid: int):
-    """``preexec_fn`` of every service: SIGTERM when the launcher dies, even by SIGKILL (Linux
-    ``PR_SET_PDEATHSIG``), so a killed launcher leaves no orphan behind."""
+LAUNCHER_PID_VARIABLE = "CURLNAV_LAUNCHER_PID"
+
+
+def die_with_launcher() -> None:
+    """In a service started by ``LocalCluster``: get SIGTERM when the launcher dies, even by
+    SIGKILL (Linux ``PR_SET_PDEATHSIG``), so a killed launcher leaves no orphan behind. Called
+    by the service itself at start (never in a ``preexec_fn``: the launcher has threads)."""
+    launcher = os.environ.get(LAUNCHER_PID_VARIABLE)
+    if not launcher or not sys.platform.startswith("linux"):
+        return
     import ctypes
 
-    libc = ctypes.CDLL(None, use_errno=True)
-
-    def preexec() -> None:
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-        if os.getppid() != launcher_pid:  # the launcher died before prctl took effect
-            os.kill(os.getpid(), signal.SIGTERM)
-
-    return preexec
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    if os.getppid() != int(launcher):  # the launcher died before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 #: the order in which a cluster stops: actors and the evaluator first, the router last
@@ -223,8 +244,8 @@ class LocalCluster:
         with open(self.run_dir / "logs" / f"{name}.log", "ab") as log:
             log.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} start: {' '.join(cmd[2:])}\n".encode())
             log.flush()
-            kwargs = dict(stdout=log, stderr=subprocess.STDOUT, env=env, stdin=subprocess.DEVNULL,
-                          preexec_fn=_die_with_launcher(os.getpid()))
+            env[LAUNCHER_PID_VARIABLE] = str(os.getpid())
+            kwargs = dict(stdout=log, stderr=subprocess.STDOUT, env=env, stdin=subprocess.DEVNULL)
             try:
                 proc = subprocess.Popen(cmd, process_group=self.pgid or 0, **kwargs)
             except (PermissionError, ProcessLookupError, subprocess.SubprocessError):

@@ -7,10 +7,10 @@ process):
 
 - a service that exits is noticed at once and its last log lines are printed; an actor (or the
   evaluator) is restarted, a crashed router, replay, learner or scheduler is restarted from its
-  saved state (checkpoint, replay file, curriculum state), each within a restart budget
+  saved state (checkpoint, replay log, curriculum state), each within a restart budget
   (``RESTART_BUDGET``); a service that exits 2 (it refused its configuration) or one past its
   budget stops the run with exit code 1 and the reason;
-- SIGINT, SIGTERM and SIGHUP stop every service in order (checkpoint and replay saved), exit 130;
+- SIGINT, SIGTERM and SIGHUP stop every service in order (the learner checkpoints; the replay's log already holds everything accepted), exit 130;
 - the budget (``budget.minutes`` of the run, earlier sessions included, or ``budget.max_env_steps``
   transitions accepted by the replay) or the held-out target ends it with exit 0.
 
@@ -63,6 +63,29 @@ def detach_from_terminal() -> None:
             if os.isatty(fd):
                 os.dup2(null, fd)
         os.close(null)
+
+
+def wait_for_earlier_services(group: int | None, timeout_s: float = 60.0) -> None:
+    """The services of a launcher that was killed get SIGTERM and may take a few seconds to save
+    and exit; its lock is already gone. Wait for its process group to empty before starting
+    another set on the same folder (``RunFolderBusy`` if it does not)."""
+    from .record import RunFolderBusy
+
+    if not group:
+        return
+    deadline = time.monotonic() + timeout_s
+    announced = False
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(int(group), 0)
+        except (ProcessLookupError, PermissionError):
+            return
+        if not announced:
+            say(f"waiting for the services of the previous launcher (process group {group}) to finish saving...")
+            announced = True
+        time.sleep(0.5)
+    raise RunFolderBusy(f"services of an earlier launcher (process group {group}) are still running after "
+                        f"{timeout_s:.0f} s: stop them (kill -TERM -{group}) before resuming")
 
 
 def port_is_free(port: int | None) -> bool:
@@ -123,6 +146,8 @@ class DistributedRun:
             learner_port=saved.get("learner_port") if port_is_free(saved.get("learner_port")) else None)
         self.restarts: dict[str, int] = {}
         self.signal_received: int | None = None
+        wait_for_earlier_services(saved.get("process_group"))
+        CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS).close()  # the header (an old one moves to .old) first
         self.eval_rows_seen = len(read_csv(self.run_dir / "eval.csv"))
         self.evals: list[dict] = []
         self.policy_version = -1
@@ -175,7 +200,7 @@ class DistributedRun:
             self.restarts[name] = used + 1
             self.cluster.restart(name)
             self.write_run_json()
-            saved = {"learner": "its checkpoint", "replay": "its saved replay", "scheduler": "its curriculum state"}
+            saved = {"learner": "its checkpoint", "replay": "its log", "scheduler": "its curriculum state"}
             say(f"!! restarted {name} ({used + 1} of {RESTART_BUDGET[role]} restarts)"
                 + (f", from {saved[role]}" if role in saved else ""))
         return None
@@ -252,9 +277,16 @@ class DistributedRun:
                 break
             by_eval.setdefault(r["evaluation"], []).append(r)
         complete = {}
-        for number, group in by_eval.items():
+        numbers = list(by_eval)
+        for i, number in enumerate(numbers):
+            group = by_eval[number]
             if len(group) < int(group[0]["rows"]):
-                break  # the rest of this evaluation is not written yet
+                if i == len(numbers) - 1:
+                    break  # the rest of this evaluation is not written yet
+                say(f"[eval {number}] incomplete ({len(group)} of {group[0]['rows']} rows: the evaluator "
+                    f"stopped during it); skipped")
+                self.eval_rows_seen += len(group)
+                continue
             complete[number] = group
             self.eval_rows_seen += len(group)
         by_eval = complete
@@ -290,7 +322,6 @@ class DistributedRun:
             if signal.getsignal(signum) is not signal.SIG_IGN:  # under nohup, SIGHUP stays ignored
                 signal.signal(signum, self._on_signal)
         metrics = CsvLog(self.run_dir / "metrics.csv", TRAIN_FIELDS)
-        CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS).close()  # the header, before the evaluator appends
         board = TensorBoardLog(self.run_dir)
         self.started = time.monotonic()
         session = {"started": now_iso(), "mode": "distributed", "actors": self.actors}
@@ -341,7 +372,7 @@ class DistributedRun:
                     last_sync = now
                 time.sleep(0.5)
         finally:
-            say(f"stopping ({stop_reason}): services stop in order, checkpoint and replay are saved...")
+            say(f"stopping ({stop_reason}): services stop in order, the learner checkpoints...")
             poller.stop.set()
             # a second Ctrl-C must not cut the orderly stop short
             for signum in SIGNAL_NAMES:

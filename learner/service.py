@@ -104,7 +104,9 @@ class LearnerService:
                      self.state.steps, int(extra.get("version", 0)), self.version)
         else:
             self.state = builder.make_learner_state()
-            self.version = 0
+            # no checkpoint, but a crash may have come after versions went out: go on above them
+            published = max(self.version_mark.read(), *self.artefact_versions(), 0)
+            self.version = published + 1 if published else 0
         self.registry = CollectorRegistry()
         self.m_updates = Counter("learner_updates", "SGD steps", registry=self.registry)
         self.m_version = Gauge("learner_weights_version", "latest published weights version", registry=self.registry)

@@ -66,6 +66,7 @@ class ReplayService:
         self.max_batch = experiment.replay.insert_batch
         self.log = SegmentLog(self.data_dir / "wal", fsync=cfg.fsync)
         self.accepted_total = 0  # transitions accepted in the run's lifetime (the log's index)
+        self.in_table_total = 0  # of those, how many have gone into the table (the rest wait)
         self.acked: dict[str, int] = {}  # actor id -> highest batch seq accepted
         self.registry = CollectorRegistry()
         self.m_in = Counter("replay_transitions_inserted", "transitions accepted", registry=self.registry)
@@ -92,7 +93,7 @@ class ReplayService:
         for first, payload in self.log.records():
             msg = TransitionBatch.decode(payload, beams=self.layout.beams)
             restored += self.table.insert(msg.batch, stream=msg.actor_id, force=True)
-            self.accepted_total = first + msg.batch.num_transitions
+            self.accepted_total = self.in_table_total = first + msg.batch.num_transitions
             self.acked[msg.actor_id] = max(self.acked.get(msg.actor_id, -1), msg.seq)
             self.last_seq[msg.actor_id] = msg.seq
         if restored:
@@ -109,6 +110,8 @@ class ReplayService:
         """Decode and check ``payloads``; write the good ones to the log and commit (fsync):
         from here on they are accepted. Refused ones are counted by reason."""
         good = []
+        total = self.accepted_total
+        acked: dict[str, int] = {}
         for payload in payloads:
             self.m_batches.inc()
             try:
@@ -120,21 +123,26 @@ class ReplayService:
             except (ProtoError, ReplayInputError) as exc:
                 self.m_rejected.labels(exc.reason).inc()
                 continue
-            if msg.seq <= self.acked.get(msg.actor_id, -1):
+            if msg.seq <= acked.get(msg.actor_id, self.acked.get(msg.actor_id, -1)):
                 self.m_rejected.labels("duplicate").inc()  # a resend of a batch already accepted
                 continue
-            self.log.append(payload, self.accepted_total)
-            self.accepted_total += msg.batch.num_transitions
-            self.acked[msg.actor_id] = msg.seq
+            self.log.append(payload, total)
+            total += msg.batch.num_transitions
+            acked[msg.actor_id] = msg.seq
             good.append(msg)
         if good:
-            self.log.commit()
+            self.log.commit()  # from here on they are accepted: only now are they counted and acked
+            self.accepted_total = total
+            for actor, seq in acked.items():
+                self.acked.pop(actor, None)  # re-inserted: the dict's order is most recent last
+                self.acked[actor] = seq
         return good
 
     def insert_accepted(self, msg: TransitionBatch, timeout: float | None = None, force: bool = False) -> int:
         """Insert one accepted batch into the table (waits on the rate limiter, up to
         ``timeout``: ``RateLimiterTimeout``)."""
         added = self.table.insert(msg.batch, stream=msg.actor_id, timeout=timeout, force=force)
+        self.in_table_total += msg.batch.num_transitions  # the log index the table has reached
         last = self.last_seq.get(msg.actor_id)
         if last is not None and msg.seq != last + 1:
             self.seq_gaps += 1
@@ -202,8 +210,7 @@ class ReplayService:
 
     def prune_log(self) -> int:
         """Delete log segments whose transitions have all left the table (FIFO)."""
-        waiting = sum(msg.batch.num_transitions for msg in list(self.accepted))  # logged, not yet in the table
-        return self.log.drop_before(self.accepted_total - waiting - self.table.max_size)
+        return self.log.drop_before(self.in_table_total - self.table.max_size)
 
     def credit_message(self) -> bytes:
         """The insert credit, the run's accepted count and each actor's acknowledged seq."""
@@ -234,8 +241,8 @@ class ReplayService:
             shell.on_close("sample queryable", queryable.undeclare)
             status_pub = session.declare_publisher(topo.status("replay"))
             credit_pub = session.declare_publisher(topo.credit)
-            threads = [threading.Thread(target=self._accept_loop, daemon=True, name="accept"),
-                       threading.Thread(target=self._insert_loop, daemon=True, name="insert"),
+            threads = [threading.Thread(target=self._guarded, args=(self._accept_loop,), daemon=True, name="accept"),
+                       threading.Thread(target=self._guarded, args=(self._insert_loop,), daemon=True, name="insert"),
                        threading.Thread(target=self._sample_loop, args=(queryable, topo.sample), daemon=True)]
             for t in threads:
                 t.start()
@@ -253,8 +260,12 @@ class ReplayService:
             finally:
                 self.stop.set()
                 subscriber.undeclare()
-                for t in threads:
+                threads[0].join()  # the accept thread writes the log: never two writers
+                for t in threads[1:]:
                     t.join(timeout=5)
+                if self.failure is not None:
+                    self.log.close()
+                    raise RuntimeError(f"replay stopped after a failure: {self.failure!r}") from self.failure
                 # accept what Zenoh already delivered, then put every accepted batch in the table
                 # (the log has them all anyway: this only spares the next start the work)
                 while self.backlog:
@@ -265,6 +276,18 @@ class ReplayService:
                 self.log.close()
                 log.info("replay stopped: %d transitions held, %d accepted in the run", self.table.size,
                          self.accepted_total)
+
+    failure: BaseException | None = None  # what stopped the accept or insert thread
+
+    def _guarded(self, loop) -> None:
+        """Run ``loop``; if it fails (a full disk, a bug), stop the service so that it exits
+        non-zero and its supervisor restarts it from the log, instead of hanging half-alive."""
+        try:
+            loop()
+        except BaseException as exc:
+            log.exception("replay %s thread failed: stopping", loop.__name__)
+            self.failure = exc
+            self.stop.set()
 
     def _accept_loop(self) -> None:
         """Drain the receive queue: decode, check, log, fsync once per drain (group commit)."""

@@ -67,7 +67,8 @@ class SegmentLog:
                     if not bad:
                         length, crc, first = HEADER.unpack(head)
                         payload = f.read(length) if length <= MAX_RECORD_BYTES else b""
-                        bad = len(payload) != length or zlib.crc32(payload) != crc
+                        # zeros left by a crash read as an empty record with a valid CRC: torn too
+                        bad = length == 0 or len(payload) != length or zlib.crc32(payload) != crc
                     if bad:
                         if not last:
                             raise ValueError(f"{path}: damaged record at byte {offset} (not at the log's end)")

@@ -96,6 +96,31 @@ def test_a_torn_record_at_the_end_is_cut_off_and_the_rest_restored(tmp_path):
     assert replay_in(tmp_path).table.size == 24
 
 
+def test_zeros_after_the_last_record_read_as_a_torn_tail(tmp_path):
+    service = replay_in(tmp_path)
+    for seq in range(2):
+        service.handle_batch(a_batch(seq=seq).encode())
+    segment = sorted((tmp_path / "wal").glob("seg-*.log"))[-1]
+    with open(segment, "ab") as f:
+        f.write(b"\0" * 4096)  # what a crash can leave after a file grew but before its data landed
+    assert replay_in(tmp_path).table.size == 12
+
+
+def test_a_batch_is_counted_and_acknowledged_only_once_the_log_is_committed(tmp_path):
+    service = replay_in(tmp_path)
+    assert service.handle_batch(a_batch(seq=0).encode()) == 6
+
+    def full_disk():
+        raise OSError(28, "No space left on device")
+
+    service.log.commit = full_disk
+    try:
+        service.accept_batches([a_batch(seq=1).encode()])
+    except OSError:
+        pass
+    assert service.accepted_total == 6 and service.acked == {"a": 0}  # nothing claimed that is not on disk
+
+
 def test_segments_that_left_the_table_are_deleted_and_a_restore_keeps_the_table(tmp_path):
     log = SegmentLog(tmp_path / "wal", segment_bytes=1)  # one record per segment
     service = replay_in(tmp_path)
@@ -123,6 +148,12 @@ def test_a_restarted_learner_numbers_its_weights_above_every_version_published(t
     assert second.version == 8
     third = LearnerService(cfg, experiment)  # and again, without publishing anything
     assert third.version == 9
+    # a learner that crashed after publishing but before its first checkpoint
+    fresh = tmp_path / "fresh"
+    early = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(fresh))), experiment)
+    early.publish_version(), early.publish_version()
+    again = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(fresh))), experiment)
+    assert again.version == 3
 
 
 # -- real processes ---------------------------------------------------------------------------------

@@ -282,3 +282,24 @@ def test_the_evaluator_follows_the_curriculum_reports_each_substep_pair_and_keep
     selected = json.loads((tmp_path / "policy-best" / "selected.json").read_text())
     assert selected["evaluation"] == 1 and selected["rank"][0] == 1
     assert (tmp_path / "policy-best" / "actor.onnx").exists()
+
+
+def test_an_evaluation_cut_short_does_not_hold_back_the_ones_after_it(tmp_path):
+    from curlnav.config import resolve_config
+    from curlnav.record import EVAL_FIELDS, CsvLog, TensorBoardLog
+    from curlnav.supervise import DistributedRun
+
+    run = DistributedRun(tmp_path / "run", resolve_config(overrides=["evaluation.stop_at_success=0.8"]), actors=1)
+    rows = CsvLog(run.run_dir / "eval.csv", EVAL_FIELDS)
+    common = {"wall_s": 60.0, "env_steps": 100, "updates": 10, "policy_version": 3, "stage_index": 1, "stage": "S2",
+              "substep": 0, "world": "t-maze-0", "episodes": 5, "collisions_per_episode": 0.0,
+              "end_effector_collisions_per_episode": 0.0, "mean_time_to_goal_s": 9.0, "rows": 2}
+    rows.write({**common, "evaluation": 1, "pair": "p1", "success_rate": 0.2})  # the evaluator died here
+    rows.write({**common, "evaluation": 2, "pair": "p1", "success_rate": 0.8})
+    board = TensorBoardLog(run.run_dir)
+    assert run.read_evaluations(board) is None  # evaluation 2 is not complete yet
+    rows.write({**common, "evaluation": 2, "pair": "p2", "success_rate": 1.0})
+    rows.close()
+    assert run.read_evaluations(board) == "held-out success 90% >= 80%"
+    board.close()
+    assert [e["evaluation"] for e in run.evals] == [2]
