@@ -65,7 +65,7 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
     s = wait_for("episodes from both actors and learner version >= 2", lambda: (
         (st := status()) and st["replay"]["size"] and (st["learner"]["version"] or 0) >= 2
         and all(a.get("episodes", 0) > 0 for a in st["live_actors"].values()) and len(st["live_actors"]) == 2 and st),
-        timeout=180)
+        timeout=300)
     assert s["replay"]["size"] > 0 and set(s["live_actors"]) == {"actor-0", "actor-1"}
     # actors pick up new weights
     wait_for("actors using weights version >= 1", lambda: all(
@@ -124,12 +124,12 @@ def test_services_carry_on_after_the_router_restarts(tmp_path):
     c.start()
     try:
         before = wait_for("learning under way", lambda: (st := c.status()) and (st["learner"]["version"] or 0) >= 2
-                          and st["episodes"] > 0 and st, timeout=180)
+                          and st["episodes"] > 0 and st, timeout=300)
         c.kill_process("router")
         c.restart("router")
         wait_for("transitions, episodes and weights flowing again", lambda: (st := c.status())
                  and st["episodes"] > before["episodes"] + 2 and st["learner"]["version"] > before["learner"]["version"] + 2
-                 and st["replay"]["size"] > before["replay"]["size"] and len(st["live_actors"]) == 1, timeout=180)
+                 and st["replay"]["size"] > before["replay"]["size"] and len(st["live_actors"]) == 1, timeout=300)
         assert c.dead() == []
     finally:
         c.stop()
