@@ -13,19 +13,11 @@ Figures per kill:
 
 from __future__ import annotations
 
-import json
 import time
-import urllib.request
 from dataclasses import dataclass
 from typing import Callable
 
-
-def get_json(url: str, timeout: float = 3.0) -> dict | None:
-    try:
-        with urllib.request.urlopen(url, timeout=timeout) as response:
-            return json.loads(response.read())
-    except (OSError, ValueError):
-        return None
+from .launch import http_json_or_none
 
 
 def poll(predicate: Callable[[], object], timeout: float, every: float = 0.2):
@@ -50,7 +42,7 @@ class FaultTarget:
 
 def measure_kill(target: FaultTarget, status_url: str, timeout: float = 180.0) -> dict:
     """Kill ``target`` (SIGKILL), start it again, and measure through the scheduler's status."""
-    status = lambda: get_json(status_url)  # noqa: E731
+    status = lambda: http_json_or_none(status_url)  # noqa: E731
     before = poll(lambda: (s := status()) and (s.get("replay") or {}).get("accepted") is not None and s, 30) or {}
     replay_before = before.get("replay") or {}
     learner_before = (before.get("learner") or {}).get("version") or 0

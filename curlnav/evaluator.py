@@ -24,12 +24,12 @@ import shutil
 import sys
 import threading
 import time
-import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
 from curlnav.config import ExperimentConfig, load_config
 from curlnav.evaluate import EvaluationProtocol, evaluate
+from curlnav.launch import die_with_launcher, http_json_or_none
 from curlnav.record import EVAL_FIELDS, CsvLog, copy_policy, read_csv
 
 log = logging.getLogger("curlnav.evaluator")
@@ -147,14 +147,6 @@ class BesideEvaluator:
             env.close()
 
 
-def _get_json(url: str, timeout: float = 5.0) -> dict | None:
-    try:
-        with urllib.request.urlopen(url, timeout=timeout) as response:
-            return json.loads(response.read())
-    except (OSError, ValueError):
-        return None
-
-
 def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, status_url: str,
                run_started_unix: float, stop: threading.Event) -> None:
     """The loop: wait ``every_s``, evaluate the newest unevaluated policy, record, repeat."""
@@ -173,7 +165,7 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
     try:
         next_at = time.monotonic() + every_s
         while not stop.wait(max(0.0, next_at - time.monotonic())):
-            listing = _get_json(f"{learner_url}/policy/latest")
+            listing = http_json_or_none(f"{learner_url}/policy/latest", timeout=5.0)
             version = int(listing["version"]) if listing and "version" in listing else -1
             if version <= last_version or version < 1:
                 next_at = time.monotonic() + 2.0  # nothing new yet: look again soon
@@ -187,7 +179,8 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
                 continue
             started = time.monotonic()
             try:
-                rows = evaluator.evaluate(policy, targets_for(experiment, curriculum, _get_json(status_url)), stop)
+                status = http_json_or_none(status_url, timeout=5.0)
+                rows = evaluator.evaluate(policy, targets_for(experiment, curriculum, status), stop)
             except EvaluationStopped:
                 log.info("stopping: the evaluation of policy v%d in progress is dropped", policy.version)
                 break
@@ -205,7 +198,6 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
 
 
 def main(argv: list[str] | None = None) -> int:
-    from curlnav.launch import die_with_launcher
     from curlnav.transport import stop_on_signals
 
     p = argparse.ArgumentParser(prog="python -m curlnav.evaluator", description=__doc__,

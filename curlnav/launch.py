@@ -161,6 +161,14 @@ def http_json(url: str, timeout: float = 2.0):
         return json.loads(response.read())
 
 
+def http_json_or_none(url: str, timeout: float = 3.0):
+    """``http_json``, or None when the service does not answer (yet) or answers garbage."""
+    try:
+        return http_json(url, timeout)
+    except (OSError, ValueError):
+        return None
+
+
 LAUNCHER_PID_VARIABLE = "CURLNAV_LAUNCHER_PID"
 
 
@@ -286,10 +294,7 @@ class LocalCluster:
         return f"http://127.0.0.1:{self.learner_http_port}"
 
     def status(self) -> dict | None:
-        try:
-            return http_json(self.status_url)
-        except (OSError, ValueError):
-            return None
+        return http_json_or_none(self.status_url, timeout=2.0)
 
     def learner_port(self) -> int | None:
         return self.learner_http_port

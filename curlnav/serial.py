@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import signal
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -33,8 +32,8 @@ from curlnav.evaluate import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy
 from curlnav.learner.d4pg import TensorBatch, act, load_checkpoint, save_checkpoint, sgd_step
 from curlnav.record import EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, now_iso, strict_json
+from curlnav.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
 
-SIGNAL_NAMES = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
 
 
 @dataclass(frozen=True)
@@ -159,10 +158,7 @@ class SerialTrainer:
         session = {"started": now_iso(), "mode": "serial", "env_steps_before": self.counters["env_steps"]}
         session_start = time.monotonic()
         received: list[int] = []
-        previous = {signum: signal.getsignal(signum) for signum in SIGNAL_NAMES}
-        for signum in SIGNAL_NAMES:
-            if previous[signum] is not signal.SIG_IGN:  # under nohup, SIGHUP stays ignored
-                signal.signal(signum, lambda signum, frame: received.append(signum))
+        previous = on_stop_signals(lambda signum, frame: received.append(signum))
         budget_s = budget.minutes * 60.0
         start = time.monotonic() - self.counters["elapsed_s"]
         self.bar = tqdm(total=int(budget_s), unit="s", disable=not self.run_cfg.progress,
@@ -175,7 +171,7 @@ class SerialTrainer:
         try:
             while time.monotonic() - start < budget_s:
                 if received:
-                    stop_reason = f"interrupted by {SIGNAL_NAMES[received[0]]}"
+                    stop_reason = f"interrupted by {STOP_SIGNALS[received[0]]}"
                     self._print(f"{stop_reason}: saving a checkpoint and the policy")
                     break
                 if budget.max_env_steps is not None and self.counters["env_steps"] >= budget.max_env_steps:
@@ -207,8 +203,7 @@ class SerialTrainer:
         finally:
             self.bar.close()
             self.bar = None
-            for signum in SIGNAL_NAMES:  # a second signal must not cut the checkpoint short
-                signal.signal(signum, signal.SIG_IGN)
+            ignore_stop_signals()  # a second signal must not cut the checkpoint short
         try:
             if final is None:
                 final = self.evaluate(start)
@@ -220,8 +215,7 @@ class SerialTrainer:
             self.loop.close()
             self.evaluation.close()
         finally:
-            for signum, handler in previous.items():
-                signal.signal(signum, handler)
+            restore_signals(previous)
         exit_code = 130 if stop_reason.startswith("interrupted") else 0
         session.update({"stopped": now_iso(), "stop_reason": stop_reason, "exit_code": exit_code,
                         "wall_s": time.monotonic() - session_start, "env_steps": self.counters["env_steps"],

@@ -32,13 +32,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .launch import LocalCluster, http_json
+from .transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
 from .record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, copy_policy, now_iso,
                      read_csv)
 
 #: restarts allowed per service name before the run stops (an actor, as RLlib restarts env runners)
 RESTART_BUDGET = {"actor": 5, "evaluator": 3, "router": 3, "replay": 3, "learner": 3, "scheduler": 3}
 EXIT_DONE, EXIT_FAILED, EXIT_INTERRUPTED = 0, 1, 130
-SIGNAL_NAMES = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
 
 
 def say(line: str) -> None:
@@ -149,6 +149,7 @@ class DistributedRun:
         wait_for_earlier_services(saved.get("process_group"))
         CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS).close()  # the header (an old one moves to .old) first
         self.eval_rows_seen = len(read_csv(self.run_dir / "eval.csv"))
+        self.eval_bytes_read = -1  # eval.csv's size at the last read
         self.evals: list[dict] = []
         self.policy_version = -1
         self.last_status: dict | None = None
@@ -267,7 +268,12 @@ class DistributedRun:
 
     def read_evaluations(self, board: TensorBoardLog) -> str | None:
         """New eval.csv rows (written by the evaluator): console, TensorBoard, stopping target."""
-        rows = read_csv(self.run_dir / "eval.csv")
+        path = self.run_dir / "eval.csv"
+        size = path.stat().st_size if path.exists() else 0
+        if size == self.eval_bytes_read:
+            return None  # nothing written since the last look (the supervisor looks twice a second)
+        self.eval_bytes_read = size
+        rows = read_csv(path)
         by_eval: dict[str, list[dict]] = {}
         for r in rows[self.eval_rows_seen:]:
             try:  # a row the evaluator is still writing is read again next time
@@ -317,10 +323,7 @@ class DistributedRun:
         from .plots import plot_learning_curve
 
         budget = self.experiment.budget
-        previous = {signum: signal.getsignal(signum) for signum in SIGNAL_NAMES}
-        for signum in SIGNAL_NAMES:
-            if signal.getsignal(signum) is not signal.SIG_IGN:  # under nohup, SIGHUP stays ignored
-                signal.signal(signum, self._on_signal)
+        previous = on_stop_signals(self._on_signal)
         metrics = CsvLog(self.run_dir / "metrics.csv", TRAIN_FIELDS)
         board = TensorBoardLog(self.run_dir)
         self.started = time.monotonic()
@@ -342,7 +345,7 @@ class DistributedRun:
             last_progress = last_sync = time.monotonic()
             while True:
                 if self.signal_received is not None:
-                    exit_code, stop_reason = EXIT_INTERRUPTED, f"interrupted by {SIGNAL_NAMES[self.signal_received]}"
+                    exit_code, stop_reason = EXIT_INTERRUPTED, f"interrupted by {STOP_SIGNALS[self.signal_received]}"
                     break
                 failure = self.handle_exits()
                 if failure:
@@ -375,8 +378,7 @@ class DistributedRun:
             say(f"stopping ({stop_reason}): services stop in order, the learner checkpoints...")
             poller.stop.set()
             # a second Ctrl-C must not cut the orderly stop short
-            for signum in SIGNAL_NAMES:
-                signal.signal(signum, signal.SIG_IGN)
+            ignore_stop_signals()
             if self.signal_received == signal.SIGHUP:
                 detach_from_terminal()
             c.stop()
@@ -388,8 +390,7 @@ class DistributedRun:
                 plot_learning_curve(self.run_dir)
             except Exception as exc:  # a picture must never hide the run's outcome
                 say(f"learning curve not drawn: {exc}")
-            for signum in SIGNAL_NAMES:
-                signal.signal(signum, previous[signum])
+            restore_signals(previous)
         status = self.last_status or {}
         session.update({"stopped": now_iso(), "stop_reason": stop_reason, "exit_code": exit_code,
                         "wall_s": time.monotonic() - self.started, "restarts": dict(self.restarts),

@@ -223,14 +223,34 @@ class HttpServer:
         self.server.server_close()
 
 
+#: the signals that stop a service or a run, with the words a person reads
+STOP_SIGNALS = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
+
+
+def on_stop_signals(handler: Callable[[int, object], None]) -> dict:
+    """Route ``STOP_SIGNALS`` to ``handler``, except one already ignored (under ``nohup`` a
+    hang-up stays ignored). Returns the previous dispositions, for ``restore_signals``."""
+    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    for signum, before in previous.items():
+        if before is not signal.SIG_IGN:
+            signal.signal(signum, handler)
+    return previous
+
+
+def ignore_stop_signals() -> None:
+    """During an orderly stop: a second Ctrl-C must not cut it short."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+
+
+def restore_signals(previous: dict) -> None:
+    for signum, handler in previous.items():
+        signal.signal(signum, handler)
+
+
 def stop_on_signals(stop: threading.Event) -> None:
     """SIGTERM, SIGINT and SIGHUP set ``stop``; services then save their state and exit cleanly."""
-    def handler(signum, frame):
-        stop.set()
-
-    for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-        if signal.getsignal(signum) is not signal.SIG_IGN:  # nohup: a hang-up stays ignored
-            signal.signal(signum, handler)
+    on_stop_signals(lambda signum, frame: stop.set())
 
 
 class RateMeter:

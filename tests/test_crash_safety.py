@@ -7,7 +7,6 @@ import json
 import os
 import signal
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from curlnav.replay.service import ReplayService, ReplayServiceConfig
 from curlnav.replay.wal import SegmentLog
 from curlnav.service import Deployment
 from test_proto_and_cores import a_batch
+from curlnav.launch import http_json_or_none
 from test_service import wait_for
 
 SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])
@@ -151,14 +151,6 @@ def test_a_restarted_learner_numbers_its_weights_above_every_version_published(t
 
 # -- real processes ---------------------------------------------------------------------------------
 
-def get_json(url):
-    try:
-        with urllib.request.urlopen(url, timeout=3) as r:
-            return json.loads(r.read())
-    except (OSError, ValueError):
-        return None
-
-
 def test_kill_9_of_replay_learner_and_scheduler_loses_nothing_accepted(tmp_path):
     """A training cluster of real processes; each stateful service is killed with SIGKILL and
     started again: the replay holds every transition it had accepted, the learner's versions
@@ -176,21 +168,21 @@ def test_kill_9_of_replay_learner_and_scheduler_loses_nothing_accepted(tmp_path)
                  and s["episodes"] >= 2 and s, timeout=240)
         replay_port = int((cluster.run_dir / "replay" / "http_port").read_text())
         # replay: what it reported accepted just before the kill is all there after the restart
-        accepted = get_json(f"http://127.0.0.1:{replay_port}/healthz")["accepted"]
+        accepted = http_json_or_none(f"http://127.0.0.1:{replay_port}/healthz")["accepted"]
         cluster.kill_process("replay")
         cluster.restart("replay")
         replay_port = wait_for("replay back", lambda: (p := cluster.run_dir / "replay" / "http_port").exists()
-                               and get_json(f"http://127.0.0.1:{int(p.read_text())}/healthz") and int(p.read_text()),
+                               and http_json_or_none(f"http://127.0.0.1:{int(p.read_text())}/healthz") and int(p.read_text()),
                                timeout=120)
-        health = get_json(f"http://127.0.0.1:{replay_port}/healthz")
+        health = http_json_or_none(f"http://127.0.0.1:{replay_port}/healthz")
         assert health["restored"] >= accepted > 0 and health["accepted"] >= accepted
         # learner: versions go on above the last one published
         learner_url = cluster.learner_url
-        before = get_json(f"{learner_url}/healthz")["version"]
+        before = http_json_or_none(f"{learner_url}/healthz")["version"]
         os.kill(cluster.processes["learner"].pid, signal.SIGKILL)
         cluster.processes.pop("learner").wait()
         cluster.restart("learner")
-        after = wait_for("learner back", lambda: (h := get_json(f"{learner_url}/healthz")) and h["version"], timeout=120)
+        after = wait_for("learner back", lambda: (h := http_json_or_none(f"{learner_url}/healthz")) and h["version"], timeout=120)
         assert after > before
         # scheduler: the episodes it counted are still counted
         episodes = status()["episodes"]
