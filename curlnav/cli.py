@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -334,7 +335,48 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bus_commands(sub)
     _add_world_commands(sub)
     _add_bench_commands(sub)
+    _add_ablation_commands(sub)
     return parser
+
+
+def _add_ablation_commands(sub) -> None:
+    """ablation run, ablation report (curlnav.ablation)."""
+    from .ablation import PAPER_CONDITIONS
+
+    ablation = sub.add_parser("ablation", help="the curriculum ablation (the paper's Fig. 5): conditions x seeds "
+                                               "at one env-step budget, serial runs, and their report")
+    ablation_sub = ablation.add_subparsers(dest="ablation_command", required=True)
+    p = ablation_sub.add_parser("run", help="run (or resume) every condition x seed, then write the report")
+    p.add_argument("--out", default="runs/ablation", help="folder of the runs and the report")
+    p.add_argument("--conditions", nargs="+", default=list(PAPER_CONDITIONS),
+                   help="shipped curriculum names (scheduler/curricula/) or curriculum files")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1], help="experiment seeds per condition")
+    p.add_argument("--max-env-steps", type=int, default=250_000, help="environment steps per run (equal budgets)")
+    p.add_argument("--parallel", type=int, default=os.cpu_count() or 1, help="runs at once, one core each")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="config override for every new run (repeatable)")
+    p.set_defaults(func=_cmd_ablation_run)
+    p = ablation_sub.add_parser("report", help="ablation.png, ablation.csv and ablation.md from saved runs")
+    p.add_argument("folder", help="the folder of the runs (ablation run --out)")
+    p.set_defaults(func=_cmd_ablation_report)
+
+
+def _cmd_ablation_run(args: argparse.Namespace) -> int:
+    from .ablation import plan_runs, run_all, write_report
+
+    out = Path(args.out)
+    specs = plan_runs(out, args.conditions, args.seeds, args.max_env_steps,
+                      [a for o in args.overrides for a in ("--set", o)])
+    failed = run_all(specs, max(1, args.parallel))
+    print(f"report: {write_report(out)} (ablation.png, ablation.csv beside it)")
+    return 1 if failed else 0
+
+
+def _cmd_ablation_report(args: argparse.Namespace) -> int:
+    from .ablation import write_report
+
+    print(f"report: {write_report(Path(args.folder))} (ablation.png, ablation.csv beside it)")
+    return 0
 
 
 def _add_training_commands(sub) -> None:

@@ -11,6 +11,13 @@ A run folder holds ``config.yaml`` (the experiment), ``metrics.csv`` (training),
 ``summary.json`` (one entry per session), ``checkpoints/`` (learner + replay, resumable),
 ``policy/`` (the latest exported artefact) and ``policy-best/`` (the best held-out evaluation).
 SIGINT, SIGTERM and SIGHUP stop it with a checkpoint (exit code 130 from ``curlnav train``).
+
+With a curriculum file (``--curriculum``), the scheduler's own core (``CurriculumState``) runs
+in-process: every episode takes its (world, pair) from it and reports its outcome to it, exactly
+as the actors and the scheduler service do over the bus. Evaluations then cover the current
+stage and the curriculum's fixed ``evaluate`` targets (e.g. T-Maze p1..p4), one eval.csv row
+each; ``policy-best/`` keeps the policy best on the last fixed target. This is the cheap
+instrument for ablations: one core per condition.
 """
 
 from __future__ import annotations
@@ -70,13 +77,60 @@ class SerialTrainer:
         else:
             self.state = builder.make_learner_state()
             self.table = builder.make_replay_table()
-        env = builder.make_env(excluded_pairs=self.evaluation.excluded)  # held out, as in every actor
+        self.curriculum = self._load_curriculum()
+        excluded = set(self.evaluation.excluded) if self.curriculum is None else self._curriculum_excluded()
+        env = builder.make_env(excluded_pairs=excluded)  # held out, as in every actor
         self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1, stream=self.counters["env_steps"])
         self.policy.use_network(self.state.actor)
         self.policy.steps = self.counters["env_steps"]  # the warm-up is not repeated on resume
         self.loop = EpisodeLoop(env, self.policy, builder.make_nstep_writer())
         self.recent: deque[tuple[bool, float, int]] = deque(maxlen=100)  # success, return, base collisions
         self.metrics: dict[str, float] = {}
+        self.task: tuple[str, str, int] = (str(experiment.curriculum.world), "", 0)  # world, pair, epoch
+
+    # -- the curriculum (in-process scheduler core) ------------------------------------------
+    def _load_curriculum(self):
+        if not self.experiment.curriculum.file:
+            return None
+        from curlnav.scheduler.curriculum import CurriculumState, load_curriculum
+
+        state = CurriculumState(load_curriculum(self.experiment.curriculum.file))
+        saved = self.counters.get("curriculum")
+        if saved:
+            state = CurriculumState.from_dict(state.curriculum, saved)
+        return state
+
+    def _curriculum_excluded(self) -> set:
+        """The held-out pairs of every curriculum world that draws random pairs."""
+        from curlnav.evaluate import excluded_keys, held_out_pairs
+        from curlnav.sim import get_world
+        from curlnav.sim.pairs import draws_random_pairs
+
+        worlds = {w for s in self.curriculum.curriculum.stages for w in s.worlds}
+        worlds |= {w for w, _ in self.curriculum.curriculum.evaluate}
+        keys: set = set()
+        for world in sorted(worlds):
+            if draws_random_pairs(get_world(world)):
+                keys |= excluded_keys(held_out_pairs(world, self.experiment.evaluation.episodes))
+        return keys
+
+    def _eval_targets(self):
+        from curlnav.evaluator import HELD_OUT, Target, targets_for
+
+        """The current stage's targets, then the fixed ``evaluate`` targets (the last one is the
+        run's headline: policy-best and ``stop_at_success`` follow it)."""
+        state = self.curriculum
+        fixed = [(world, pair or HELD_OUT) for world, pair in state.curriculum.evaluation_targets()]
+        targets = [t for t in targets_for(self.experiment, state.curriculum,
+                                          {"stage_index": state.stage, "substep": state.substep})
+                   if (t.world, t.pair) not in fixed]
+        return targets + [Target(state.stage, state.current.name, state.substep, w, p) for w, p in fixed]
+
+    def _stage_fields(self) -> dict:
+        if self.curriculum is None:
+            return {"stage_index": 0, "stage": "train", "substep": 0}
+        state = self.curriculum
+        return {"stage_index": state.stage, "stage": state.current.name, "substep": state.substep}
 
     # -- the parts of one iteration -------------------------------------------------------------
     def act_once(self) -> EpisodeEnd | None:
@@ -87,6 +141,15 @@ class SerialTrainer:
         if end is not None:
             self.counters["episodes"] += 1
             self.recent.append((end.success, end.episode_return, int(end.info["base_collisions"])))
+            if self.curriculum is not None:
+                world, pair, epoch = self.task
+                if self.curriculum.record(world, pair, end.success, epoch):
+                    step = self.curriculum.history[-1]
+                    self._print(f"[curriculum] advanced to {step['stage']} sub-step {step['substep']} after "
+                                f"{self.counters['env_steps']} env steps ({step['reason']})")
+                    self.counters.setdefault("advances", []).append(
+                        {**step, "env_steps": self.counters["env_steps"],
+                         "wall_s": time.monotonic() - self._start if self._start else 0.0})
             self._begin()
         return end
 
@@ -102,6 +165,8 @@ class SerialTrainer:
             self.table.update_priorities(sample.keys, item_loss + 1e-6)
 
     def evaluate(self, start: float) -> EvalResult:
+        if self.curriculum is not None:
+            return self._evaluate_curriculum(start)
         self.state.actor.eval()
         result = self.evaluation.run(lambda o: act(self.state.actor, o))
         self.state.actor.train()
@@ -129,7 +194,56 @@ class SerialTrainer:
                     f"updates] {result.line()}")
         return result
 
+    def _evaluate_curriculum(self, start: float) -> EvalResult:
+        """The current stage's targets and the fixed ``evaluate`` targets, one eval.csv row each;
+        returns the last fixed target's result (policy-best and ``stop_at_success`` use it)."""
+        from curlnav.evaluator import BesideEvaluator
+
+        if self._evaluator is None:
+            self._evaluator = BesideEvaluator(self.run_dir, self.experiment, self.curriculum.curriculum)
+        targets = self._eval_targets()
+        self.state.actor.eval()
+        rows = self._evaluator.evaluate(lambda o: act(self.state.actor, o), targets)
+        self.state.actor.train()
+        number = len(self.counters["evals"]) + 1
+        head = {"evaluation": number, "wall_s": time.monotonic() - start, "env_steps": self.counters["env_steps"],
+                "updates": self.state.steps, "policy_version": self.state.steps, "rows": len(rows)}
+        for row in rows:
+            self.eval_log.write({**head, **row})
+            self.board.scalars({f"eval/success/{row['world']}/{row['pair']}": row["success_rate"],
+                                f"eval/base_collisions_per_episode/{row['world']}/{row['pair']}":
+                                    row["collisions_per_episode"]}, self.counters["env_steps"])
+        final = rows[-1]
+        result = EvalResult(final["episodes"], final["success_rate"], final["collisions_per_episode"],
+                            final["end_effector_collisions_per_episode"], final["mean_time_to_goal_s"],
+                            final["mean_episode_time_s"])
+        summary = {**head, **self._stage_fields(), "target": f"{final['world']}/{final['pair']}",
+                   "success_rate": result.success_rate, "collisions_per_episode": result.collisions_per_episode,
+                   "per_target": {f"{r['world']}/{r['pair']}": r["success_rate"] for r in rows}}
+        self.counters["evals"].append(strict_json(summary))
+        self.board.scalars({"eval/success_rate": result.success_rate}, self.counters["env_steps"])
+        mean = sum(r["success_rate"] for r in rows) / len(rows)
+        rank = [result.success_rate, mean]
+        best = self.counters.get("best_rank")
+        if best is None or rank > best:
+            self.counters["best_rank"] = rank
+            folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env,
+                                   worlds=sorted({t.world for t in targets}), env_steps=self.counters["env_steps"])
+            (folder / "selected.json").write_text(json.dumps(strict_json(
+                {"why": f"best held-out success on {summary['target']} so far (then mean over the targets)",
+                 "rank": rank, **summary}), indent=2))
+        per = "  ".join(f"{r['world']}/{r['pair']} {r['success_rate']:.0%}" for r in rows)
+        self._print(f"[eval {summary['wall_s'] / 60:5.1f} min, {self.counters['env_steps']} steps, {self.state.steps} "
+                    f"updates, {summary['stage']}.{summary['substep']}] {per}; base collisions/trial on "
+                    f"{summary['target']}: {result.collisions_per_episode:.2f}")
+        return result
+
+    _evaluator = None
+    _start = 0.0
+
     def checkpoint(self, start: float) -> None:
+        if self.curriculum is not None:
+            self.counters["curriculum"] = self.curriculum.to_dict()
         self.counters["elapsed_s"] = time.monotonic() - start
         save_checkpoint(self.state, self.ckpt_dir / "latest.safetensors", extra={"counters": self.counters})
         if self.run_cfg.save_replay:
@@ -138,7 +252,13 @@ class SerialTrainer:
                       worlds=[str(self.experiment.curriculum.world)], env_steps=self.counters["env_steps"])
 
     def _begin(self) -> None:
-        self.loop.begin(seed=self.experiment.seed + self.counters["episodes"])
+        if self.curriculum is None:
+            self.loop.begin(seed=self.experiment.seed + self.counters["episodes"])
+            return
+        world, pair = self.curriculum.assign()
+        self.task = (world, pair, self.curriculum.epoch)
+        options = {"world": world, **({"pair": pair} if pair else {})}
+        self.loop.begin(seed=self.experiment.seed + self.counters["episodes"], options=options)
 
     def _print(self, line: str) -> None:
         (self.bar.write if self.bar is not None else print)(line)
@@ -160,7 +280,7 @@ class SerialTrainer:
         received: list[int] = []
         previous = on_stop_signals(lambda signum, frame: received.append(signum))
         budget_s = budget.minutes * 60.0
-        start = time.monotonic() - self.counters["elapsed_s"]
+        start = self._start = time.monotonic() - self.counters["elapsed_s"]
         self.bar = tqdm(total=int(budget_s), unit="s", disable=not self.run_cfg.progress,
                         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} s {postfix}")
         last_log = last_eval = last_ckpt = time.monotonic()
@@ -214,6 +334,8 @@ class SerialTrainer:
             plot_learning_curve(self.run_dir)
             self.loop.close()
             self.evaluation.close()
+            if self._evaluator is not None:
+                self._evaluator.close()
         finally:
             restore_signals(previous)
         exit_code = 130 if stop_reason.startswith("interrupted") else 0
@@ -225,6 +347,10 @@ class SerialTrainer:
             env_steps=self.counters["env_steps"], updates=self.state.steps, episodes=self.counters["episodes"],
             final_eval=dataclasses.asdict(final), evals=self.counters["evals"],
             first_eval_reaching_80=next((e for e in self.counters["evals"] if e["success_rate"] >= 0.8), None),
+            curriculum=None if self.curriculum is None else {
+                "name": self.curriculum.curriculum.name, "stage": self.curriculum.current.name,
+                "substep": self.curriculum.substep, "advances": self.counters.get("advances", []),
+                "replays": self.curriculum.replays},
             run_dir=str(self.run_dir), policy=str(self.run_dir / "policy"), policy_best=str(self.run_dir / "policy-best"))
 
     bar = None
@@ -239,7 +365,7 @@ class SerialTrainer:
                "return_100": float(np.mean([r[1] for r in recent])) if recent else 0.0,
                "base_collisions_100": float(np.mean([r[2] for r in recent])) if recent else 0.0,
                "env_steps_per_s": sps, "updates_per_s": ups, "replay_size": self.table.size,
-               "policy_version": self.state.steps, "policy_lag": 0, "stage_index": 0, "stage": "train", "substep": 0,
+               "policy_version": self.state.steps, "policy_lag": 0, **self._stage_fields(),
                "live_actors": 1, **self.metrics}
         self.train_log.write(row)
         world = Path(str(self.experiment.curriculum.world)).stem
@@ -247,11 +373,12 @@ class SerialTrainer:
                             "train/base_collisions_last_100": row["base_collisions_100"],
                             f"train/success/{world}/random": success, "speed/env_steps_per_s": sps,
                             "speed/updates_per_s": ups, "replay/size": self.table.size, "policy/lag_versions": 0,
-                            "curriculum/stage": 0, "curriculum/substep": 0, **self.metrics}, self.counters["env_steps"])
+                            "curriculum/stage": row["stage_index"], "curriculum/substep": row["substep"],
+                            **self.metrics}, self.counters["env_steps"])
         if self.bar is not None:
             self.bar.n = min(int(now - start), int(budget_s))
             self.bar.set_postfix_str(f"steps {self.counters['env_steps']} ({sps:.0f}/s) updates {self.state.steps} "
-                                     f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%} "
+                                     f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%} {row['stage']}.{row['substep']} "
                                      f"| {max(budget_s - (now - start), 0) / 60:.1f} min left")
 
 

@@ -102,8 +102,6 @@ def run_train(args: argparse.Namespace) -> int:
         lock.acquire()  # first of all: a folder another launcher is using is not even read
     try:
         experiment = resolve_train_config(args, run_dir)
-        if args.serial and experiment.curriculum.file:
-            raise TrainRefused("a curriculum needs the distributed trainer (the scheduler): drop --serial")
         check_before_start(experiment)
         run_dir.mkdir(parents=True, exist_ok=True)
         if not lock.held:

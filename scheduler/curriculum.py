@@ -22,6 +22,21 @@ stages:
 
 ``worlds: {ranking: ranking.json, category: easy}`` takes the worlds, in order, from the file
 written by ``curlnav worlds rank``.
+
+Options beyond the paper (each one off unless the file sets it):
+
+- ``replay_earlier: 0.2`` (per stage): that share of assignments goes back to a task of an
+  earlier stage or sub-step (drawn uniformly among them), to keep what was learnt there.
+  Replayed episodes are counted per world but never fill the current step's window.
+- ``evaluate: [{world: t-maze-0.yaml, pairs: [p1, p2, p3, p4]}]`` (top level): the fixed
+  targets every held-out evaluation covers besides the current stage, so that conditions of an
+  ablation are measured on the same tasks. Default: the last stage's worlds and sub-steps.
+- ``sampler: learning-progress`` (per stage with sub-steps): instead of one sub-step after the
+  other, every (world, sub-step pair) of the stage is a task and each assignment draws one by
+  absolute learning progress (Portelas et al. 2020, Kanitscheider et al. 2021): the gap between
+  a fast (rate 0.1) and a slow (rate 0.02) moving average of the task's success, with a share
+  of 0.2 drawn uniformly so that no task is starved. The stage's ``advance`` criterion then
+  watches the last sub-step (the hardest pair) alone.
 """
 
 from __future__ import annotations
@@ -59,20 +74,37 @@ class Stage:
     advance: Criterion | None = None  # None: the last stage, or a stage that never ends
     substeps: tuple[str, ...] = ()
     substep_advance: Criterion | None = None
+    replay_earlier: float = 0.0  # share of assignments given to earlier stages' tasks
+    sampler: str = "sequential"  # or "learning-progress" (see the module's docstring)
+
+
+#: learning-progress sampler: moving-average rates of success (fast, slow), uniform share
+LP_FAST, LP_SLOW, LP_EXPLORE = 0.1, 0.02, 0.2
+SAMPLERS = ("sequential", "learning-progress")
 
 
 @dataclass(frozen=True)
 class Curriculum:
     name: str
     stages: tuple[Stage, ...]
+    evaluate: tuple[tuple[str, str], ...] = ()  # fixed (world, pair or "") held-out targets
+
+    def evaluation_targets(self) -> tuple[tuple[str, str], ...]:
+        """``evaluate`` if given, else the last stage's worlds x sub-steps ("" = random pairs)."""
+        if self.evaluate:
+            return self.evaluate
+        last = self.stages[-1]
+        return tuple((w, p) for w in last.worlds for p in (last.substeps or ("",)))
 
     def to_dict(self) -> dict:
         def crit(c):
             return None if c is None else {"success_rate": c.success_rate, "window": c.window, "compare": c.compare}
 
-        return {"name": self.name, "stages": [{"name": s.name, "worlds": list(s.worlds), "advance": crit(s.advance),
-                                               "substeps": list(s.substeps), "substep_advance": crit(s.substep_advance)}
-                                              for s in self.stages]}
+        return {"name": self.name,
+                "stages": [{"name": s.name, "worlds": list(s.worlds), "advance": crit(s.advance),
+                            "substeps": list(s.substeps), "substep_advance": crit(s.substep_advance),
+                            "replay_earlier": s.replay_earlier, "sampler": s.sampler} for s in self.stages],
+                "evaluate": [{"world": w, "pairs": [p] if p else []} for w, p in self.evaluate]}
 
 
 def _criterion(path: Path, where: str, raw: Any) -> Criterion | None:
@@ -103,15 +135,15 @@ def load_curriculum(path: str | Path) -> Curriculum:
         raise CurriculumError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', None) or exc}") from None
     if not isinstance(raw, dict) or not isinstance(raw.get("stages"), list) or not raw["stages"]:
         raise CurriculumError(f"{path}: a curriculum is a mapping with a non-empty 'stages' list")
-    unknown = set(raw) - {"name", "stages"}
+    unknown = set(raw) - {"name", "stages", "evaluate"}
     if unknown:
-        raise CurriculumError(f"{path}: unknown keys {sorted(unknown)} (a curriculum has 'name' and 'stages')")
+        raise CurriculumError(f"{path}: unknown keys {sorted(unknown)} (a curriculum has 'name', 'stages', 'evaluate')")
     stages = []
     for i, s in enumerate(raw["stages"]):
         where = f"stages[{i}]"
         if not isinstance(s, dict):
             raise CurriculumError(f"{path}: {where} must be a mapping")
-        unknown = set(s) - {"name", "worlds", "advance", "substeps", "substep_advance"}
+        unknown = set(s) - {"name", "worlds", "advance", "substeps", "substep_advance", "replay_earlier", "sampler"}
         if unknown:
             raise CurriculumError(f"{path}: {where} has unknown keys {sorted(unknown)}")
         worlds = s.get("worlds")
@@ -119,14 +151,45 @@ def load_curriculum(path: str | Path) -> Curriculum:
             worlds = _worlds_from_ranking(path, where, worlds)
         if not isinstance(worlds, list) or not worlds or not all(isinstance(w, str) for w in worlds):
             raise CurriculumError(f"{path}: {where}.worlds must be a non-empty list of world names or files")
-        worlds = [str((path.parent / w)) if w.endswith((".yaml", ".yml")) and not Path(w).is_absolute() else w
-                  for w in worlds]
+        worlds = [_world_path(path, w) for w in worlds]
         substeps = s.get("substeps") or []
         if not isinstance(substeps, list) or not all(isinstance(p, str) for p in substeps):
             raise CurriculumError(f"{path}: {where}.substeps must be a list of pair names")
+        replay = s.get("replay_earlier", 0.0)
+        if isinstance(replay, bool) or not isinstance(replay, (int, float)) or not 0 <= replay < 1:
+            raise CurriculumError(f"{path}: {where}.replay_earlier must be a share in [0, 1), got {replay!r}")
+        if replay and i == 0 and len(substeps) < 2:
+            raise CurriculumError(f"{path}: {where}.replay_earlier: the first stage has nothing earlier to replay")
+        sampler = s.get("sampler", "sequential")
+        if sampler not in SAMPLERS:
+            raise CurriculumError(f"{path}: {where}.sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
+        if sampler == "learning-progress" and len(substeps) * len(worlds) < 2:
+            raise CurriculumError(f"{path}: {where}.sampler learning-progress needs at least two tasks "
+                                  f"(worlds x substeps)")
         stages.append(Stage(str(s.get("name", f"S{i + 1}")), tuple(worlds), _criterion(path, f"{where}.advance", s.get("advance")),
-                            tuple(substeps), _criterion(path, f"{where}.substep_advance", s.get("substep_advance"))))
-    return Curriculum(str(raw.get("name", path.stem)), tuple(stages))
+                            tuple(substeps), _criterion(path, f"{where}.substep_advance", s.get("substep_advance")),
+                            float(replay), sampler))
+    return Curriculum(str(raw.get("name", path.stem)), tuple(stages), _evaluate_targets(path, raw.get("evaluate")))
+
+
+def _world_path(path: Path, world: str) -> str:
+    """A world file named relative to the curriculum file; built-in names as they are."""
+    return str(path.parent / world) if world.endswith((".yaml", ".yml")) and not Path(world).is_absolute() else world
+
+
+def _evaluate_targets(path: Path, raw: Any) -> tuple[tuple[str, str], ...]:
+    if raw is None:
+        return ()
+    if not isinstance(raw, list):
+        raise CurriculumError(f"{path}: evaluate must be a list of {{world, pairs}} mappings")
+    out = []
+    for i, item in enumerate(raw):
+        if (not isinstance(item, dict) or set(item) - {"world", "pairs"} or not isinstance(item.get("world"), str)
+                or not isinstance(item.get("pairs", []), list) or not all(isinstance(p, str) for p in item.get("pairs", []))):
+            raise CurriculumError(f"{path}: evaluate[{i}] must be {{world: NAME, pairs: [names]}} (pairs optional)")
+        world = _world_path(path, item["world"])
+        out.extend((world, p) for p in (item.get("pairs") or [""]))
+    return tuple(out)
 
 
 def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
@@ -137,7 +200,9 @@ def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
     from curlnav.sim.world import WorldError
 
     where = f"{source or curriculum.name}"
-    for stage in curriculum.stages:
+    extra = [w for w, _ in curriculum.evaluate if all(w not in s.worlds for s in curriculum.stages)]
+    stages = list(curriculum.stages) + ([Stage("evaluate", tuple(dict.fromkeys(extra)))] if extra else [])
+    for stage in stages:
         for name in stage.worlds:
             try:
                 world = get_world(name)
@@ -145,7 +210,8 @@ def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
                 raise CurriculumError(f"{where}: stage {stage.name}: world {name!r} does not load: "
                                       f"{exc.args[0] if exc.args else exc}") from None
             pairs = {p.name for p in world.pairs}
-            missing = [p for p in stage.substeps if p not in pairs]
+            wanted = list(stage.substeps) + [p for w, p in curriculum.evaluate if w == name and p]
+            missing = [p for p in dict.fromkeys(wanted) if p not in pairs]
             if missing:
                 raise CurriculumError(f"{where}: stage {stage.name}: sub-step pair(s) {', '.join(missing)} do not exist "
                                       f"in world {world.name} (it has {', '.join(sorted(pairs)) or 'no named pairs'})")
@@ -176,26 +242,90 @@ class CurriculumState:
     per_world: dict = field(default_factory=dict)  # "world/pair" -> [episodes, successes]
     history: list = field(default_factory=list)  # advances: {epoch, stage, substep, episodes, reason}
     recent: deque = field(default_factory=lambda: deque(maxlen=100))  # last 100 outcomes, any epoch
+    replays: int = 0  # assignments given to earlier tasks (``replay_earlier``)
+    progress: dict = field(default_factory=dict)  # "world/pair" -> [fast, slow, episodes] (learning progress)
     _next_world: int = 0
+    rng: Any = None  # numpy Generator for ``replay_earlier`` draws (made on first use)
 
     @property
     def current(self) -> Stage:
         return self.curriculum.stages[self.stage]
 
     @property
+    def learning_progress(self) -> bool:
+        return self.current.sampler == "learning-progress"
+
+    @property
     def criterion(self) -> Criterion | None:
         stage = self.current
+        if self.learning_progress:
+            return stage.advance
         if stage.substeps and self.substep < len(stage.substeps) - 1:
             return stage.substep_advance
         return stage.advance
 
+    def _rng(self):
+        if self.rng is None:
+            import numpy as np
+
+            self.rng = np.random.default_rng(self.episodes)
+        return self.rng
+
     def assign(self) -> tuple[str, str]:
-        """The next (world, pair name or "") for an actor; worlds of the stage in turn."""
+        """The next (world, pair name or "") for an actor; worlds of the stage in turn, or, with
+        the stage's ``replay_earlier`` share, a task of an earlier stage or sub-step; with the
+        learning-progress sampler, the stage's task drawn by learning progress."""
         stage = self.current
+        if stage.replay_earlier > 0:
+            earlier = self.earlier_tasks()
+            if earlier and self._rng().random() < stage.replay_earlier:
+                self.replays += 1
+                return earlier[int(self.rng.integers(len(earlier)))]
+        if self.learning_progress:
+            return self._draw_by_progress()
         world = stage.worlds[self._next_world % len(stage.worlds)]
         self._next_world += 1
         pair = stage.substeps[self.substep] if stage.substeps else ""
         return world, pair
+
+    def stage_tasks(self) -> list[tuple[str, str]]:
+        stage = self.current
+        return [(w, p) for w in stage.worlds for p in (stage.substeps or ("",))]
+
+    def task_progress(self) -> dict[str, float]:
+        """Absolute learning progress per task of the stage (|fast - slow| success average)."""
+        out = {}
+        for world, pair in self.stage_tasks():
+            fast, slow, _ = self.progress.get(f"{world}/{pair}", [0.0, 0.0, 0])
+            out[f"{world}/{pair}"] = abs(fast - slow)
+        return out
+
+    def _draw_by_progress(self) -> tuple[str, str]:
+        tasks = self.stage_tasks()
+        rng = self._rng()
+        lp = [self.task_progress()[f"{w}/{p}"] for w, p in tasks]
+        total = sum(lp)
+        if total <= 1e-9 or rng.random() < LP_EXPLORE:
+            return tasks[int(rng.integers(len(tasks)))]
+        return tasks[int(rng.choice(len(tasks), p=[x / total for x in lp]))]
+
+    def earlier_tasks(self) -> list[tuple[str, str]]:
+        """Every (world, pair) of the stages and sub-steps before the current one."""
+        tasks = []
+        for index, stage in enumerate(self.curriculum.stages[:self.stage + 1]):
+            pairs = stage.substeps[:self.substep] if index == self.stage else stage.substeps
+            if index == self.stage and not pairs:
+                break
+            tasks.extend((w, p) for w in stage.worlds for p in (pairs or ("",)))
+        return tasks
+
+    def is_current(self, world: str, pair: str) -> bool:
+        """Whether an episode on (world, pair) is an episode of the current step (not a replay;
+        with the learning-progress sampler: of the stage's last sub-step, which its criterion watches)."""
+        stage = self.current
+        if self.learning_progress:
+            return world in stage.worlds and pair == (stage.substeps[-1] if stage.substeps else "")
+        return world in stage.worlds and pair == (stage.substeps[self.substep] if stage.substeps else "")
 
     def record(self, world: str, pair: str, success: bool, epoch: int) -> bool:
         """Count one episode; returns True if the curriculum advanced."""
@@ -205,8 +335,11 @@ class CurriculumState:
         stats = self.per_world.setdefault(key, [0, 0])
         stats[0] += 1
         stats[1] += int(success)
-        if epoch != self.epoch:
-            return False  # started before the last advance
+        if epoch == self.epoch and self.learning_progress and (world, pair) in self.stage_tasks():
+            fast, slow, n = self.progress.get(key, [0.0, 0.0, 0])
+            self.progress[key] = [fast + LP_FAST * (success - fast), slow + LP_SLOW * (success - slow), n + 1]
+        if epoch != self.epoch or not self.is_current(world, pair):
+            return False  # started before the last advance, or a replay of an earlier task
         crit = self.criterion
         if crit is None:
             return False
@@ -240,7 +373,8 @@ class CurriculumState:
     def to_dict(self) -> dict:
         return {"stage": self.stage, "substep": self.substep, "epoch": self.epoch, "episodes": self.episodes,
                 "window": [int(x) for x in self.window], "per_world": self.per_world, "history": self.history,
-                "next_world": self._next_world, "recent": [int(x) for x in self.recent]}
+                "next_world": self._next_world, "recent": [int(x) for x in self.recent], "replays": self.replays,
+                "progress": self.progress}
 
     @staticmethod
     def from_dict(curriculum: Curriculum, d: dict) -> "CurriculumState":
@@ -255,4 +389,6 @@ class CurriculumState:
         state.history = list(d.get("history", []))
         state._next_world = int(d.get("next_world", 0))
         state.recent.extend(bool(x) for x in d.get("recent", []))
+        state.replays = int(d.get("replays", 0))
+        state.progress = {k: [float(v[0]), float(v[1]), int(v[2])] for k, v in d.get("progress", {}).items()}
         return state

@@ -1,0 +1,171 @@
+"""The curriculum file's options beyond the paper: replay of earlier stages, the
+learning-progress sampler and fixed evaluation targets; and a curriculum run by the serial
+trainer (the ablation instrument)."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+import pytest
+
+from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
+
+REPLAY = """
+name: replay
+stages:
+  - name: S1
+    worlds: [open-room]
+    advance: {success_rate: 0.5, window: 2}
+  - name: S2
+    worlds: [door-corridor]
+    substeps: [through-door, p2]
+    substep_advance: {success_rate: 0.5, window: 2}
+    replay_earlier: 0.25
+evaluate:
+  - {world: door-corridor, pairs: [p2]}
+  - {world: open-room}
+"""
+
+
+def _state(tmp_path, text) -> CurriculumState:
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    return CurriculumState(load_curriculum(path))
+
+
+def test_replay_earlier_sends_its_share_back_to_earlier_tasks_and_they_never_fill_the_window(tmp_path):
+    state = _state(tmp_path, REPLAY)
+    assert state.curriculum.evaluation_targets() == (("door-corridor", "p2"), ("open-room", ""))
+    state.record("open-room", "", True, 0)
+    assert state.record("open-room", "", True, 0) and state.current.name == "S2"
+    draws = Counter(state.assign() for _ in range(2000))
+    assert set(draws) == {("door-corridor", "through-door"), ("open-room", "")}
+    assert 0.2 < draws[("open-room", "")] / 2000 < 0.3
+    for _ in range(5):  # successes on the replayed S1 task never advance S2
+        assert not state.record("open-room", "", True, state.epoch)
+    assert state.substep == 0 and not state.window
+    state.record("door-corridor", "through-door", True, state.epoch)
+    assert state.record("door-corridor", "through-door", True, state.epoch) and state.substep == 1
+    draws = Counter(state.assign() for _ in range(2000))  # now S1 and sub-step 1 are the earlier tasks
+    assert set(draws) == {("door-corridor", "p2"), ("door-corridor", "through-door"), ("open-room", "")}
+    restored = CurriculumState.from_dict(state.curriculum, json.loads(json.dumps(state.to_dict())))
+    assert restored.replays == state.replays > 0
+
+
+LP = """
+name: lp
+stages:
+  - name: S2
+    worlds: [door-corridor]
+    substeps: [through-door, p2]
+    advance: {success_rate: 0.5, window: 4}
+    sampler: learning-progress
+"""
+
+
+def test_learning_progress_favours_the_task_whose_success_is_changing(tmp_path):
+    state = _state(tmp_path, LP)
+    assert {state.assign() for _ in range(200)} == {("door-corridor", "through-door"), ("door-corridor", "p2")}
+    for _ in range(30):  # through-door is being learnt; p2 stays at 0
+        state.record("door-corridor", "through-door", True, 0)
+        state.record("door-corridor", "p2", False, 0)
+    progress = state.task_progress()
+    assert progress["door-corridor/through-door"] > 0.3 and progress["door-corridor/p2"] == 0
+    draws = Counter(state.assign() for _ in range(2000))
+    assert draws[("door-corridor", "through-door")] > 0.8 * 2000  # all but the uniform share's half
+    # the stage's criterion watches the last pair (the hardest) alone
+    assert state.stage == 0 and list(state.window) == [False] * 4
+    restored = CurriculumState.from_dict(state.curriculum, json.loads(json.dumps(state.to_dict())))
+    assert restored.task_progress() == pytest.approx(progress)
+
+
+@pytest.mark.parametrize("body, message", [
+    ("stages: [{worlds: [open-room], replay_earlier: 0.3}]", "nothing earlier to replay"),
+    ("stages: [{worlds: [open-room]}, {worlds: [open-room], replay_earlier: 1.5}]", "share in [0, 1)"),
+    ("stages: [{worlds: [open-room], sampler: bandit}]", "sampler must be one of"),
+    ("stages: [{worlds: [open-room], substeps: [a], sampler: learning-progress}]", "at least two tasks"),
+    ("stages: [{worlds: [open-room]}]\nevaluate: [{pairs: [p1]}]", "evaluate[0]"),
+])
+def test_malformed_options_are_refused_naming_the_field(tmp_path, body, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(body)
+    with pytest.raises(CurriculumError, match=message.replace("[", r"\[").replace("(", r"\(").replace(")", r"\)")):
+        load_curriculum(path)
+
+
+def test_an_evaluate_target_naming_a_missing_pair_is_refused_before_the_run(tmp_path):
+    from curlnav.scheduler.curriculum import check_curriculum
+
+    path = tmp_path / "c.yaml"
+    path.write_text("stages: [{worlds: [open-room]}]\nevaluate: [{world: door-corridor, pairs: [p9]}]\n")
+    with pytest.raises(CurriculumError, match="p9"):
+        check_curriculum(load_curriculum(path), path)
+
+
+SERIAL = """
+name: tiny
+stages:
+  - name: S1
+    worlds: [open-room]
+    advance: {success_rate: 0.0, window: 1}
+  - name: S2
+    worlds: [door-corridor]
+    substeps: [through-door]
+evaluate:
+  - {world: door-corridor, pairs: [through-door]}
+"""
+
+
+def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_resumes_at_its_stage(tmp_path):
+    import csv
+    import subprocess
+    import sys
+
+    curriculum = tmp_path / "tiny.yaml"
+    curriculum.write_text(SERIAL)  # S1 ends after its first episode (>= 0 % over 1)
+    run = tmp_path / "run"
+    base = [sys.executable, "-m", "curlnav.cli", "train", "--serial", "--run-dir", str(run), "--curriculum",
+            str(curriculum), "--warmup-steps", "300", "--eval-episodes", "2", "--threads", "1",
+            "--set", "replay.min_size=300", "--minutes", "3"]
+    result = subprocess.run(base + ["--max-env-steps", "400"], capture_output=True, text=True, timeout=400)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "[curriculum] advanced to S2 sub-step 0" in result.stdout
+    rows = list(csv.DictReader((run / "eval.csv").open()))
+    assert [(r["stage"], r["world"], r["pair"]) for r in rows] == [("S2", "door-corridor", "through-door")]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["curriculum"]["stage"] == "S2" and summary["curriculum"]["advances"][0]["env_steps"] <= 400
+    selected = json.loads((run / "policy-best" / "selected.json").read_text())
+    assert selected["target"] == "door-corridor/through-door"
+    result = subprocess.run(base + ["--max-env-steps", "500", "--resume"], capture_output=True, text=True, timeout=400)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "[curriculum] advanced" not in result.stdout, "a resumed run stays at its stage"
+    assert json.loads((run / "summary.json").read_text())["curriculum"]["stage"] == "S2"
+    rows = list(csv.DictReader((run / "eval.csv").open()))
+    assert len(rows) == 2 and rows[-1]["stage"] == "S2"
+
+
+def test_ablation_run_trains_each_condition_skips_finished_runs_and_writes_the_report(tmp_path):
+    import csv
+    import subprocess
+    import sys
+
+    tiny = tmp_path / "tiny.yaml"
+    tiny.write_text(SERIAL)
+    direct = tmp_path / "direct.yaml"
+    direct.write_text("name: direct\nstages: [{worlds: [door-corridor], substeps: [through-door]}]\n")
+    out = tmp_path / "ablation"
+    cmd = [sys.executable, "-m", "curlnav.cli", "ablation", "run", "--out", str(out), "--conditions", str(tiny),
+           str(direct), "--seeds", "3", "--max-env-steps", "300", "--parallel", "2",
+           "--set", "exploration.warmup_steps=250", "--set", "replay.min_size=256", "--set", "evaluation.episodes=2"]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    assert result.stdout.count(": started (new") == 2 and result.stdout.count(": finished at 300 env steps") == 2
+    rows = list(csv.DictReader((out / "ablation.csv").open()))
+    assert {(r["condition"], r["seed"], r["env_steps"]) for r in rows} == {("tiny", "3", "300"), ("direct", "3", "300")}
+    tiny_row = next(r for r in rows if r["condition"] == "tiny")
+    assert tiny_row["stage switches (env steps)"].startswith("S2.0@")
+    assert (out / "ablation.png").stat().st_size > 10_000
+    assert "held-out success on door-corridor/through-door" in (out / "ablation.md").read_text()
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)  # resumable: nothing left to do
+    assert again.returncode == 0 and again.stdout.count("skipped") == 2, again.stdout[-2000:]
