@@ -144,12 +144,7 @@ class SerialTrainer:
             if self.curriculum is not None:
                 world, pair, epoch = self.task
                 if self.curriculum.record(world, pair, end.success, epoch):
-                    step = self.curriculum.history[-1]
-                    self._print(f"[curriculum] advanced to {step['stage']} sub-step {step['substep']} after "
-                                f"{self.counters['env_steps']} env steps ({step['reason']})")
-                    self.counters.setdefault("advances", []).append(
-                        {**step, "env_steps": self.counters["env_steps"],
-                         "wall_s": time.monotonic() - self._start if self._start else 0.0})
+                    self._note_advance()
             self._begin()
         return end
 
@@ -202,6 +197,7 @@ class SerialTrainer:
         if self._evaluator is None:
             self._evaluator = BesideEvaluator(self.run_dir, self.experiment, self.curriculum.curriculum)
         targets = self._eval_targets()
+        epoch = self.curriculum.epoch
         self.state.actor.eval()
         rows = self._evaluator.evaluate(lambda o: act(self.state.actor, o), targets)
         self.state.actor.train()
@@ -213,6 +209,7 @@ class SerialTrainer:
             self.board.scalars({f"eval/success/{row['world']}/{row['pair']}": row["success_rate"],
                                 f"eval/base_collisions_per_episode/{row['world']}/{row['pair']}":
                                     row["collisions_per_episode"]}, self.counters["env_steps"])
+        self._advance_on_evaluation(targets, rows, epoch)
         final = rows[-1]
         result = EvalResult(final["episodes"], final["success_rate"], final["collisions_per_episode"],
                             final["end_effector_collisions_per_episode"], final["mean_time_to_goal_s"],
@@ -237,6 +234,27 @@ class SerialTrainer:
                     f"updates, {summary['stage']}.{summary['substep']}] {per}; base collisions/trial on "
                     f"{summary['target']}: {result.collisions_per_episode:.2f}")
         return result
+
+    def _advance_on_evaluation(self, targets, rows: list[dict], epoch: int) -> None:
+        """Give the current step's held-out rows to a criterion ``source: evaluation``."""
+        from curlnav.evaluator import HELD_OUT
+
+        state = self.curriculum
+        mine = [r for t, r in zip(targets, rows) if state.is_current(t.world, "" if t.pair == HELD_OUT else t.pair)]
+        episodes = sum(r["episodes"] for r in mine)
+        if not episodes:
+            return
+        rate = sum(r["success_rate"] * r["episodes"] for r in mine) / episodes
+        if state.record_evaluation(rate, episodes, epoch):
+            self._note_advance()
+
+    def _note_advance(self) -> None:
+        step = self.curriculum.history[-1]
+        self._print(f"[curriculum] advanced to {step['stage']} sub-step {step['substep']} after "
+                    f"{self.counters['env_steps']} env steps ({step['reason']})")
+        self.counters.setdefault("advances", []).append(
+            {**step, "env_steps": self.counters["env_steps"],
+             "wall_s": time.monotonic() - self._start if self._start else 0.0})
 
     _evaluator = None
     _start = 0.0

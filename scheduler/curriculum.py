@@ -56,9 +56,17 @@ class CurriculumError(ValueError):
 
 @dataclass(frozen=True)
 class Criterion:
+    """``success_rate`` (``compare``: ">=" or ">") over the last ``window`` episodes; with
+    ``source: evaluation``, over a held-out evaluation of the step's targets (greedy policy, at least
+    ``window`` episodes in all) instead of the noisy training episodes."""
+
     success_rate: float
     window: int
     compare: str = ">="
+    source: str = "training"  # or "evaluation"
+
+    def met_by(self, rate: float) -> bool:
+        return rate >= self.success_rate if self.compare == ">=" else rate > self.success_rate
 
     def holds(self, outcomes: deque) -> bool:
         if len(outcomes) < self.window:
@@ -98,9 +106,10 @@ class Curriculum:
 
     def to_dict(self) -> dict:
         def crit(c):
-            return None if c is None else {"success_rate": c.success_rate, "window": c.window, "compare": c.compare}
+            return None if c is None else {"success_rate": c.success_rate, "window": c.window, "compare": c.compare,
+                                           "source": c.source}
 
-        return {"name": self.name,
+        return {"name": self.name,  # criteria: see _criterion
                 "stages": [{"name": s.name, "worlds": list(s.worlds), "advance": crit(s.advance),
                             "substeps": list(s.substeps), "substep_advance": crit(s.substep_advance),
                             "replay_earlier": s.replay_earlier, "sampler": s.sampler} for s in self.stages],
@@ -110,8 +119,8 @@ class Curriculum:
 def _criterion(path: Path, where: str, raw: Any) -> Criterion | None:
     if raw is None:
         return None
-    if not isinstance(raw, dict) or set(raw) - {"success_rate", "window", "compare"}:
-        raise CurriculumError(f"{path}: {where} must be a mapping of success_rate, window, compare")
+    if not isinstance(raw, dict) or set(raw) - {"success_rate", "window", "compare", "source"}:
+        raise CurriculumError(f"{path}: {where} must be a mapping of success_rate, window, compare, source")
     try:
         rate = float(raw["success_rate"])
         window = int(raw["window"])
@@ -120,7 +129,10 @@ def _criterion(path: Path, where: str, raw: Any) -> Criterion | None:
     compare = raw.get("compare", ">=")
     if not 0 <= rate <= 1 or window < 1 or compare not in (">=", ">"):
         raise CurriculumError(f"{path}: {where}: success_rate in [0, 1], window >= 1, compare '>=' or '>'")
-    return Criterion(rate, window, compare)
+    source = raw.get("source", "training")
+    if source not in ("training", "evaluation"):
+        raise CurriculumError(f"{path}: {where}.source must be 'training' or 'evaluation', got {source!r}")
+    return Criterion(rate, window, compare, source)
 
 
 def load_curriculum(path: str | Path) -> Curriculum:
@@ -341,7 +353,7 @@ class CurriculumState:
         if epoch != self.epoch or not self.is_current(world, pair):
             return False  # started before the last advance, or a replay of an earlier task
         crit = self.criterion
-        if crit is None:
+        if crit is None or crit.source == "evaluation":
             return False
         self.window.append(bool(success))
         while len(self.window) > crit.window:
@@ -349,6 +361,17 @@ class CurriculumState:
         if crit.holds(self.window):
             self.advance(f"success {sum(self.window) / len(self.window):.0%} over {len(self.window)} episodes")
             return True
+        return False
+
+    def record_evaluation(self, success_rate: float, episodes: int, epoch: int) -> bool:
+        """A held-out evaluation of the current step's targets (``episodes`` in all, success
+        ``success_rate``) of a policy evaluated at ``epoch``; advances when the step's criterion
+        is ``source: evaluation`` and holds. Returns True if the curriculum advanced."""
+        crit = self.criterion
+        if crit is None or crit.source != "evaluation" or epoch != self.epoch or episodes < crit.window:
+            return False
+        if crit.met_by(success_rate):
+            return self.advance(f"held-out success {success_rate:.0%} over {episodes} episodes")
         return False
 
     def advance(self, reason: str = "forced") -> bool:

@@ -169,3 +169,22 @@ def test_ablation_run_trains_each_condition_skips_finished_runs_and_writes_the_r
     assert "held-out success on door-corridor/through-door" in (out / "ablation.md").read_text()
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=120)  # resumable: nothing left to do
     assert again.returncode == 0 and again.stdout.count("skipped") == 2, again.stdout[-2000:]
+
+
+def test_a_criterion_on_evaluation_ignores_training_episodes_and_advances_on_a_held_out_evaluation(tmp_path):
+    state = _state(tmp_path, """
+stages:
+  - name: S1
+    worlds: [open-room]
+    advance: {success_rate: 0.7, window: 10, source: evaluation}
+  - name: S2
+    worlds: [door-corridor]
+""")
+    for _ in range(50):
+        assert not state.record("open-room", "", True, 0), "training episodes never advance it"
+    assert not state.record_evaluation(0.9, 5, 0), "fewer held-out episodes than the window"
+    assert not state.record_evaluation(0.6, 20, 0)
+    assert not state.record_evaluation(0.9, 20, epoch=7), "a policy evaluated under another epoch"
+    assert state.record_evaluation(0.7, 20, 0) and state.current.name == "S2"
+    assert "held-out success 70% over 20 episodes" in state.history[-1]["reason"]
+    assert state.curriculum.to_dict()["stages"][0]["advance"]["source"] == "evaluation"
