@@ -147,9 +147,37 @@ class BesideEvaluator:
             env.close()
 
 
+def current_step_rate(curriculum, targets: list[Target], rows: list[dict]) -> tuple[float, int] | None:
+    """(success rate, episodes) over the rows of the curriculum's current step, or None."""
+    from curlnav.scheduler.curriculum import CurriculumState
+
+    state = CurriculumState(curriculum, stage=targets[0].stage_index, substep=targets[0].substep) if targets else None
+    mine = [r for t, r in zip(targets, rows) if state.is_current(t.world, "" if t.pair == HELD_OUT else t.pair)]
+    episodes = sum(int(r["episodes"]) for r in mine)
+    return (sum(r["success_rate"] * int(r["episodes"]) for r in mine) / episodes, episodes) if episodes else None
+
+
+def send_evaluation(status_url: str, token: str, epoch: int, rate: float, episodes: int) -> dict | None:
+    """POST a held-out evaluation of the current step to the scheduler (``/admin/evaluation``)."""
+    import json as _json
+    import urllib.request
+
+    url = status_url.rsplit("/status", 1)[0] + "/admin/evaluation"
+    body = _json.dumps({"epoch": epoch, "success_rate": rate, "episodes": episodes}).encode()
+    request = urllib.request.Request(url, data=body, method="POST", headers={
+        "Authorization": f"Bearer {token}", "Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=5.0) as reply:
+            return _json.loads(reply.read())
+    except (OSError, ValueError) as exc:
+        log.warning("could not send the evaluation to the scheduler: %s", exc)
+        return None
+
+
 def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, status_url: str,
-               run_started_unix: float, stop: threading.Event) -> None:
-    """The loop: wait ``every_s``, evaluate the newest unevaluated policy, record, repeat."""
+               run_started_unix: float, stop: threading.Event, admin_token: str = "") -> None:
+    """The loop: wait ``every_s``, evaluate the newest unevaluated policy, record, repeat; with
+    an admin token, send each evaluation of the current step to the scheduler."""
     from curlnav.policy import PolicyArtefact
     from curlnav.pull import pull_policy
 
@@ -180,7 +208,8 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
             started = time.monotonic()
             try:
                 status = http_json_or_none(status_url, timeout=5.0)
-                rows = evaluator.evaluate(policy, targets_for(experiment, curriculum, status), stop)
+                targets = targets_for(experiment, curriculum, status)
+                rows = evaluator.evaluate(policy, targets, stop)
             except EvaluationStopped:
                 log.info("stopping: the evaluation of policy v%d in progress is dropped", policy.version)
                 break
@@ -190,6 +219,12 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
                                        updates=int(training.get("learner_steps", 0)), artefact=folder)
             log.info("evaluation %d of policy v%d: success %.0f%% (%.0f s)", overall["evaluation"], policy.version,
                      100 * overall["success_rate"], time.monotonic() - started)
+            step = current_step_rate(curriculum, targets, rows) if curriculum is not None and status else None
+            if admin_token and step is not None and "epoch" in status:
+                reply = send_evaluation(status_url, admin_token, int(status["epoch"]), *step)
+                if reply and reply.get("advanced"):
+                    log.info("the curriculum advanced on this evaluation: now %s sub-step %s", reply["stage"],
+                             reply["substep"])
             last_version = version
             next_at = started + every_s
     finally:
@@ -206,6 +241,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", required=True, help="the run's config.yaml")
     p.add_argument("--learner-url", required=True, help="learner HTTP base URL (policy artefacts)")
     p.add_argument("--status-url", required=True, help="the scheduler's /status URL")
+    p.add_argument("--admin-token-file", default="",
+                   help="file holding the scheduler's admin token: held-out evaluations are sent to it "
+                        "(curricula with criteria of source: evaluation)")
     p.add_argument("--run-started-unix", type=float, required=True,
                    help="unix time at which the run's wall clock reads 0 (earlier sessions included)")
     args = p.parse_args(argv)
@@ -213,8 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     stop_on_signals(stop)
     die_with_launcher()
+    token = Path(args.admin_token_file).read_text().strip() if args.admin_token_file else ""
     run_beside(Path(args.run_dir), load_config(args.config), args.learner_url.rstrip("/"), args.status_url,
-               args.run_started_unix, stop)
+               args.run_started_unix, stop, admin_token=token)
     return 0
 
 

@@ -237,15 +237,10 @@ class SerialTrainer:
 
     def _advance_on_evaluation(self, targets, rows: list[dict], epoch: int) -> None:
         """Give the current step's held-out rows to a criterion ``source: evaluation``."""
-        from curlnav.evaluator import HELD_OUT
+        from curlnav.evaluator import current_step_rate
 
-        state = self.curriculum
-        mine = [r for t, r in zip(targets, rows) if state.is_current(t.world, "" if t.pair == HELD_OUT else t.pair)]
-        episodes = sum(r["episodes"] for r in mine)
-        if not episodes:
-            return
-        rate = sum(r["success_rate"] * r["episodes"] for r in mine) / episodes
-        if state.record_evaluation(rate, episodes, epoch):
+        step = current_step_rate(self.curriculum.curriculum, targets, rows)
+        if step is not None and self.curriculum.record_evaluation(step[0], step[1], epoch):
             self._note_advance()
 
     def _note_advance(self) -> None:

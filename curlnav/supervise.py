@@ -125,6 +125,21 @@ class RunOutcome:
     summary: dict
 
 
+def run_admin_token(path: Path) -> str:
+    """The run's scheduler admin token (the evaluator sends held-out evaluations with it): made
+    once (owner-only file), kept across ``--resume``."""
+    try:
+        return path.read_text().strip()
+    except FileNotFoundError:
+        import secrets
+
+        token = secrets.token_urlsafe(24)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(token)
+        return token
+
+
 class DistributedRun:
     """One session of a distributed run in ``run_dir`` (see the module docstring)."""
 
@@ -139,8 +154,10 @@ class DistributedRun:
         saved = self._saved_run_json()
         # the evaluator evaluates the newest artefact: export a few times per evaluation period
         export_every_s = min(60.0, max(10.0, experiment.evaluation.every_s / 4))
+        self.admin_token_file = self.run_dir / "admin-token"
         self.cluster = LocalCluster(
             self.run_dir, experiment, actors=actors, learner_threads=learner_threads,
+            admin_token=run_admin_token(self.admin_token_file),
             extra={"learner": ["--export-every-s", f"{export_every_s:g}"]},
             scheduler_port=saved.get("scheduler_port") if port_is_free(saved.get("scheduler_port")) else None,
             learner_port=saved.get("learner_port") if port_is_free(saved.get("learner_port")) else None)
@@ -181,7 +198,7 @@ class DistributedRun:
         c = self.cluster
         c.spawn("evaluator", [sys.executable, "-m", "curlnav.evaluator", "--run-dir", str(self.run_dir),
                               "--config", str(c.config_path), "--learner-url", c.learner_url,
-                              "--status-url", c.status_url,
+                              "--status-url", c.status_url, "--admin-token-file", str(self.admin_token_file),
                               "--run-started-unix", f"{time.time() - self.wall_s():.3f}"])
 
     # -- supervision -----------------------------------------------------------------------------

@@ -4,8 +4,11 @@ Answers ``scheduler/assign`` queries, counts ``episodes/*`` reports, tracks live
 their liveliness tokens (a killed actor leaves ``/status`` within a second), reads replay and
 learner status, persists its state after every advance and every 10 s, and resumes from it.
 
-HTTP: ``GET /status``, ``GET /curriculum``, ``GET /metrics``, ``GET /healthz``, and
-``POST /admin/advance`` with ``Authorization: Bearer <admin token>``.
+HTTP: ``GET /status``, ``GET /curriculum``, ``GET /metrics``, ``GET /healthz``, and, with
+``Authorization: Bearer <admin token>``, ``POST /admin/advance`` (force the next step) and
+``POST /admin/evaluation`` (JSON ``{"epoch", "success_rate", "episodes"}``: a held-out evaluation
+of the current step, which a criterion with ``source: evaluation`` advances on; the evaluator
+beside a run sends it).
 """
 
 from __future__ import annotations
@@ -155,6 +158,13 @@ class SchedulerCore:
                 self.m_advances.inc()
             return advanced
 
+    def record_evaluation(self, success_rate: float, episodes: int, epoch: int) -> bool:
+        with self.lock:
+            advanced = self.state.record_evaluation(success_rate, episodes, epoch)
+            if advanced:
+                self.m_advances.inc()
+            return advanced
+
     def _shown_actors(self) -> list[str]:
         """The ``STATUS_ACTORS`` actors ``/status`` details: those that reported last."""
         if len(self.actors) <= STATUS_ACTORS:
@@ -229,10 +239,29 @@ class SchedulerService:
                 os.fsync(f.fileno())
             tmp.replace(path)
 
-    def _admin(self, request) -> tuple[int, str, bytes]:
+    def _authorised(self, request) -> bool:
         token = self.cfg.admin_token
         given = request.headers.get("Authorization", "")
-        if not token or not hmac.compare_digest(given.encode(), f"Bearer {token}".encode()):
+        return bool(token) and hmac.compare_digest(given.encode(), f"Bearer {token}".encode())
+
+    def _admin_evaluation(self, request) -> tuple[int, str, bytes]:
+        if not self._authorised(request):
+            return json_response({"error": "unauthorised: send Authorization: Bearer <admin token>"}, 401)
+        try:
+            body = json.loads(request.body or b"")
+            rate, episodes, epoch = float(body["success_rate"]), int(body["episodes"]), int(body["epoch"])
+            if not 0 <= rate <= 1 or episodes < 1:
+                raise ValueError("success_rate in [0, 1], episodes >= 1")
+        except (ValueError, KeyError, TypeError) as exc:
+            return json_response({"error": f"body must be JSON {{epoch, success_rate, episodes}}: {exc}"}, 400)
+        advanced = self.core.record_evaluation(rate, episodes, epoch)
+        if advanced:
+            self.save()
+        return json_response({"advanced": advanced, "stage": self.core.state.current.name,
+                              "substep": self.core.state.substep, "epoch": self.core.state.epoch})
+
+    def _admin(self, request) -> tuple[int, str, bytes]:
+        if not self._authorised(request):
             return json_response({"error": "unauthorised: send Authorization: Bearer <admin token>"}, 401)
         advanced = self.core.force_advance()
         if advanced:
@@ -250,6 +279,7 @@ class SchedulerService:
                 ("GET", "/curriculum"): lambda r: json_response({**core.curriculum.to_dict(),
                                                                  "state": core.state.to_dict()}),
                 ("POST", "/admin/advance"): self._admin,
+                ("POST", "/admin/evaluation"): self._admin_evaluation,
             })
             topo = shell.topology
 

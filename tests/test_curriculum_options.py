@@ -188,3 +188,17 @@ stages:
     assert state.record_evaluation(0.7, 20, 0) and state.current.name == "S2"
     assert "held-out success 70% over 20 episodes" in state.history[-1]["reason"]
     assert state.curriculum.to_dict()["stages"][0]["advance"]["source"] == "evaluation"
+
+
+def test_the_current_steps_rate_counts_only_its_own_rows_weighted_by_episodes(tmp_path):
+    from curlnav.config import ExperimentConfig
+    from curlnav.evaluator import Target, current_step_rate, targets_for
+
+    state = _state(tmp_path, REPLAY)
+    state.advance()  # S2, sub-step through-door
+    targets = targets_for(ExperimentConfig(), state.curriculum, {"stage_index": 1, "substep": 0})
+    targets.append(Target(1, "S2", 0, "open-room", "held-out"))  # a fixed target of another stage
+    rows = [{"episodes": 4, "success_rate": 0.5}, {"episodes": 4, "success_rate": 0.0},
+            {"episodes": 6, "success_rate": 1.0}]
+    assert [t.pair for t in targets] == ["through-door", "p2", "held-out"]
+    assert current_step_rate(state.curriculum, targets, rows) == (0.5, 4)

@@ -3,7 +3,9 @@ actors. Every wait polls with a deadline; every process is stopped at the end.""
 
 from __future__ import annotations
 
+import json
 import time
+import urllib.error
 import urllib.request
 
 import pytest
@@ -22,6 +24,9 @@ stages:
   - name: S2
     worlds: [door-corridor]
     substeps: [through-door]
+    advance: {success_rate: 0.5, window: 10, source: evaluation}
+  - name: S3
+    worlds: [open-room]
 """
 
 
@@ -82,6 +87,25 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
     with pytest.raises(urllib.error.HTTPError) as info:
         urllib.request.urlopen(req, timeout=5)
     assert info.value.code == 401
+    # a held-out evaluation of the current step, sent by the evaluator with the admin token, advances
+    # a criterion of source: evaluation; a malformed one is refused, one of an older epoch ignored
+    def evaluation(body: bytes, token: str = "secret"):
+        req = urllib.request.Request(cluster.status_url.replace("/status", "/admin/evaluation"), method="POST",
+                                     data=body, headers={"Authorization": f"Bearer {token}"})
+        return json.loads(urllib.request.urlopen(req, timeout=5).read())
+
+    for bad, code in ((b'{"epoch": 1}', 400), (b"not json", 400), (b'{"epoch": 1, "success_rate": 2, "episodes": 9}', 400)):
+        with pytest.raises(urllib.error.HTTPError) as info:
+            evaluation(bad)
+        assert info.value.code == code
+    with pytest.raises(urllib.error.HTTPError) as info:
+        evaluation(b'{"epoch": 1, "success_rate": 1, "episodes": 10}', token="wrong")
+    assert info.value.code == 401
+    epoch = status()["epoch"]
+    assert not evaluation(json.dumps({"epoch": epoch - 1, "success_rate": 1.0, "episodes": 10}).encode())["advanced"]
+    assert not evaluation(json.dumps({"epoch": epoch, "success_rate": 0.4, "episodes": 10}).encode())["advanced"]
+    reply = evaluation(json.dumps({"epoch": epoch, "success_rate": 0.6, "episodes": 10}).encode())
+    assert reply["advanced"] and reply["stage"] == "S3" and status()["stage"] == "S3"
     # 1000 malformed messages on each input key, each from the role allowed to send it (the bus
     # refuses everyone else: tests/test_bus_auth.py): counted, nobody dies
     topo = Topology("itest")
