@@ -114,17 +114,37 @@ def _checkpoint_policy(p: Path):
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    """Evaluate one or more agents (policies, ``planner``) side by side (``curlnav.compare``)."""
+    from .compare import Comparison, draw_trajectories, episode_pairs, make_agent, summarise, table, write_csv
     from .config import ExperimentConfig
-    from .evaluate import EvaluationProtocol
+    from .sim.pairs import check_pairs_possible
 
-    _check_world(args.world)
-    policy = _load_policy(args.policy)
-    protocol = EvaluationProtocol(ExperimentConfig(), world=args.world, episodes=args.episodes)
-    try:
-        result = protocol.run(policy)
-    finally:
-        protocol.close()
-    print(f"{args.world}: {result.line()}, mean episode {result.mean_episode_time_s:.1f} s")
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be at least 1, got {args.seeds}")
+    env_config = ExperimentConfig().eval_env
+    worlds = [_world_from_spec(spec) for spec in args.world or ["open-room"]]
+    for world in worlds:
+        check_pairs_possible(world)
+    agents = dict(make_agent(spec, env_config, _load_policy) for spec in args.agents)
+    if len(agents) < len(args.agents):
+        raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
+    comparison = Comparison(agents, worlds, lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes),
+                            env_config)
+    from tqdm import tqdm
+
+    with tqdm(total=comparison.episode_count(args.seeds), unit="episode", desc="eval", disable=None) as bar:
+        episodes = comparison.run(args.seeds, on_episode=lambda e: bar.update())
+    summaries = summarise(episodes)
+    for s in summaries:
+        if s.world != "all" or len(worlds) > 1:
+            print(s.line())
+    if len(agents) > 1 or len(worlds) > 1:
+        print(table(summaries))
+    if args.out:
+        files = write_csv(episodes, summaries, args.out)
+        pictures = draw_trajectories(episodes, worlds, Path(args.out) / "trajectories", env_config.robot.base_width / 2)
+        print(f"wrote {files['episodes']}, {files['summary']} and {len(pictures)} trajectory pictures in "
+              f"{Path(args.out) / 'trajectories'}")
     return 0
 
 
@@ -388,6 +408,9 @@ def _add_training_commands(sub) -> None:
                    help="torch threads: the serial trainer's (default 2) or the learner service's (default 1)")
     p.add_argument("--run-dir", default=None, help="run folder (default runs/<time>-<world>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's run (its saved config)")
+    p.add_argument("--init-from", default=None, metavar="RUN_OR_CHECKPOINT",
+                   help="--serial: start from the networks of a serial run (or checkpoint file) instead of fresh "
+                        "ones: two-stage fine-tuning, e.g. an easy world's run, then a hard world")
     from .experiment_cli import add_config_arguments, add_train_options
 
     add_train_options(p)
@@ -400,10 +423,23 @@ def _add_training_commands(sub) -> None:
     add_config_arguments(p)
     p.set_defaults(func=_cmd_config_show)
 
-    p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs")
-    p.add_argument("policy", help="policy artefact folder or checkpoint .safetensors")
-    p.add_argument("--world", default="open-room", help="built-in world name or world YAML path")
-    p.add_argument("--episodes", type=int, default=50, help="held-out start/goal pairs, one episode each")
+    p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs; several agents side by side",
+                       epilog="e.g. curlnav eval planner runs/x/policy-best --world namo-office:0 --world "
+                              "namo-indoor:0 --pairs 10 --seeds 2 --out results/")
+    p.add_argument("agents", nargs="+", metavar="AGENT",
+                   help="policy artefact folder, checkpoint .safetensors, or `planner` (the classical planner on "
+                        "the static map, a stand-in for TARE's local planner)")
+    p.add_argument("--world", action="append",
+                   help="built-in world name, world YAML path or FAMILY:SEED; repeat for several (default: open-room)")
+    p.add_argument("--pair", action="append", help="start/goal pair name or index; repeat for several "
+                                                    "(default: held-out pairs)")
+    p.add_argument("--pairs", type=int, default=None, help="the first N held-out pairs of each world, once per seed")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="episodes per world and seed: held-out pairs (default: 50), or the --pair pairs in turn "
+                        "(default: one each)")
+    p.add_argument("--seeds", type=int, default=1,
+                   help="runs of every pair, each with its own ball places (worlds that re-place balls on reset)")
+    p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")
     p.set_defaults(func=_cmd_eval)
 
     policy = sub.add_parser("policy", help="use exported policy artefacts")
@@ -473,7 +509,8 @@ def _add_world_commands(sub) -> None:
     worlds = sub.add_parser("worlds", help="generate, draw and rank worlds")
     worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)
     p = worlds_sub.add_parser("generate", help="write generated worlds as world files")
-    p.add_argument("family", help="barn, barn-3x3, t-maze, cave, forest, garage, indoor, office, campus, auditorium")
+    p.add_argument("family", help="barn, barn-3x3, t-maze, cave, forest, garage, indoor, office, campus, auditorium, "
+                   "slam-office; unseen NAMO worlds: namo-office, namo-indoor, namo-auditorium")
     p.add_argument("--seed", type=int, default=0, help="seed of the first world")
     p.add_argument("--count", type=int, default=1, help="worlds with seeds seed, seed+1, ...")
     p.add_argument("--param", action="append", help="generator parameter KEY=VALUE (e.g. fill_pct=0.3)")

@@ -51,6 +51,7 @@ class SerialRunConfig:
     save_replay: bool = True  # include the replay in checkpoints (needed for an exact resume)
     torch_threads: int = 2
     progress: bool = True  # a tqdm progress bar
+    init_from: str = ""  # a run folder or checkpoint: start from its networks (two-stage fine-tuning)
 
 
 class SerialTrainer:
@@ -75,7 +76,7 @@ class SerialTrainer:
             print(f"resumed from {ckpt}: {self.state.steps} updates, {self.counters['env_steps']} env steps, "
                   f"replay {self.table.size} transitions")
         else:
-            self.state = builder.make_learner_state()
+            self.state = self._initial_state(builder)
             self.table = builder.make_replay_table()
         self.curriculum = self._load_curriculum()
         excluded = set(self.evaluation.excluded) if self.curriculum is None else self._curriculum_excluded()
@@ -83,10 +84,33 @@ class SerialTrainer:
         self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1, stream=self.counters["env_steps"])
         self.policy.use_network(self.state.actor)
         self.policy.steps = self.counters["env_steps"]  # the warm-up is not repeated on resume
+        if self.run_cfg.init_from:
+            self.policy.steps = max(self.policy.steps, self.policy.warmup_steps)  # a trained policy acts at once
         self.loop = EpisodeLoop(env, self.policy, builder.make_nstep_writer())
         self.recent: deque[tuple[bool, float, int]] = deque(maxlen=100)  # success, return, base collisions
         self.metrics: dict[str, float] = {}
         self.task: tuple[str, str, int] = (str(experiment.curriculum.world), "", 0)  # world, pair, epoch
+
+    def _initial_state(self, builder: D4PGBuilder):
+        """Fresh networks, or those of ``init_from`` (a run folder's checkpoint or a checkpoint
+        file) with their optimiser moments, for two-stage fine-tuning; the update count restarts."""
+        source = self.run_cfg.init_from
+        if not source:
+            return builder.make_learner_state()
+        path = Path(source)
+        if path.is_dir():
+            path = path / "checkpoints" / "latest.safetensors"
+        if not path.exists():
+            raise ValueError(f"--init-from {source}: no checkpoint at {path} (give a serial run folder or its "
+                             f"checkpoints/latest.safetensors)")
+        state, _ = load_checkpoint(path)
+        if state.config != self.experiment.d4pg or state.layout != builder.layout:
+            raise ValueError(f"--init-from {source}: its networks differ from this experiment's (d4pg config or "
+                             f"observation layout); fine-tune with the same preset and environment")
+        state.steps = 0
+        self.counters["init_from"] = str(path)
+        print(f"networks from {path} (fine-tuning: no random warm-up)")
+        return state
 
     # -- the curriculum (in-process scheduler core) ------------------------------------------
     def _load_curriculum(self):

@@ -84,6 +84,8 @@ def run_train(args: argparse.Namespace) -> int:
     starting (a bad config, curriculum or world, a busy run folder)."""
     from .record import RunLock
 
+    if getattr(args, "init_from", None) and not args.serial:
+        raise TrainRefused("--init-from is for the serial trainer (add --serial)")
     if args.serial and args.actors is not None:
         raise TrainRefused("--actors is for the distributed trainer; --serial runs one actor in the learner's process")
     actors = DEFAULT_ACTORS if args.actors is None else args.actors
@@ -142,7 +144,9 @@ def _print_evaluations(summary: dict, run_dir: Path) -> None:
 def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
     from .serial import SerialRunConfig, train_serial
 
-    summary = train_serial(run_dir, experiment, SerialRunConfig(torch_threads=args.threads or 2), resume=args.resume)
+    summary = train_serial(run_dir, experiment, SerialRunConfig(torch_threads=args.threads or 2,
+                                                                init_from=getattr(args, "init_from", None) or ""),
+                           resume=args.resume)
     final = summary["final_eval"]
     print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min, {summary['env_steps']} env steps, "
           f"{summary['updates']} updates, {summary['episodes']} episodes")

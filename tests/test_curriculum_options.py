@@ -141,6 +141,14 @@ def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_res
     assert result.returncode == 0, result.stderr[-2000:]
     assert "[curriculum] advanced" not in result.stdout, "a resumed run stays at its stage"
     assert json.loads((run / "summary.json").read_text())["curriculum"]["stage"] == "S2"
+    # two-stage fine-tuning: a new run starts from this run's networks; a wrong source is one line, exit 2
+    tuned = subprocess.run(base[:6] + [str(tmp_path / "tuned"), "--world", "door-corridor", "--init-from", str(run),
+                                       "--max-env-steps", "300"] + base[9:], capture_output=True, text=True, timeout=400)
+    assert tuned.returncode == 0, tuned.stderr[-2000:]
+    assert f"networks from {run / 'checkpoints' / 'latest.safetensors'}" in tuned.stdout
+    bad = subprocess.run(base[:6] + [str(tmp_path / "bad"), "--init-from", str(tmp_path / "nowhere")] + base[9:],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "no checkpoint at" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
     rows = list(csv.DictReader((run / "eval.csv").open()))
     assert len(rows) == 2 and rows[-1]["stage"] == "S2"
 
