@@ -52,10 +52,12 @@ def large_map() -> World:
     return world
 
 
-def _exact_first_hits(world: World, x: float, y: float, angles: np.ndarray, max_range: float) -> np.ndarray:
-    """Brute force: the distance (m) along each beam to the nearest obstacle cell, by a slab
-    test of the beam against *every* obstacle cell within range (and the solid ring around the
-    map), no grid traversal; ``max_range`` where none is nearer."""
+def _exact_first_hits(world: World, x: float, y: float, angles: np.ndarray, max_range: float,
+                      grow: float = 0.0) -> np.ndarray:
+    """Brute force: the distance (m) along each beam to the nearest obstacle cell (each grown by
+    ``grow`` m on every side), by a slab test of the beam against *every* obstacle cell within
+    range (and the solid ring around the map), no grid traversal; ``max_range`` where none is
+    nearer."""
     res = world.resolution
     rows, cols = world.occupancy.shape
     u, v = world.grid_from_map(x, y)
@@ -63,8 +65,8 @@ def _exact_first_hits(world: World, x: float, y: float, angles: np.ndarray, max_
     r0, r1 = max(int((v - reach) // res), 0), min(int((v + reach) // res) + 1, rows)
     c0, c1 = max(int((u - reach) // res), 0), min(int((u + reach) // res) + 1, cols)
     iy, ix = np.nonzero(world.occupancy[r0:r1, c0:c1])
-    lo = np.column_stack([(ix + c0) * res, (iy + r0) * res])
-    hi = lo + res
+    lo = np.column_stack([(ix + c0) * res, (iy + r0) * res]) - grow
+    hi = lo + res + 2 * grow
     big = 1e6  # the solid region outside the map, as four boxes
     width, height = world.size
     lo = np.vstack([lo, [[-big, -big], [-big, height], [-big, -big], [width, -big]]])
@@ -93,11 +95,15 @@ def _exact_first_hits(world: World, x: float, y: float, angles: np.ndarray, max_
 
 
 GRAZE = 1e-5  # rad; a beam that grazes a cell's corner may count as a hit or a miss either way
+# m; Bullet's ray-triangle test takes hits up to 1e-4 x a face's size beyond its edges
+# (btTriangleRaycastCallback's edge tolerance): 0.6 mm past the end of a 6 m wall face
+BULLET_EDGE_SLACK = 2e-3
 
 
 def _disagreements(ranges: np.ndarray, exact: np.ndarray, check: np.ndarray, tolerance: float) -> list[str]:
-    """``exact``: shape ``(3, beams)``, the truth for each beam and for it turned by -GRAZE and
-    +GRAZE; a range agrees when it is within ``tolerance`` of any of the three."""
+    """``exact``: shape ``(k, beams)``, the truth for each beam, for it turned by -GRAZE and
+    +GRAZE (and, for Bullet's rays, with the cells grown by its edge slack); a range agrees when
+    it is within ``tolerance`` of any of them."""
     bad = check & (np.abs(ranges[None, :] - exact) > tolerance).all(axis=0)
     return [f"beam {k}: range {ranges[k]:.3f} m, the grid's first obstacle at {exact[0, k]:.3f} m"
             for k in np.flatnonzero(bad)]
@@ -137,8 +143,12 @@ def _check_world_lidar_and_physics(world: World) -> None:
             ends[:, 1] += max_range * np.sin(angles)
             hits = pb.rayTestBatch(starts, ends, collisionFilterMask=GROUP_STATIC, physicsClientId=scene.client)
             bullet = np.array([h[2] if h[0] >= 0 else 1.0 for h in hits]) * max_range
+            slack = exact[0].copy()  # the truth with Bullet's edge slack, for the beams that need it
+            off = (np.abs(bullet[None, :] - exact) > world.resolution).all(axis=0)
+            slack[off] = _exact_first_hits(world, x, y, angles[off], max_range, grow=BULLET_EDGE_SLACK)
             physics_problems += [f"pose ({x:.2f}, {y:.2f}, {yaw:.2f}) {p}" for p in
-                                 _disagreements(bullet, exact, np.ones(len(angles), bool), world.resolution)]
+                                 _disagreements(bullet, np.vstack([exact, slack]), np.ones(len(angles), bool),
+                                                world.resolution)]
         assert not lidar_problems, (f"{world.name}: {len(lidar_problems)} static LiDAR beams disagree with the grid, "
                                     f"e.g. {lidar_problems[:3]}")
         assert not physics_problems, (f"{world.name}: {len(physics_problems)} PyBullet rays on the wall bodies "

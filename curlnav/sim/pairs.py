@@ -50,12 +50,19 @@ def default_random_pairs() -> RandomPairs:
     return RandomPairs(min_distance=DEFAULT_MIN_DISTANCE)
 
 
+def clearance_map(world: World) -> np.ndarray:
+    """Per cell (shape of the grid), the distance (m) from its centre to the nearest obstacle
+    cell's edge or the map's outer edge (a lower bound: centre distance minus half a cell
+    diagonal); 0 or less on obstacle cells."""
+    occ = np.pad(np.asarray(world.occupancy, dtype=bool), 1, constant_values=True)
+    dist = ndimage.distance_transform_edt(~occ)[1:-1, 1:-1] * world.resolution
+    return dist - world.resolution * math.sqrt(0.5)
+
+
 def cspace_free(world: World, clearance: float) -> np.ndarray:
     """Cells whose centre is more than ``clearance`` (m) from every obstacle cell's edge and
     from the map's outer edge."""
-    occ = np.pad(np.asarray(world.occupancy, dtype=bool), 1, constant_values=True)
-    dist = ndimage.distance_transform_edt(~occ)[1:-1, 1:-1] * world.resolution
-    return dist - world.resolution * math.sqrt(0.5) > clearance
+    return clearance_map(world) > clearance
 
 
 class PairSampler:

@@ -23,6 +23,7 @@ from scipy import ndimage
 from curlnav.sim.world import Ball, Door, RandomPairs, Region, StartGoal, World
 
 from .metrics import GridGraph, inflate
+from .namo import NAMO_FAMILIES
 from .slam_like import slam_office
 
 RESOLUTION = 0.15  # m per cell: BARN's, fine enough for doors and gates
@@ -374,7 +375,7 @@ def _finish(family: str, seed: int, grid: np.ndarray, pairs: int, min_distance: 
 FAMILIES: dict[str, Callable[..., World]] = {
     "barn": barn, "barn-3x3": barn_3x3, "t-maze": t_maze, "cave": cave, "forest": forest, "garage": garage,
     "indoor": indoor, "office": office, "campus": campus, "auditorium": auditorium,
-    "slam-office": slam_office,
+    "slam-office": slam_office, **NAMO_FAMILIES,
 }
 
 

@@ -6,7 +6,8 @@ each pair's shortest path on the C-space grid of ``curlnav.worlds.rank.world_pat
 cells, the map inflated by 0.3 m; Dijkstra), and puts ``count`` balls on those paths, in turn
 over the pairs: each ball's centre is a path cell whose whole disc (plus ``gap``) clears every
 obstacle cell of the map, the balls do not overlap (``gap`` apart), and none sits on a start
-(robot footprint) or a goal. Same world, count and seed: same balls.
+(robot footprint), a goal or in a door's swing (a ball under a panel would jam it). Same world,
+count and seed: same balls.
 """
 
 from __future__ import annotations
@@ -14,9 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import ndimage
 
-from curlnav.sim.pairs import sample_pairs
+from curlnav.sim.pairs import clearance_map, sample_pairs
 from curlnav.sim.world import Ball, World, WorldError
 
 from .rank import METRIC_RESOLUTION, path_points, world_paths
@@ -36,9 +36,7 @@ def scatter_balls(world: World, count: int, seed: int = 0, radius: float = 0.25,
     chosen = world.pairs or sample_pairs(world, max(1, pairs), seed=seed)
     task = world.with_changes(pairs=chosen)
     _, paths = world_paths(task)
-    res = world.resolution
-    occ = np.pad(world.occupancy, 1, constant_values=True)
-    wall = ndimage.distance_transform_edt(~occ)[1:-1, 1:-1] * res - res * math.sqrt(0.5)  # centre to wall edge
+    wall = clearance_map(world)  # centre to wall edge
     rng = np.random.default_rng(seed)
     candidates = []
     for pair, path in zip(chosen, paths):
@@ -53,6 +51,8 @@ def scatter_balls(world: World, count: int, seed: int = 0, radius: float = 0.25,
             if math.hypot(x - pair.x, y - pair.y) < START_KEEP_OUT + radius:
                 continue
             if math.hypot(x - pair.gx, y - pair.gy) < GOAL_KEEP_OUT + radius:
+                continue
+            if any(math.hypot(x - d.hinge_x, y - d.hinge_y) < d.width + radius + gap for d in world.doors):
                 continue
             keep.append((x, y))
         candidates.append(keep)
