@@ -115,7 +115,7 @@ def _checkpoint_policy(p: Path):
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     """Evaluate one or more agents (policies, ``planner``) side by side (``curlnav.compare``)."""
-    from .compare import Comparison, draw_trajectories, episode_pairs, make_agent, summarise, table, write_csv
+    from .compare import OVERALL, Comparison, draw_trajectories, episode_pairs, make_agent, summarise, table, write_csv
     from .config import ExperimentConfig
     from .sim.pairs import check_pairs_possible
 
@@ -136,7 +136,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         episodes = comparison.run(args.seeds, on_episode=lambda e: bar.update())
     summaries = summarise(episodes)
     for s in summaries:
-        if s.world != "all" or len(worlds) > 1:
+        if s.world != OVERALL or len(worlds) > 1:
             print(s.line())
     if len(agents) > 1 or len(worlds) > 1:
         print(table(summaries))
@@ -356,6 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_world_commands(sub)
     _add_bench_commands(sub)
     _add_ablation_commands(sub)
+    _add_experiment_command(sub)
     return parser
 
 
@@ -379,6 +380,30 @@ def _add_ablation_commands(sub) -> None:
     p = ablation_sub.add_parser("report", help="ablation.png, ablation.csv and ablation.md from saved runs")
     p.add_argument("folder", help="the folder of the runs (ablation run --out)")
     p.set_defaults(func=_cmd_ablation_report)
+
+
+def _add_experiment_command(sub) -> None:
+    from .experiment import BUDGETS
+
+    p = sub.add_parser("experiment", help="the paper's evaluation with our numbers: Table I, Fig. 4, Fig. 5 and "
+                                          "Table II in report.md (resumable)")
+    p.add_argument("--out", default="runs/experiment", help="folder of the runs, tables, figures and report.md")
+    p.add_argument("--budget", default="small", choices=sorted(BUDGETS),
+                   help="small: reduced budgets for a 2-core machine (under 2 h); full: the budgets the findings need")
+    p.add_argument("--parallel", type=int, default=os.cpu_count() or 1, help="serial runs at once, one core each")
+    p.add_argument("--report-only", action="store_true", help="regenerate report.md from the saved runs, no training")
+    p.set_defaults(func=_cmd_experiment)
+
+
+def _cmd_experiment(args: argparse.Namespace) -> int:
+    from .experiment import BUDGETS, run_experiment, write_experiment_report
+
+    out, budget = Path(args.out), BUDGETS[args.budget]
+    if args.report_only:
+        print(f"report: {write_experiment_report(out, budget)}")
+        return 0
+    run_experiment(out, budget, max(1, args.parallel))
+    return 0
 
 
 def _cmd_ablation_run(args: argparse.Namespace) -> int:

@@ -4,14 +4,16 @@ collisions, time.
 It follows the authors' protocol: a base collision is counted and the trial goes on; a trial
 that has not reached the goal after ``evaluation.max_episode_steps`` (60 s) is a failure.
 Held-out pairs are drawn from their own seeds and excluded from training draws. The serial
-trainer, the launcher of the distributed run and ``curlnav eval`` all use ``EvaluationProtocol``.
+trainer and the launcher of the distributed run use ``EvaluationProtocol``; ``curlnav eval``
+(``curlnav.compare``) runs ``evaluate`` on the same held-out pairs, for policies and for the
+classical planner (an ``EpisodeAgent``) alike.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -69,22 +71,39 @@ def excluded_keys(pairs: list[StartGoal]) -> set:
     return {pair_key(p.x, p.y, p.gx, p.gy) for p in pairs}
 
 
-def evaluate(policy: Callable[[np.ndarray], np.ndarray], world: "str | World", pairs: list[StartGoal],
-             env_config: EnvConfig | None = None, seed: int = EVAL_SEED,
+@runtime_checkable
+class EpisodeAgent(Protocol):
+    """An agent that is told each episode's world and pair and sees the step's ``info`` (the
+    classical planner: ground-truth pose, static map). A plain policy is ``obs -> action``."""
+
+    def reset(self, world: World, pair: StartGoal) -> None: ...
+
+    def act(self, observation: np.ndarray, info: dict) -> np.ndarray: ...
+
+
+def evaluate(policy: "Callable[[np.ndarray], np.ndarray] | EpisodeAgent", world: "str | World",
+             pairs: list[StartGoal], env_config: EnvConfig | None = None, seed: int = EVAL_SEED,
              on_episode: Callable[[int, dict], None] | None = None, env: NamoEnv | None = None) -> EvalResult:
-    """Run ``policy`` greedily once per pair (balls placed from ``seed + i``) in an environment
-    of ``env_config`` (default: ``evaluation_config()``; pass an evaluation environment)."""
+    """Run ``policy`` (``obs -> action``, or an ``EpisodeAgent``) greedily once per pair (balls
+    placed from ``seed + i``) in an environment of ``env_config`` (default:
+    ``evaluation_config()``; pass an evaluation environment). ``on_episode(i, info)`` gets the
+    last step's ``info`` plus ``trajectory`` (the base's ``(x, y)`` at every step, m)."""
     cfg = env_config if env_config is not None else evaluation_config()
     own_env = env is None
     env = env or NamoEnv(world, cfg)
+    agent = policy if isinstance(policy, EpisodeAgent) else None
     successes, collisions, ee_collisions, times, goal_times = 0, 0, 0, [], []
     try:
         for i, pair in enumerate(pairs):
             obs, info = env.reset(seed=seed + i, options={"world": world, "pair": pair})
+            if agent is not None:
+                agent.reset(env.world, env.pair)
             while True:
-                obs, _, terminated, truncated, info = env.step(policy(obs))
+                action = agent.act(obs, info) if agent is not None else policy(obs)
+                obs, _, terminated, truncated, info = env.step(action)
                 if terminated or truncated:
                     break
+            info["trajectory"] = list(env.trajectory)
             successes += int(info["is_success"])
             collisions += info["base_collisions"]
             ee_collisions += info["end_effector_collisions"]

@@ -183,11 +183,11 @@ LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.sim": 0, "curlnav.worlds": 0, "curlnav.proto": 0, "curlnav.layout": 0, "curlnav.config": 0,
     "curlnav.transport": 0, "curlnav.bus_security": 0, "curlnav.policy": 0, "curlnav.record": 0,
     "curlnav.replay": 1, "curlnav.learner": 1, "curlnav.scheduler": 1, "curlnav.actor": 1, "curlnav.builder": 1,
-    "curlnav.service": 1, "curlnav.evaluate": 1,
+    "curlnav.service": 1, "curlnav.evaluate": 1, "curlnav.baseline": 1,
     "curlnav.cli": 2, "curlnav.launch": 2, "curlnav.train": 2, "curlnav.serial": 2, "curlnav.experiment_cli": 2,
     "curlnav.bench_transport": 2, "curlnav.plots": 2, "curlnav.pull": 2, "curlnav.learner.bench": 2,
     "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2, "curlnav.evaluator": 2, "curlnav.supervise": 2,
-    "curlnav.status": 2, "curlnav.animation": 2, "curlnav.bench_faults": 2,
+    "curlnav.status": 2, "curlnav.animation": 2, "curlnav.bench_faults": 2, "curlnav.compare": 2,
 }
 FOLDERS = {"curlnav": "curlnav", "proto": "curlnav.proto", "replay": "curlnav.replay", "learner": "curlnav.learner",
            "actor": "curlnav.actor", "scheduler": "curlnav.scheduler"}

@@ -1,0 +1,315 @@
+"""Compare agents on the same worlds, start/goal pairs and seeds: ``curlnav eval A B ...``.
+
+An agent is a policy (``obs -> action``: an artefact folder or a checkpoint) or the classical
+planner (``curlnav.baseline.StaticMapPlanner``, a stand-in for TARE's local planner). Every
+agent runs the evaluation protocol (``curlnav.evaluate.evaluate``: the evaluation environment,
+collisions counted and the trial goes on, 60 s limit) on every world's pairs, once per seed
+(a seed places the balls of worlds that re-place them on reset; the same for every agent).
+
+Per agent and world (and over all worlds): success rate, base and arm (end-effector) collisions
+per trial, time to goal and path length (over successful trials), and SPL, success weighted by
+path length: ``mean(S_i * l_i / max(p_i, l_i))`` with ``p_i`` the path the base drove and
+``l_i`` the shortest path on the static grid (``GridPlanner.shortest_length``: doors open,
+movable objects ignored, the robot's half-width kept from walls) less the goal tolerance: a
+trial succeeds, and stops, 0.8 m short of the goal, so that is the shortest successful path.
+
+Outputs: ``table`` (agents side by side), ``write_csv`` (``episodes.csv``, a row per episode;
+``summary.csv``), ``draw_trajectories`` (a picture per world and pair with every agent's path,
+as the paper's Fig. 7).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from .baseline import GridPlanner, StaticMapPlanner, polyline_length
+from .evaluate import EVAL_SEED, evaluate, held_out_pairs
+from .sim import EnvConfig, NamoEnv, StartGoal, World
+from .sim.pairs import draws_random_pairs
+
+DEFAULT_EPISODES = 50  # held-out pairs per world when neither pairs nor episodes are given
+SEED_STRIDE = 100_000  # seed k's episodes place their balls from EVAL_SEED + k * SEED_STRIDE + i
+OVERALL = "all"  # the world column of the summary over every world
+
+
+def episode_pairs(world: World, names: Iterable[str] = (), pairs: int | None = None,
+                  episodes: int | None = None) -> list[StartGoal]:
+    """The pairs one seed runs on ``world``, one episode each: the pairs ``names`` (by name or
+    index), repeated to ``episodes`` when given; else the first ``pairs`` held-out pairs; else
+    ``episodes`` (default 50) held-out pairs (``held_out_pairs``: the world's own pairs in
+    turn, or random draws for worlds that draw random pairs)."""
+    names = list(names)
+    if names and pairs is not None:
+        raise ValueError("give start/goal pairs by name (--pair) or a number of them (--pairs), not both")
+    if pairs is not None and episodes is not None:
+        raise ValueError("--pairs runs each pair once per seed; --episodes goes with --pair or alone, not with --pairs")
+    for label, n in (("pairs", pairs), ("episodes", episodes)):
+        if n is not None and n < 1:
+            raise ValueError(f"--{label} must be at least 1, got {n}")
+    if names:
+        chosen = [world.pair(int(n) if str(n).isdigit() else n) for n in names]
+        return [chosen[i % len(chosen)] for i in range(episodes or len(chosen))]
+    if pairs is not None:
+        return held_out_pairs(world, pairs) if draws_random_pairs(world) else list(world.pairs[:pairs])
+    return held_out_pairs(world, episodes or DEFAULT_EPISODES)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One trial of one agent (a row of ``episodes.csv``); lengths in m, times in s."""
+
+    agent: str
+    world: str
+    pair: str
+    start_x: float
+    start_y: float
+    goal_x: float
+    goal_y: float
+    seed: int  # the episode's reset seed (ball places)
+    success: bool
+    time_s: float
+    base_collisions: int  # steps with the base touching a wall
+    arm_collisions: int  # steps with the end effector touching a wall
+    path_length_m: float  # driven by the base
+    shortest_path_m: float  # on the static grid, to within the goal tolerance
+    spl: float  # success * shortest / max(driven, shortest)
+    trajectory: tuple[tuple[float, float], ...] = field(default=(), repr=False)  # not in the CSV
+
+    def row(self) -> dict:
+        out = {k: round(v, 4) if isinstance(v, float) else v for k, v in asdict(self).items()}
+        del out["trajectory"]
+        return out
+
+
+@dataclass(frozen=True)
+class Summary:
+    """One agent on one world (or ``OVERALL``): a row of ``summary.csv``."""
+
+    agent: str
+    world: str
+    episodes: int
+    success_rate: float
+    base_collisions_per_trial: float
+    arm_collisions_per_trial: float
+    time_to_goal_s: float  # mean over successful trials (nan if none)
+    path_length_m: float  # mean over successful trials (nan if none)
+    spl: float
+
+    def line(self) -> str:
+        return (f"{self.agent} on {self.world}: success {self.success_rate:.0%} over {self.episodes} episodes, "
+                f"{self.base_collisions_per_trial:.2f} base collisions/trial, "
+                f"{self.arm_collisions_per_trial:.2f} arm collisions/trial, "
+                f"time to goal {_number(self.time_to_goal_s, '{:.1f} s')}, path {_number(self.path_length_m, '{:.1f} m')}, "
+                f"SPL {self.spl:.2f}")
+
+
+def _number(value: float, fmt: str) -> str:
+    """``fmt`` of ``value``, or ``-`` for nan (a mean over no successful trial)."""
+    return "-" if isinstance(value, float) and math.isnan(value) else fmt.format(value)
+
+
+def spl_term(success: bool, shortest: float, driven: float) -> float:
+    """``S * l / max(p, l)`` of one trial; a trial whose shortest path is unknown scores 0."""
+    if not success or not math.isfinite(shortest) or shortest <= 0:
+        return 0.0
+    return shortest / max(driven, shortest)
+
+
+class Comparison:
+    """Runs ``agents`` (label -> policy or ``EpisodeAgent``) on ``worlds`` with ``pairs_of(world)``
+    per seed: ``run(seeds, on_episode)`` -> episodes."""
+
+    def __init__(self, agents: dict, worlds: list[World], pairs_of: Callable[[World], list[StartGoal]],
+                 env_config: EnvConfig) -> None:
+        names = [world.name for world in worlds]
+        if len(set(names)) < len(names):
+            raise ValueError(f"two worlds share a name: {', '.join(names)}")
+        self.agents = agents
+        self.worlds = worlds
+        self.pairs = {world.name: pairs_of(world) for world in worlds}
+        self.env_config = env_config
+        self._planners: dict[str, GridPlanner] = {}
+        self._shortest: dict[tuple, float] = {}
+
+    def episode_count(self, seeds: int) -> int:
+        return len(self.agents) * seeds * sum(len(p) for p in self.pairs.values())
+
+    def shortest(self, world: World, pair: StartGoal) -> float:
+        """Length (m) of the pair's shortest successful path: on the world's static grid, to
+        within the goal tolerance (computed once per pair)."""
+        key = (world.name, pair.x, pair.y, pair.gx, pair.gy)
+        if key not in self._shortest:
+            if world.name not in self._planners:
+                self._planners[world.name] = GridPlanner(world, self.env_config.robot.base_width / 2)
+            to_goal = self._planners[world.name].shortest_length((pair.x, pair.y), (pair.gx, pair.gy))
+            self._shortest[key] = max(to_goal - self.env_config.goal_tolerance, 0.0)
+        return self._shortest[key]
+
+    def run(self, seeds: int = 1, on_episode: Callable[[Episode], None] | None = None) -> list[Episode]:
+        episodes: list[Episode] = []
+        for world in self.worlds:
+            pairs = self.pairs[world.name]
+            env = NamoEnv(world, self.env_config)
+            try:
+                for label, agent in self.agents.items():
+                    for k in range(seeds):
+                        base = EVAL_SEED + k * SEED_STRIDE
+
+                        def record(i: int, info: dict, label=label, base=base) -> None:
+                            episodes.append(self._episode(label, world, pairs[i], base + i, info))
+                            if on_episode:
+                                on_episode(episodes[-1])
+
+                        evaluate(agent, world, pairs, self.env_config, seed=base, on_episode=record, env=env)
+            finally:
+                env.close()
+        return episodes
+
+    def _episode(self, agent: str, world: World, pair: StartGoal, seed: int, info: dict) -> Episode:
+        """The record of a finished trial from its last step's ``info`` (with ``trajectory``)."""
+        driven = polyline_length(info["trajectory"])
+        shortest = self.shortest(world, pair)
+        success = bool(info["is_success"])
+        return Episode(agent, world.name, pair.name, pair.x, pair.y, pair.gx, pair.gy, seed, success,
+                       info["steps"] * self.env_config.control_period, int(info["base_collisions"]),
+                       int(info["end_effector_collisions"]), driven, shortest, spl_term(success, shortest, driven),
+                       tuple(map(tuple, info["trajectory"])))
+
+
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values)) if values else float("nan")
+
+
+def summarise(episodes: list[Episode]) -> list[Summary]:
+    """Per agent: one summary per world (in order of first appearance), then ``OVERALL``."""
+    agents = list(dict.fromkeys(e.agent for e in episodes))
+    worlds = list(dict.fromkeys(e.world for e in episodes))
+    out = []
+    for agent in agents:
+        for world in [*worlds, OVERALL]:
+            group = [e for e in episodes if e.agent == agent and (world == OVERALL or e.world == world)]
+            if not group:
+                continue
+            won = [e for e in group if e.success]
+            out.append(Summary(agent, world, len(group), len(won) / len(group),
+                               _mean([e.base_collisions for e in group]), _mean([e.arm_collisions for e in group]),
+                               _mean([e.time_s for e in won]), _mean([e.path_length_m for e in won]),
+                               _mean([e.spl for e in group])))
+    return out
+
+
+METRICS = (  # (Summary field, row label, format)
+    ("success_rate", "success", "{:.0%}"),
+    ("base_collisions_per_trial", "base collisions/trial", "{:.2f}"),
+    ("arm_collisions_per_trial", "arm collisions/trial", "{:.2f}"),
+    ("time_to_goal_s", "time to goal (s)", "{:.1f}"),
+    ("path_length_m", "path length (m)", "{:.1f}"),
+    ("spl", "SPL", "{:.2f}"),
+)
+
+
+def table(summaries: list[Summary]) -> str:
+    """Agents side by side (columns), a block of metric rows per world and one over all worlds."""
+    agents = list(dict.fromkeys(s.agent for s in summaries))
+    worlds = list(dict.fromkeys(s.world for s in summaries))
+    by = {(s.agent, s.world): s for s in summaries}
+    head = ["world", "metric", *agents]
+    rows = []
+    for world in worlds:
+        if world == OVERALL and len(worlds) == 2:
+            continue  # one world: its block already is the overall one
+        count = max((by[(a, world)].episodes for a in agents if (a, world) in by), default=0)
+        for n, (name, label, fmt) in enumerate(METRICS):
+            cells = []
+            for agent in agents:
+                cells.append(_number(getattr(by[(agent, world)], name) if (agent, world) in by else float("nan"), fmt))
+            rows.append([f"{world} ({count} episodes)" if n == 0 else "", label, *cells])
+    widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(len(head))]
+    lines = ["  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip() for r in [head, *rows]]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def write_csv(episodes: list[Episode], summaries: list[Summary], out: str | Path) -> dict[str, Path]:
+    """``episodes.csv`` (a row per episode) and ``summary.csv`` in ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"episodes": out / "episodes.csv", "summary": out / "summary.csv"}
+    columns = {"episodes": [f.name for f in fields(Episode) if f.name != "trajectory"],
+               "summary": [f.name for f in fields(Summary)]}
+    rows = {"episodes": [e.row() for e in episodes], "summary": [asdict(s) for s in summaries]}
+    for key, path in paths.items():
+        with open(path, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=columns[key])
+            writer.writeheader()
+            writer.writerows(rows[key])
+    return paths
+
+
+COLOURS = ("tab:green", "tab:purple", "tab:blue", "tab:brown", "tab:pink", "tab:cyan", "tab:olive")
+
+
+def draw_trajectories(episodes: list[Episode], worlds: list[World], out: str | Path,
+                      half_width: float) -> list[Path]:
+    """A PNG per world and pair in ``out``: the static map, closed doors, the balls of worlds
+    that keep them in place, the shortest path on the static grid (dashed) and each agent's
+    trajectory of the first seed (a dot where it ended, a cross where it failed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .sim.render import draw_world
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    agents = list(dict.fromkeys(e.agent for e in episodes))
+    colour = {a: COLOURS[i % len(COLOURS)] for i, a in enumerate(agents)}
+    written = []
+    for world in worlds:
+        shown = world.with_changes(balls=tuple(b for b in world.balls if b.region is None))
+        planner = GridPlanner(world, half_width)
+        first: dict[tuple[str, str], Episode] = {}
+        for e in episodes:
+            if e.world == world.name:
+                first.setdefault((e.pair, e.agent), e)
+        for pair_name in dict.fromkeys(p for p, _ in first):
+            some = next(e for (p, _), e in first.items() if p == pair_name)
+            pair = StartGoal(pair_name, some.start_x, some.start_y, 0.0, some.goal_x, some.goal_y)
+            x0, y0, x1, y1 = world.bounds
+            fig, ax = plt.subplots(figsize=(7, 7 * (y1 - y0) / max(x1 - x0, 1e-9) + 0.6), dpi=100)
+            draw_world(ax, shown, pairs=[pair])
+            shortest = planner.shortest_path((pair.x, pair.y), (pair.gx, pair.gy))
+            if shortest is not None:
+                ax.plot(shortest[:, 0], shortest[:, 1], "--", color="grey", lw=1, label="shortest (static map)")
+            for agent in agents:
+                e = first.get((pair_name, agent))
+                if e is None:
+                    continue
+                traj = np.asarray(e.trajectory)
+                outcome = "reached" if e.success else "failed"
+                ax.plot(traj[:, 0], traj[:, 1], "-", color=colour[agent], lw=1.8,
+                        label=f"{agent}: {outcome}, {e.time_s:.0f} s, {e.base_collisions} base coll.")
+                ax.plot(traj[-1, 0], traj[-1, 1], "o" if e.success else "x", color=colour[agent], ms=7)
+            ax.set_title(f"{world.name} / {pair_name}", fontsize=10)
+            ax.legend(loc="upper left", bbox_to_anchor=(0.0, -0.1), fontsize=7, frameon=False)
+            path = out / f"{world.name}-{pair_name}.png"
+            fig.savefig(path, bbox_inches="tight")
+            plt.close(fig)
+            written.append(path)
+    return written
+
+
+def make_agent(spec: str, env_config: EnvConfig, load_policy: Callable[[str], object]) -> tuple[str, object]:
+    """``(label, agent)``: ``planner`` is the classical planner, anything else a policy
+    ``load_policy`` loads (its label: the path as given)."""
+    if spec == "planner":
+        agent = StaticMapPlanner(env_config)
+        return agent.label, agent
+    return spec, load_policy(spec)
