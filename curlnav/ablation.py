@@ -24,7 +24,7 @@ import os
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
@@ -33,6 +33,11 @@ ROOT = Path(__file__).resolve().parent.parent
 CURRICULA = ROOT / "scheduler" / "curricula"
 #: the paper's four conditions (Fig. 5), as shipped curriculum files
 PAPER_CONDITIONS = ("s1+s2", "s1-only", "s2-only", "no-curriculum")
+
+
+def say(line: str) -> None:
+    """Progress lines, flushed at once (they are often read from a log file)."""
+    print(line, flush=True)
 
 
 class AblationError(ValueError):
@@ -55,14 +60,14 @@ def condition_file(name: str) -> Path:
 
 @dataclass
 class RunSpec:
-    """One run of the ablation: a curriculum file, a seed, a step budget, a folder."""
+    """One serial run: its folder, its environment-step budget and the ``curlnav train`` options
+    of a new run (world or curriculum, seed, overrides); an existing run is resumed instead."""
 
-    condition: str
-    curriculum: Path
-    seed: int
-    max_env_steps: int
     run_dir: Path
-    extra: list[str] = field(default_factory=list)
+    max_env_steps: int
+    new_args: list[str]
+    condition: str = ""
+    seed: int = 0
 
     def steps_done(self) -> int:
         try:
@@ -75,23 +80,24 @@ class RunSpec:
                str(self.run_dir), "--max-env-steps", str(self.max_env_steps), "--minutes", "100000"]
         if (self.run_dir / "checkpoints" / "latest.safetensors").exists():
             return cmd + ["--resume"]  # its saved config (curriculum, seed) continues
-        return cmd + ["--curriculum", str(self.curriculum), "--seed", str(self.seed), *self.extra]
+        return cmd + self.new_args
 
 
 def plan_runs(out: Path, conditions: list[str], seeds: list[int], max_env_steps: int,
               extra: list[str] | None = None) -> list[RunSpec]:
+    """The ablation's runs: ``out/<condition>-s<seed>`` for each curriculum and seed."""
     if max_env_steps <= 0:
         raise AblationError(f"--max-env-steps must be positive, got {max_env_steps}")
     specs = []
     for condition in conditions:
         path = condition_file(condition)
-        label = path.stem
         for seed in seeds:
-            specs.append(RunSpec(label, path, seed, max_env_steps, out / f"{label}-s{seed}", list(extra or [])))
+            specs.append(RunSpec(out / f"{path.stem}-s{seed}", max_env_steps,
+                                 ["--curriculum", str(path), "--seed", str(seed), *(extra or [])], path.stem, seed))
     return specs
 
 
-def run_all(specs: list[RunSpec], parallel: int, log=print, poll_s: float = 2.0) -> int:
+def run_all(specs: list[RunSpec], parallel: int, log=say, poll_s: float = 2.0) -> int:
     """Run every spec not yet at its budget, ``parallel`` at a time; returns how many failed.
     Each run's own output goes to ``<run>/train.log``."""
     todo = [s for s in specs if s.steps_done() < s.max_env_steps]

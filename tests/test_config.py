@@ -188,6 +188,7 @@ LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.bench_transport": 2, "curlnav.plots": 2, "curlnav.pull": 2, "curlnav.learner.bench": 2,
     "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2, "curlnav.evaluator": 2, "curlnav.supervise": 2,
     "curlnav.status": 2, "curlnav.animation": 2, "curlnav.bench_faults": 2, "curlnav.compare": 2,
+    "curlnav.ablation": 2, "curlnav.experiment": 2,
 }
 FOLDERS = {"curlnav": "curlnav", "proto": "curlnav.proto", "replay": "curlnav.replay", "learner": "curlnav.learner",
            "actor": "curlnav.actor", "scheduler": "curlnav.scheduler"}
