@@ -260,13 +260,14 @@ def _markdown(rows: list[dict], runs: list[RunResult], headline: str) -> str:
     lines = [f"# Curriculum ablation: held-out success on {headline}", "",
              "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     for row in rows:
-        lines.append("| " + " | ".join(_fmt(row[k]) if k != f"base collisions/trial {headline}"
+        plain = {f"base collisions/trial {headline}", "wall_min"}  # numbers, not rates
+        lines.append("| " + " | ".join(_fmt(row[k]) if k not in plain
                                        else (f"{row[k]:.2f}" if not math.isnan(row[k]) else "-") for k in keys) + " |")
     lines += ["", "Per condition (mean over seeds of the last evaluation):", ""]
     by_condition: dict[str, list[RunResult]] = {}
     for r in runs:
         by_condition.setdefault(r.condition, []).append(r)
-    targets = [k[len("final "):] for k in rows[0] if k.startswith("final ") and k != f"final {headline}"]
+    targets = [k[len("final "):] for k in rows[0] if k.startswith("final ")]
     lines += ["| condition | seeds | " + " | ".join(targets) + " |", "|" + "---|" * (len(targets) + 2)]
     for condition, group in by_condition.items():
         means = [sum(r.final(t)[0] for r in group) / len(group) for t in targets]
