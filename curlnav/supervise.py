@@ -134,6 +134,7 @@ def run_admin_token(path: Path) -> str:
         import secrets
 
         token = secrets.token_urlsafe(24)
+        path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
         with os.fdopen(fd, "w") as f:
             f.write(token)
