@@ -223,6 +223,7 @@ class LocalCluster:
         self.admin_token = admin_token
         self.learner_threads = learner_threads
         self.processes: dict[str, subprocess.Popen] = {}
+        self.service_env: dict[str, dict[str, str]] = {}  # name -> extra environment (secrets)
         self.commands: dict[str, list[str]] = {}  # name -> command line (a restart runs the same)
         self.pgid: int | None = None  # the services' process group
 
@@ -253,6 +254,7 @@ class LocalCluster:
             log.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} start: {' '.join(cmd[2:])}\n".encode())
             log.flush()
             env[LAUNCHER_PID_VARIABLE] = str(os.getpid())
+            env.update(self.service_env.get(name, {}))
             kwargs = dict(stdout=log, stderr=subprocess.STDOUT, env=env, stdin=subprocess.DEVNULL)
             try:
                 proc = subprocess.Popen(cmd, process_group=self.pgid or 0, **kwargs)
@@ -275,8 +277,8 @@ class LocalCluster:
         self._spawn("learner", "learner", "--threads", str(self.learner_threads),
                     "--http-port", str(self.learner_http_port))
         sched = ["--http-port", str(self.scheduler_port)]
-        if self.admin_token:
-            sched += ["--admin-token", self.admin_token]
+        if self.admin_token:  # in its environment, not on a command line that ps and the log show
+            self.service_env["scheduler"] = {"CURLNAV_ADMIN_TOKEN": self.admin_token}
         self._spawn("scheduler", "scheduler", *sched)
         for i in range(self.actors):
             self.start_actor(i)

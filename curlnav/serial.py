@@ -84,7 +84,7 @@ class SerialTrainer:
         self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1, stream=self.counters["env_steps"])
         self.policy.use_network(self.state.actor)
         self.policy.steps = self.counters["env_steps"]  # the warm-up is not repeated on resume
-        if self.run_cfg.init_from:
+        if self.run_cfg.init_from or self.counters.get("init_from"):
             self.policy.steps = max(self.policy.steps, self.policy.warmup_steps)  # a trained policy acts at once
         self.loop = EpisodeLoop(env, self.policy, builder.make_nstep_writer())
         self.recent: deque[tuple[bool, float, int]] = deque(maxlen=100)  # success, return, base collisions

@@ -377,7 +377,7 @@ class CurriculumState:
     def advance(self, reason: str = "forced") -> bool:
         """Next sub-step, else next stage; False (and nothing changes) at the very end."""
         stage = self.current
-        if stage.substeps and self.substep < len(stage.substeps) - 1:
+        if stage.substeps and self.substep < len(stage.substeps) - 1 and not self.learning_progress:
             self.substep += 1
         elif self.stage < len(self.curriculum.stages) - 1:
             self.stage += 1

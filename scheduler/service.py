@@ -252,7 +252,7 @@ class SchedulerService:
             rate, episodes, epoch = float(body["success_rate"]), int(body["episodes"]), int(body["epoch"])
             if not 0 <= rate <= 1 or episodes < 1:
                 raise ValueError("success_rate in [0, 1], episodes >= 1")
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, OverflowError) as exc:
             return json_response({"error": f"body must be JSON {{epoch, success_rate, episodes}}: {exc}"}, 400)
         advanced = self.core.record_evaluation(rate, episodes, epoch)
         if advanced:

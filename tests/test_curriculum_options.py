@@ -210,3 +210,19 @@ def test_the_current_steps_rate_counts_only_its_own_rows_weighted_by_episodes(tm
             {"episodes": 6, "success_rate": 1.0}]
     assert [t.pair for t in targets] == ["through-door", "p2", "held-out"]
     assert current_step_rate(state.curriculum, targets, rows) == (0.5, 4)
+
+
+def test_a_learning_progress_stage_ends_at_once_when_its_criterion_holds(tmp_path):
+    state = _state(tmp_path, """
+stages:
+  - name: A
+    worlds: [door-corridor]
+    substeps: [through-door, p2, p3]
+    advance: {success_rate: 0.5, window: 2}
+    sampler: learning-progress
+  - name: B
+    worlds: [open-room]
+""")
+    state.record("door-corridor", "p3", True, 0)
+    assert state.record("door-corridor", "p3", True, 0)
+    assert state.current.name == "B" and len(state.history) == 1
