@@ -27,6 +27,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from curlnav.record import read_csv
+
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -146,16 +148,8 @@ def run_all(specs: list[RunSpec], parallel: int, log=say, poll_s: float = 2.0) -
 
 
 def _latest_steps(run_dir: Path) -> int:
-    rows = _read_csv(run_dir / "metrics.csv")
+    rows = read_csv(run_dir / "metrics.csv")
     return int(float(rows[-1]["env_steps"])) if rows else 0
-
-
-def _read_csv(path: Path) -> list[dict]:
-    try:
-        with path.open(newline="") as f:
-            return list(csv.DictReader(f))
-    except OSError:
-        return []
 
 
 # -- the report -----------------------------------------------------------------------------------
@@ -197,7 +191,7 @@ def load_run(run_dir: Path) -> RunResult | None:
     except (OSError, yaml.YAMLError, AttributeError):
         name = Path(curriculum_file).stem
     curves: dict[str, list] = {}
-    for row in _read_csv(run_dir / "eval.csv"):
+    for row in read_csv(run_dir / "eval.csv"):
         target = f"{row['world']}/{row['pair']}"
         curves.setdefault(target, []).append((int(float(row["env_steps"])), float(row["success_rate"]),
                                               float(row["collisions_per_episode"])))

@@ -23,13 +23,13 @@ raise ``--parallel`` to its cores).
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from curlnav.record import read_csv
 from curlnav.ablation import (PAPER_CONDITIONS, RunResult, RunSpec, fixed_targets, load_run, plan_runs, run_all,
                               say, write_report)
 
@@ -205,21 +205,13 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
 
 
 # -- the report -----------------------------------------------------------------------------------
-def _read_csv(path: Path) -> list[dict]:
-    try:
-        with path.open(newline="") as f:
-            return list(csv.DictReader(f))
-    except OSError:
-        return []
-
-
 def _pct(x: float | None) -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.0%}"
 
 
 def held_out_curve(run_dir: Path) -> list[tuple[int, float]]:
     """(env steps, held-out success) of a single-world run's evaluations."""
-    return [(int(float(r["env_steps"])), float(r["success_rate"])) for r in _read_csv(run_dir / "eval.csv")]
+    return [(int(float(r["env_steps"])), float(r["success_rate"])) for r in read_csv(run_dir / "eval.csv")]
 
 
 def _final(curve: list[tuple[int, float]]) -> float:
@@ -353,7 +345,7 @@ def write_experiment_report(out: Path, budget: Budget) -> Path:
               "with doors and balls ignored, as the paper forced TARE-L to, tracked by a local planner on the same "
               "robot, actions and sensors. Worlds generated with seed "
               f"{UNSEEN_SEED} ({', '.join(UNSEEN_FAMILIES)}), never used in training.", ""]
-    summary = _read_csv(out / "table2" / "summary.csv")
+    summary = read_csv(out / "table2" / "summary.csv")
     if summary:
         lines += ["```", (out / "table2" / "table.txt").read_text().rstrip(), "```", "",
                   "Trajectories: `table2/trajectories/`.", ""]
