@@ -79,6 +79,7 @@ class Episode:
     path_length_m: float  # driven by the base
     shortest_path_m: float  # on the static grid, to within the goal tolerance
     spl: float  # success * shortest / max(driven, shortest)
+    base_collision_events: int = 0  # contacts of the base with a wall, each counted once however long
     trajectory: tuple[tuple[float, float], ...] = field(default=(), repr=False)  # not in the CSV
 
     def row(self) -> dict:
@@ -100,10 +101,12 @@ class Summary:
     time_to_goal_s: float  # mean over successful trials (nan if none)
     path_length_m: float  # mean over successful trials (nan if none)
     spl: float
+    base_collision_events_per_trial: float = 0.0  # wall contacts of the base, each counted once
 
     def line(self) -> str:
         return (f"{self.agent} on {self.world}: success {self.success_rate:.0%} over {self.episodes} episodes, "
-                f"{self.base_collisions_per_trial:.2f} base collisions/trial, "
+                f"{self.base_collisions_per_trial:.2f} base collisions/trial "
+                f"({self.base_collision_events_per_trial:.2f} contact events), "
                 f"{self.arm_collisions_per_trial:.2f} arm collisions/trial, "
                 f"time to goal {_number(self.time_to_goal_s, '{:.1f} s')}, path {_number(self.path_length_m, '{:.1f} m')}, "
                 f"SPL {self.spl:.2f}")
@@ -179,7 +182,7 @@ class Comparison:
         return Episode(agent, world.name, pair.name, pair.x, pair.y, pair.gx, pair.gy, seed, success,
                        info["steps"] * self.env_config.control_period, int(info["base_collisions"]),
                        int(info["end_effector_collisions"]), driven, shortest, spl_term(success, shortest, driven),
-                       tuple(map(tuple, info["trajectory"])))
+                       int(info.get("base_collision_events", 0)), tuple(map(tuple, info["trajectory"])))
 
 
 def _mean(values: list[float]) -> float:
@@ -200,13 +203,14 @@ def summarise(episodes: list[Episode]) -> list[Summary]:
             out.append(Summary(agent, world, len(group), len(won) / len(group),
                                _mean([e.base_collisions for e in group]), _mean([e.arm_collisions for e in group]),
                                _mean([e.time_s for e in won]), _mean([e.path_length_m for e in won]),
-                               _mean([e.spl for e in group])))
+                               _mean([e.spl for e in group]), _mean([e.base_collision_events for e in group])))
     return out
 
 
 METRICS = (  # (Summary field, row label, format)
     ("success_rate", "success", "{:.0%}"),
-    ("base_collisions_per_trial", "base collisions/trial", "{:.2f}"),
+    ("base_collisions_per_trial", "base collisions/trial (steps)", "{:.2f}"),
+    ("base_collision_events_per_trial", "base collision events/trial", "{:.2f}"),
     ("arm_collisions_per_trial", "arm collisions/trial", "{:.2f}"),
     ("time_to_goal_s", "time to goal (s)", "{:.1f}"),
     ("path_length_m", "path length (m)", "{:.1f}"),

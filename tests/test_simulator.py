@@ -83,6 +83,14 @@ def test_evaluation_mode_counts_base_collisions_and_goes_on(make_env):
         _, _, terminated, _, info = env.step([1.0, 0.0, 0.0])
         assert not terminated
     assert info["base_collisions"] >= 5
+    assert info["base_collision_events"] == 1, "pressing on the wall for several steps is one collision"
+    # turn round (pi rad at 1 rad/s), drive 1.2 m away, turn back and drive into it again
+    for action in [[0.0, 1.0, 0.0]] * 16 + [[1.0, 0.0, 0.0]] * 6 + [[0.0, 1.0, 0.0]] * 16:
+        _, _, _, _, info = env.step(action)
+    assert info["base_collision_events"] == 1
+    for _ in range(12):
+        _, _, _, _, info = env.step([1.0, 0.0, 0.0])
+    assert info["base_collision_events"] == 2, "a second contact after leaving the wall is a second collision"
 
 
 def test_end_effector_on_wall_is_penalised_minus_half(make_env):

@@ -146,6 +146,8 @@ class NamoEnv(gym.Env):
         self.scene.reset((self.pair.x, self.pair.y, self.pair.yaw), balls)
         self._steps = 0
         self._base_collisions = 0
+        self._base_collision_events = 0
+        self._base_in_contact = False
         self._ee_collisions = 0
         self._episode_return = 0.0
         x, y, yaw, _ = self.scene.robot_pose()
@@ -191,6 +193,8 @@ class NamoEnv(gym.Env):
             "end_effector_collision": reward_cfg.end_effector_collision if contacts.end_effector_static else 0.0,
         }
         self._base_collisions += int(contacts.base_static)
+        self._base_collision_events += int(contacts.base_static and not self._base_in_contact)
+        self._base_in_contact = contacts.base_static
         self._ee_collisions += int(contacts.end_effector_static)
         reward = float(sum(terms.values()))
         self._episode_return += reward
@@ -264,6 +268,7 @@ class NamoEnv(gym.Env):
             "is_success": success,
             "distance_to_goal": self._distance,
             "base_collisions": self._base_collisions,
+            "base_collision_events": self._base_collision_events,
             "end_effector_collisions": self._ee_collisions,
             "episode_return": self._episode_return,
             "pose": (x, y, yaw),
