@@ -2,16 +2,19 @@
 started and supervised by ``curlnav train``).
 
 Every ``evaluation.every_s`` it takes the learner's newest policy artefact over HTTP (a version
-it has not evaluated yet), asks the scheduler where the curriculum stands and evaluates:
+it has not evaluated yet), asks the scheduler where the curriculum stands and evaluates
+(``evaluation_plan``, the same plan as the serial trainer's):
 
 - without a curriculum: the held-out pairs of the training world (``EvaluationProtocol``);
-- with a curriculum: each world of the current stage; in a stage with sub-steps (T-Maze p1..p4)
-  each sub-step's pair, ``max(5, evaluation.episodes // targets)`` episodes each, reported per
-  pair; in a stage without sub-steps, held-out random pairs of each world.
+- with a curriculum: each world of the current stage (in a stage with sub-steps, each sub-step's
+  pair; in a stage without, held-out random pairs of each world), then the curriculum's fixed
+  ``evaluate`` targets (default: the last stage's worlds and pairs), ``max(5, evaluation.episodes
+  // targets)`` episodes each, reported per target.
 
 It appends one row per (world, pair) to ``eval.csv`` (the launcher reads them for the console,
 TensorBoard and the stopping target) and keeps ``policy-best/``: the artefact with the best
-evaluation so far, ordered by (stage reached, sub-step, success rate).
+evaluation so far, ordered by (success on the headline target, the last fixed target such as
+T-Maze p4; then mean success over the targets).
 """
 
 from __future__ import annotations
@@ -65,6 +68,27 @@ def targets_for(experiment: ExperimentConfig, curriculum, status: dict | None) -
         for pair in (stage.substeps or (HELD_OUT,)):
             out.append(Target(index, stage.name, substep, world, pair))
     return out
+
+
+def evaluation_plan(experiment: ExperimentConfig, curriculum, status: dict | None) -> list[Target]:
+    """Every evaluation's targets: the current stage's (``targets_for``), then the curriculum's
+    fixed ``evaluate`` targets, the last of which is the run's headline (``policy-best`` and
+    ``stop_at_success`` follow it). A current target that is also fixed is evaluated once, as fixed."""
+    current = targets_for(experiment, curriculum, status)
+    if curriculum is None:
+        return current
+    fixed = [(world, pair or HELD_OUT) for world, pair in curriculum.evaluation_targets()]
+    head = current[0]
+    return ([t for t in current if (t.world, t.pair) not in fixed]
+            + [Target(head.stage_index, head.stage, head.substep, world, pair) for world, pair in fixed])
+
+
+def headline_key(curriculum) -> tuple[str, str] | None:
+    """(world name, pair) of a curriculum's headline target as eval.csv rows name it, or None."""
+    if curriculum is None:
+        return None
+    world, pair = curriculum.evaluation_targets()[-1]
+    return Path(world).stem, pair or HELD_OUT
 
 
 class BesideEvaluator:
@@ -130,11 +154,17 @@ class BesideEvaluator:
         finally:
             log_file.close()
         success = sum(r["success_rate"] for r in rows) / len(rows)
-        rank = (rows[0]["stage_index"], rows[0]["substep"], success)
+        headline = headline_key(self.curriculum)
+        if headline is None:
+            rank = (success, success)
+        else:  # an evaluation without the headline target ranks below every one with it
+            head = [r["success_rate"] for r in rows if (r["world"], r["pair"]) == headline]
+            rank = (head[0] if head else -1.0, success)
         if self.best is None or rank > self.best:
             self.best = rank
             copy_policy(artefact, self.run_dir / "policy-best",
-                        {"why": "best evaluation so far, ordered by (stage, sub-step, success rate)",
+                        {"why": "best evaluation so far, ordered by (success on the headline target "
+                                f"{'/'.join(headline) if headline else 'held-out'}, mean success over the targets)",
                          "rank": list(rank), "evaluation": self.evaluations, "policy_version": version,
                          "success_rate": success, "wall_s": wall_s, "env_steps": env_steps,
                          "rows": [{k: r[k] for k in ("world", "pair", "success_rate")} for r in rows]})
@@ -208,7 +238,7 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
             started = time.monotonic()
             try:
                 status = http_json_or_none(status_url, timeout=5.0)
-                targets = targets_for(experiment, curriculum, status)
+                targets = evaluation_plan(experiment, curriculum, status)
                 rows = evaluator.evaluate(policy, targets, stop)
             except EvaluationStopped:
                 log.info("stopping: the evaluation of policy v%d in progress is dropped", policy.version)

@@ -139,16 +139,12 @@ class SerialTrainer:
         return keys
 
     def _eval_targets(self):
-        from curlnav.evaluator import HELD_OUT, Target, targets_for
-
         """The current stage's targets, then the fixed ``evaluate`` targets (the last one is the
         run's headline: policy-best and ``stop_at_success`` follow it)."""
+        from curlnav.evaluator import evaluation_plan
+
         state = self.curriculum
-        fixed = [(world, pair or HELD_OUT) for world, pair in state.curriculum.evaluation_targets()]
-        targets = [t for t in targets_for(self.experiment, state.curriculum,
-                                          {"stage_index": state.stage, "substep": state.substep})
-                   if (t.world, t.pair) not in fixed]
-        return targets + [Target(state.stage, state.current.name, state.substep, w, p) for w, p in fixed]
+        return evaluation_plan(self.experiment, state.curriculum, {"stage_index": state.stage, "substep": state.substep})
 
     def _stage_fields(self) -> dict:
         if self.curriculum is None:

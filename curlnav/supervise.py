@@ -316,24 +316,28 @@ class DistributedRun:
         by_eval = complete
         reason = None
         for number, group in by_eval.items():
-            success = sum(float(r["success_rate"]) for r in group) / len(group)
+            # the last row is the headline target (the curriculum's last fixed target, e.g. T-Maze
+            # p4, or the training world's held-out pairs): the stopping target follows it
+            success = float(group[-1]["success_rate"])
+            mean = sum(float(r["success_rate"]) for r in group) / len(group)
             first = group[0]
             env_steps = int(float(first.get("env_steps") or 0))
-            scalars = {"eval/success_rate": success}
+            scalars = {"eval/success_rate": success, "eval/mean_success_rate": mean}
             for r in group:
                 scalars[f"eval/success/{r['world']}/{r['pair']}"] = float(r["success_rate"])
                 scalars[f"eval/base_collisions_per_episode/{r['world']}/{r['pair']}"] = float(r["collisions_per_episode"])
             board.scalars(scalars, env_steps)
             per_pair = ", ".join(f"{r['world']}/{r['pair']} {float(r['success_rate']):.0%}" for r in group)
             say(f"[eval {number} at {float(first['wall_s']) / 60:5.1f} min, policy v{first['policy_version']}, "
-                f"stage {first['stage']}] success {success:.0%} ({per_pair})")
+                f"stage {first['stage']}] {group[-1]['world']}/{group[-1]['pair']} {success:.0%}"
+                + (f" (all: {per_pair})" if len(group) > 1 else ""))
             self.evals.append({"evaluation": int(number), "wall_s": float(first["wall_s"]), "env_steps": env_steps,
-                               "version": int(float(first["policy_version"])), "success_rate": success,
+                               "version": int(float(first["policy_version"])), "success_rate": success, "mean_success_rate": mean,
                                "collisions_per_episode": sum(float(r["collisions_per_episode"]) for r in group) / len(group),
                                "per_pair": {f"{r['world']}/{r['pair']}": float(r["success_rate"]) for r in group}})
             target = self.experiment.evaluation.stop_at_success
             if target is not None and success >= target:
-                reason = f"held-out success {success:.0%} >= {target:.0%}"
+                reason = f"held-out success on {group[-1]['world']}/{group[-1]['pair']} {success:.0%} >= {target:.0%}"
         return reason
 
     # -- the session -----------------------------------------------------------------------------

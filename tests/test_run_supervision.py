@@ -247,10 +247,10 @@ def test_serial_run_stops_on_sigterm_with_exit_130_and_resumes_with_curves_and_p
 
 
 # -- evaluation beside a curriculum ----------------------------------------------------------------
-def test_the_evaluator_follows_the_curriculum_reports_each_substep_pair_and_keeps_the_best_policy(tmp_path):
+def test_the_evaluator_follows_the_curriculum_evaluates_the_fixed_targets_and_keeps_the_best_on_the_headline(tmp_path):
     from curlnav.builder import D4PGBuilder
     from curlnav.config import resolve_config
-    from curlnav.evaluator import BesideEvaluator, targets_for
+    from curlnav.evaluator import BesideEvaluator, evaluation_plan, targets_for
     from curlnav.learner.artefact import export_policy
     from curlnav.policy import PolicyArtefact
     from curlnav.record import read_csv
@@ -261,7 +261,11 @@ def test_the_evaluator_follows_the_curriculum_reports_each_substep_pair_and_keep
                                            "evaluation.max_episode_steps=40"])
     curriculum = load_curriculum(file)
     assert [t.pair for t in targets_for(experiment, curriculum, {"stage_index": 0})] == ["held-out"]
-    targets = targets_for(experiment, curriculum, {"stage_index": 1, "substep": 2})
+    # in S1 the distributed evaluator also measures the curriculum's fixed targets, T-Maze p1..p4
+    s1_plan = evaluation_plan(experiment, curriculum, {"stage_index": 0})
+    assert [(t.stage, Path(t.world).stem, t.pair) for t in s1_plan] == [
+        ("S1", "barn-3x3-0", "held-out"), *[("S1", "t-maze-0", p) for p in ("p1", "p2", "p3", "p4")]]
+    targets = evaluation_plan(experiment, curriculum, {"stage_index": 1, "substep": 2})
     assert [(t.stage, t.pair) for t in targets] == [("S2", "p1"), ("S2", "p2"), ("S2", "p3"), ("S2", "p4")]
     artefact = export_policy(D4PGBuilder(experiment).make_learner_state(), tmp_path / "v7", experiment.env,
                              worlds=["t-maze-0"], version=7, env_steps=1234)
@@ -269,18 +273,22 @@ def test_the_evaluator_follows_the_curriculum_reports_each_substep_pair_and_keep
     try:
         rows = evaluator.evaluate(PolicyArtefact(artefact), targets)
         evaluator.record(rows, wall_s=60.0, version=7, env_steps=1234, updates=99, artefact=artefact)
-        # an evaluation in an earlier stage never replaces a policy that reached a later one
+        # an evaluation without the headline target (T-Maze p4) never replaces one with it
         s1 = evaluator.evaluate(PolicyArtefact(artefact), targets_for(experiment, curriculum, {"stage_index": 0}))
         evaluator.record([{**s1[0], "success_rate": 1.0}], wall_s=90.0, version=8, env_steps=2000, updates=150,
                          artefact=artefact)
+        # a better success on the headline replaces it, whatever the stage
+        better = [dict(r) for r in rows]
+        better[-1]["success_rate"] = 1.0
+        evaluator.record(better, wall_s=120.0, version=9, env_steps=3000, updates=200, artefact=artefact)
     finally:
         evaluator.close()
     written = read_csv(tmp_path / "eval.csv")
-    assert [(r["evaluation"], r["pair"]) for r in written] == [("1", "p1"), ("1", "p2"), ("1", "p3"), ("1", "p4"),
-                                                              ("2", "held-out")]
+    assert [(r["evaluation"], r["pair"]) for r in written[:5]] == [("1", "p1"), ("1", "p2"), ("1", "p3"),
+                                                                  ("1", "p4"), ("2", "held-out")]
     assert all(r["episodes"] == "5" and r["env_steps"] == "1234" for r in written[:4])
     selected = json.loads((tmp_path / "policy-best" / "selected.json").read_text())
-    assert selected["evaluation"] == 1 and selected["rank"][0] == 1
+    assert selected["evaluation"] == 3 and selected["rank"][0] == 1.0 and "t-maze-0/p4" in selected["why"]
     assert (tmp_path / "policy-best" / "actor.onnx").exists()
 
 
@@ -300,6 +308,7 @@ def test_an_evaluation_cut_short_does_not_hold_back_the_ones_after_it(tmp_path):
     assert run.read_evaluations(board) is None  # evaluation 2 is not complete yet
     rows.write({**common, "evaluation": 2, "pair": "p2", "success_rate": 1.0})
     rows.close()
-    assert run.read_evaluations(board) == "held-out success 90% >= 80%"
+    # the stopping target follows the headline target, the evaluation's last row
+    assert run.read_evaluations(board) == "held-out success on t-maze-0/p2 100% >= 80%"
     board.close()
     assert [e["evaluation"] for e in run.evals] == [2]
