@@ -267,6 +267,9 @@ def test_the_evaluator_follows_the_curriculum_evaluates_the_fixed_targets_and_ke
         ("S1", "barn-3x3-0", "held-out"), *[("S1", "t-maze-0", p) for p in ("p1", "p2", "p3", "p4")]]
     targets = evaluation_plan(experiment, curriculum, {"stage_index": 1, "substep": 2})
     assert [(t.stage, t.pair) for t in targets] == [("S2", "p1"), ("S2", "p2"), ("S2", "p3"), ("S2", "p4")]
+    # training on p4 alone: p4 is evaluated once, last (the headline), not first
+    alone = load_curriculum(ROOT / "scheduler" / "curricula" / "no-curriculum.yaml")
+    assert [t.pair for t in evaluation_plan(experiment, alone, {"stage_index": 0})] == ["p1", "p2", "p3", "p4"]
     artefact = export_policy(D4PGBuilder(experiment).make_learner_state(), tmp_path / "v7", experiment.env,
                              worlds=["t-maze-0"], version=7, env_steps=1234)
     evaluator = BesideEvaluator(tmp_path, experiment, curriculum)
