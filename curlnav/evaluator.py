@@ -83,6 +83,33 @@ def evaluation_plan(experiment: ExperimentConfig, curriculum, status: dict | Non
             + [Target(head.stage_index, head.stage, head.substep, world, pair) for world, pair in fixed])
 
 
+def episodes_per_target(experiment: ExperimentConfig, targets: int) -> int:
+    """Episodes each target of an evaluation gets: all ``evaluation.episodes`` for a single
+    target, else ``max(5, evaluation.episodes // targets)``."""
+    episodes = experiment.evaluation.episodes
+    return episodes if targets == 1 else max(5, episodes // max(targets, 1))
+
+
+def check_evaluation_criteria(experiment: ExperimentConfig, curriculum) -> None:
+    """A criterion ``source: evaluation`` that no evaluation can meet is refused before the run:
+    its step's held-out rows must hold at least ``window`` episodes. Raises ``ValueError``
+    naming the stage and what to raise."""
+    for index, stage in enumerate(curriculum.stages):
+        for criterion, step in ((stage.advance, "advance"), (stage.substep_advance, "substep_advance")):
+            if criterion is None or criterion.source != "evaluation":
+                continue
+            targets = evaluation_plan(experiment, curriculum, {"stage_index": index, "substep": 0})
+            per_target = episodes_per_target(experiment, len(targets))
+            rows = [{"episodes": per_target, "success_rate": 0.0}] * len(targets)
+            episodes = (current_step_rate(curriculum, targets, rows) or (0.0, 0))[1]
+            if episodes < criterion.window:
+                raise ValueError(
+                    f"curriculum {curriculum.name}: stage {stage.name}'s {step} (source: evaluation, window "
+                    f"{criterion.window}) can never fire: each evaluation gives its step {episodes} episodes "
+                    f"(evaluation.episodes={experiment.evaluation.episodes} over {len(targets)} targets); raise "
+                    f"evaluation.episodes to at least {criterion.window * len(targets)} or lower the window")
+
+
 def headline_key(curriculum) -> tuple[str, str] | None:
     """(world name, pair) of a curriculum's headline target as eval.csv rows name it, or None."""
     if curriculum is None:
@@ -120,15 +147,14 @@ class BesideEvaluator:
             if stop is not None and stop.is_set():
                 raise EvaluationStopped()
 
-        per_target = max(5, self.experiment.evaluation.episodes // max(len(targets), 1))
+        per_target = episodes_per_target(self.experiment, len(targets))
         rows = []
         for t in targets:
             if t.pair == HELD_OUT:
                 protocol = self._held_out.get(t.world)
                 if protocol is None:
-                    protocol = self._held_out[t.world] = EvaluationProtocol(
-                        self.experiment, world=t.world,
-                        episodes=self.experiment.evaluation.episodes if len(targets) == 1 else per_target)
+                    protocol = self._held_out[t.world] = EvaluationProtocol(self.experiment, world=t.world,
+                                                                            episodes=per_target)
                 result = protocol.run(policy, on_episode=check_stop)
             else:
                 world = get_world(t.world)

@@ -73,9 +73,15 @@ def check_before_start(experiment: ExperimentConfig) -> None:
     robot = experiment.env.robot
     check_pairs_possible(world, (robot.base_length, robot.base_width))
     if experiment.curriculum.file:
+        from curlnav.evaluator import check_evaluation_criteria
         from curlnav.scheduler.curriculum import check_curriculum, load_curriculum
 
-        check_curriculum(load_curriculum(experiment.curriculum.file), experiment.curriculum.file)
+        curriculum = load_curriculum(experiment.curriculum.file)
+        check_curriculum(curriculum, experiment.curriculum.file)
+        try:
+            check_evaluation_criteria(experiment, curriculum)
+        except ValueError as exc:
+            raise TrainRefused(str(exc)) from None
 
 
 def run_train(args: argparse.Namespace) -> int:
