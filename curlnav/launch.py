@@ -223,6 +223,7 @@ class LocalCluster:
         self.admin_token = admin_token
         self.learner_threads = learner_threads
         self.processes: dict[str, subprocess.Popen] = {}
+        self.stop_report: list[tuple[str, float, bool]] = []  # (service, s from SIGTERM to exit, killed)
         self.service_env: dict[str, dict[str, str]] = {}  # name -> extra environment (secrets)
         self.commands: dict[str, list[str]] = {}  # name -> command line (a restart runs the same)
         self.pgid: int | None = None  # the services' process group
@@ -325,18 +326,23 @@ class LocalCluster:
         self._stop_all([name], timeout)
 
     def _stop_all(self, names: list[str], timeout: float) -> None:
-        """SIGTERM to ``names`` together, then wait for each (SIGKILL after ``timeout``)."""
+        """SIGTERM to ``names`` together, then wait for each (SIGKILL after ``timeout``); each
+        stop's seconds and whether it had to be killed go to ``stop_report``."""
         procs = [(n, self.processes.pop(n)) for n in names if n in self.processes]
+        started = time.monotonic()
         for _, proc in procs:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + timeout
-        for _, proc in procs:
+        deadline = started + timeout
+        for name, proc in procs:
+            killed = False
             try:
                 proc.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+                killed = True
+            self.stop_report.append((name, time.monotonic() - started, killed))
 
     def kill_process(self, name: str) -> None:
         proc = self.processes.pop(name)
@@ -346,6 +352,7 @@ class LocalCluster:
     def stop(self, timeout: float = 30.0) -> None:
         """Stop every service, in ``STOP_ORDER`` (actors together), then make sure nothing of
         the process group is left."""
+        self.stop_report = []
         for role in STOP_ORDER:
             self._stop_all([n for n in list(self.processes) if n.split("-")[0] == role], timeout)
         self._stop_all(list(self.processes), timeout)

@@ -403,7 +403,13 @@ class DistributedRun:
             ignore_stop_signals()
             if self.signal_received == signal.SIGHUP:
                 detach_from_terminal()
+            stop_began = time.monotonic()
             c.stop()
+            slowest = sorted(c.stop_report, key=lambda r: -r[1])[:3]
+            killed = [name for name, _, was_killed in c.stop_report if was_killed]
+            say(f"services stopped in {time.monotonic() - stop_began:.1f} s (slowest: "
+                + ", ".join(f"{name} {seconds:.1f} s" for name, seconds, _ in slowest)
+                + (f"; !! killed after not stopping in time: {', '.join(killed)}" if killed else "") + ")")
             self.read_evaluations(board)
             self.sync_policy()
             metrics.close()

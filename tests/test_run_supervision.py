@@ -146,7 +146,14 @@ def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_res
 
         # the terminal closes: every process of the run stops, checkpoint and replay saved, exit 130
         launcher.send_signal(signal.SIGHUP)
-        assert launcher.wait(timeout=120) == 130
+        try:
+            code = launcher.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            logs = "".join(f"\n--- {p.name}: " + "\n".join(p.read_text(errors="replace").splitlines()[-8:])
+                           for p in sorted((run_dir / "logs").glob("*.log")))
+            pytest.fail("the launcher did not exit within 120 s of SIGHUP; its output:\n"
+                        + (tmp_path / "launcher.log").read_text(errors="replace")[-3000:] + logs)
+        assert code == 130
     finally:
         if launcher.poll() is None:
             os.killpg(launcher.pid, signal.SIGKILL)
@@ -154,6 +161,7 @@ def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_res
         log.close()
     output = (tmp_path / "launcher.log").read_text()
     assert "!! actor-0 exited" in output and "!! restarted learner" in output, output[-3000:]
+    assert "services stopped in" in output and "killed after not stopping" not in output, output[-3000:]
     wait_for("every process of the run gone", lambda: not any(alive(p) for p in pids), timeout=30)
     with pytest.raises(ProcessLookupError):
         os.killpg(group, 0)
