@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from curlnav.record import read_csv
+from curlnav.transport import on_stop_signals, restore_signals
 
 import yaml
 
@@ -110,6 +111,10 @@ def run_all(specs: list[RunSpec], parallel: int, log=say, poll_s: float = 2.0) -
     failed = 0
     last_report = time.monotonic()
     try:
+        previous = on_stop_signals(_raise_stopped)
+    except ValueError:  # not the main thread: signals stay with whoever handles them there
+        previous = {}
+    try:
         while todo or running:
             while todo and len(running) < parallel:
                 spec = todo.pop(0)
@@ -137,14 +142,26 @@ def run_all(specs: list[RunSpec], parallel: int, log=say, poll_s: float = 2.0) -
                 log("[ablation] " + "; ".join(f"{s.run_dir.name} {_latest_steps(s.run_dir)}/{s.max_env_steps}"
                                               for s, _, _ in running))
             time.sleep(poll_s)
-    except KeyboardInterrupt:
+    finally:  # Ctrl-C, SIGTERM, SIGHUP or an error: no run is left training on its own
+        restore_signals(previous)
         for _, proc, _ in running:
             proc.terminate()  # each run saves a checkpoint on SIGTERM: `ablation run` again resumes
         for _, proc, handle in running:
-            proc.wait(timeout=120)
+            try:
+                proc.wait(timeout=120)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
             handle.close()
-        raise
     return failed
+
+
+class _Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP to ``ablation run``: handled like Ctrl-C."""
+
+
+def _raise_stopped(signum: int, _frame) -> None:
+    raise _Stopped(f"signal {signum}")
 
 
 def _latest_steps(run_dir: Path) -> int:

@@ -179,6 +179,38 @@ def test_ablation_run_trains_each_condition_skips_finished_runs_and_writes_the_r
     assert again.returncode == 0 and again.stdout.count("skipped") == 2, again.stdout[-2000:]
 
 
+def test_stopping_ablation_run_with_sigterm_stops_its_training_runs_in_order_and_leaves_none_behind(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    direct = tmp_path / "direct.yaml"
+    direct.write_text("name: direct\nstages: [{worlds: [door-corridor], substeps: [through-door]}]\n")
+    out = tmp_path / "ablation"
+    cmd = [sys.executable, "-m", "curlnav.cli", "ablation", "run", "--out", str(out), "--conditions", str(direct),
+           "--seeds", "0", "--max-env-steps", "100000", "--parallel", "1",
+           "--set", "exploration.warmup_steps=250", "--set", "replay.min_size=256", "--set", "evaluation.episodes=2"]
+    ablation = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    run = out / "direct-s0"
+    try:
+        deadline = time.monotonic() + 300
+        while not ((run / "metrics.csv").exists() and len((run / "metrics.csv").read_text().splitlines()) >= 2):
+            assert ablation.poll() is None and time.monotonic() < deadline, "the training run never reported"
+            time.sleep(0.5)
+        ablation.send_signal(signal.SIGTERM)
+        output, _ = ablation.communicate(timeout=180)
+    finally:
+        if ablation.poll() is None:
+            ablation.kill()
+            ablation.wait()
+    assert ablation.returncode == 130, output[-2000:]
+    summary = json.loads((run / "summary.json").read_text())  # the run stopped in order and saved itself
+    assert "SIGTERM" in summary["stop_reason"] and (run / "checkpoints" / "latest.safetensors").exists(), summary
+    leftovers = subprocess.run(["pgrep", "-f", str(run)], capture_output=True, text=True).stdout.split()
+    assert not leftovers, f"training processes left running: {leftovers}"
+
+
 def test_a_criterion_on_evaluation_ignores_training_episodes_and_advances_on_a_held_out_evaluation(tmp_path):
     state = _state(tmp_path, """
 stages:
