@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -400,6 +401,13 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
     out, budget = Path(args.out), BUDGETS[args.budget]
     if args.report_only:
+        try:  # the report names the budget the runs were made with, whatever --budget says
+            saved = json.loads((out / "experiment.json").read_text())["budget"]["name"]
+        except (OSError, ValueError, KeyError, TypeError):
+            saved = None
+        if saved in BUDGETS and saved != budget.name:
+            print(f"the runs in {out} were made with the {saved} budget: reporting them as such")
+            budget = BUDGETS[saved]
         print(f"report: {write_experiment_report(out, budget)}")
         return 0
     run_experiment(out, budget, max(1, args.parallel))

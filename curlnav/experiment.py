@@ -150,6 +150,8 @@ def run_experiment(out: Path, budget: Budget, parallel: int, log=say) -> Path:
                        budget.train_options())
     failed = run_all(specs, parallel, log=log)
     easy, hard = fig4_plan(out, ranked, budget, world_files)
+    (out / "fig4").mkdir(parents=True, exist_ok=True)
+    (out / "fig4" / "plan.json").write_text(json.dumps({"source": easy, "hard": hard}, indent=2))
     failed += run_all(fig4_specs(out, easy, hard, budget, world_files), parallel, log=log)
     table2(out, unseen, budget, log)
     (out / "experiment.json").write_text(json.dumps({"budget": asdict(budget), "parallel": parallel,
@@ -174,15 +176,21 @@ def table2_agents(out: Path) -> dict[str, Path]:
 def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | None:
     """The comparison on unseen worlds (cached in ``table2/``)."""
     folder = out / "table2"
-    if (folder / "summary.csv").exists():
-        return folder
+    policies = table2_agents(out)
+    key = {label: {"path": str(path), "selected": _mtime(path / "selected.json")} for label, path in policies.items()}
+    try:
+        cached = json.loads((folder / "agents.json").read_text())
+    except (OSError, ValueError):
+        cached = None
+    if (folder / "summary.csv").exists() and cached == key:
+        return folder  # the same policies were compared already
     from curlnav.compare import Comparison, draw_trajectories, episode_pairs, make_agent, summarise, table, write_csv
     from curlnav.config import ExperimentConfig
     from curlnav.policy import PolicyArtefact
     from curlnav.sim import get_world
 
     env_config = ExperimentConfig().eval_env
-    agents = {label: PolicyArtefact(path) for label, path in table2_agents(out).items()}
+    agents = {label: PolicyArtefact(path) for label, path in policies.items()}
     label, planner = make_agent("planner", env_config, PolicyArtefact)
     agents[label] = planner
     worlds = [get_world(str(w)) for w in unseen]
@@ -201,7 +209,15 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
     write_csv(episodes, summaries, folder)
     draw_trajectories(episodes, worlds, folder / "trajectories", env_config.robot.base_width / 2)
     (folder / "table.txt").write_text(table(summaries) + "\n")
+    (folder / "agents.json").write_text(json.dumps(key, indent=2))
     return folder
+
+
+def _mtime(path: Path) -> float | None:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return None
 
 
 # -- the report -----------------------------------------------------------------------------------
@@ -289,7 +305,12 @@ def write_experiment_report(out: Path, budget: Budget) -> Path:
 
     # Fig. 4
     lines += ["## Fig. 4: two-stage fine-tuning against training from scratch", ""]
-    tuned_dirs = sorted((out / "fig4").glob("*-from-*")) if (out / "fig4").exists() else []
+    try:  # this experiment's fine-tuning runs, not those of an earlier source world
+        plan = json.loads((out / "fig4" / "plan.json").read_text())
+        tuned_dirs = [out / "fig4" / f"{h}-from-{plan['source']}" for h in plan["hard"]]
+        tuned_dirs = [d for d in tuned_dirs if d.exists()]
+    except (OSError, ValueError, KeyError, TypeError):
+        tuned_dirs = sorted((out / "fig4").glob("*-from-*")) if (out / "fig4").exists() else []
     wins = []
     if tuned_dirs:
         fig, axes = plt.subplots(1, len(tuned_dirs), figsize=(4.5 * len(tuned_dirs), 3.6), squeeze=False)
@@ -331,10 +352,11 @@ def write_experiment_report(out: Path, budget: Budget) -> Path:
             means.setdefault(r.condition, []).append(r.final(headline)[0])
         means = {c: sum(v) / len(v) for c, v in means.items()}
         best = max(means, key=lambda c: (means[c], c == "s1+s2"))
-        ok3 = means.get("s1+s2", -1) >= max(means.values()) and means.get("s1+s2", -1) > means.get("no-curriculum", 0)
+        missing = [c for c in ("s1+s2", "no-curriculum") if c not in means]
+        ok3 = not missing and means["s1+s2"] >= max(means.values()) and means["s1+s2"] > means["no-curriculum"]
         findings.append(("3. S1+S2 is the most sample-efficient curriculum (Fig. 5)", ok3,
                          f"final {headline}: " + ", ".join(f"{c} {_pct(v)}" for c, v in means.items())
-                         + f"; best: {best}"))
+                         + f"; best: {best}" + (f"; undecided: no {' or '.join(missing)} run" if missing else "")))
     else:
         lines += ["No ablation runs yet.", ""]
         findings.append(("3. S1+S2 is the most sample-efficient curriculum (Fig. 5)", False, "no runs"))
@@ -354,10 +376,13 @@ def write_experiment_report(out: Path, budget: Budget) -> Path:
         planner = next((r for a, r in overall.items() if a not in ("s1+s2", "no-curriculum")), None)
         if policy and planner:
             ps, qs = float(policy["success_rate"]), float(planner["success_rate"])
-            pc, qc = float(policy["base_collisions_per_trial"]), float(planner["base_collisions_per_trial"])
+            column = ("base_collision_events_per_trial" if policy.get("base_collision_events_per_trial") not in (None, "")
+                      else "base_collisions_per_trial")  # collisions as the paper counts them, when recorded
+            pc, qc = float(policy[column]), float(planner[column])
             findings.append(("4. The curriculum policy succeeds at least as often as the planner, with fewer base "
                              "collisions, on unseen NAMO worlds (Table II)", ps >= qs and pc < qc,
-                             f"policy {_pct(ps)}, {pc:.2f} collisions/trial; planner {_pct(qs)}, {qc:.2f}"))
+                             f"policy {_pct(ps)}, {pc:.2f} base collisions/trial; planner {_pct(qs)}, {qc:.2f}"
+                             + (" (contact events)" if column.endswith("events_per_trial") else " (contact steps)")))
     else:
         lines += ["No comparison yet.", ""]
 

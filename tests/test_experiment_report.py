@@ -43,3 +43,16 @@ def test_report_only_without_runs_is_one_line_and_exit_2(tmp_path):
                              "--report-only"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "no ranking in" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_report_only_names_the_budget_the_runs_were_made_with(tmp_path):
+    import json
+
+    rows = rank([get_world(w) for w in ("open-room", "door-corridor")])
+    write_outputs(rows, tmp_path / "ranking")
+    (tmp_path / "experiment.json").write_text(json.dumps({"budget": {"name": "small"}}))
+    result = subprocess.run([sys.executable, "-m", "curlnav.cli", "experiment", "--out", str(tmp_path),
+                             "--report-only", "--budget", "full"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "made with the small budget" in result.stdout
+    assert (tmp_path / "report.md").read_text().startswith("# curlnav experiment report (small budget)")
