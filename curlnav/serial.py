@@ -118,10 +118,11 @@ class SerialTrainer:
             return None
         from curlnav.scheduler.curriculum import CurriculumState, load_curriculum
 
-        state = CurriculumState(load_curriculum(self.experiment.curriculum.file))
+        seed = self.experiment.seed
+        state = CurriculumState(load_curriculum(self.experiment.curriculum.file), seed=seed)
         saved = self.counters.get("curriculum")
         if saved:
-            state = CurriculumState.from_dict(state.curriculum, saved)
+            state = CurriculumState.from_dict(state.curriculum, saved, seed=seed)
         return state
 
     def _curriculum_excluded(self) -> set:

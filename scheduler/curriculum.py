@@ -257,7 +257,8 @@ class CurriculumState:
     replays: int = 0  # assignments given to earlier tasks (``replay_earlier``)
     progress: dict = field(default_factory=dict)  # "world/pair" -> [fast, slow, episodes] (learning progress)
     _next_world: int = 0
-    rng: Any = None  # numpy Generator for ``replay_earlier`` draws (made on first use)
+    rng: Any = None  # numpy Generator for ``replay_earlier`` and learning-progress draws (made on first use)
+    seed: int = 0  # the experiment's seed: runs of different seeds draw differently
 
     @property
     def current(self) -> Stage:
@@ -280,7 +281,7 @@ class CurriculumState:
         if self.rng is None:
             import numpy as np
 
-            self.rng = np.random.default_rng(self.episodes)
+            self.rng = np.random.default_rng([self.seed, self.episodes])
         return self.rng
 
     def assign(self) -> tuple[str, str]:
@@ -400,8 +401,8 @@ class CurriculumState:
                 "progress": self.progress}
 
     @staticmethod
-    def from_dict(curriculum: Curriculum, d: dict) -> "CurriculumState":
-        state = CurriculumState(curriculum)
+    def from_dict(curriculum: Curriculum, d: dict, seed: int = 0) -> "CurriculumState":
+        state = CurriculumState(curriculum, seed=seed)
         stage = int(d.get("stage", 0))
         if not 0 <= stage < len(curriculum.stages):
             raise CurriculumError(f"saved stage {stage} does not exist in curriculum {curriculum.name!r}")

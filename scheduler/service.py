@@ -221,9 +221,10 @@ class SchedulerService:
         if state_path.exists():
             saved = json.loads(state_path.read_text())
             if saved.get("curriculum") == curriculum.name:
-                state = CurriculumState.from_dict(curriculum, saved["state"])
+                state = CurriculumState.from_dict(curriculum, saved["state"], seed=experiment.seed)
                 log.info("resumed curriculum %s at stage %s", curriculum.name, state.current.name)
-        self.core = SchedulerCore(curriculum, state, extra_worlds=(experiment.curriculum.world,))
+        self.core = SchedulerCore(curriculum, state or CurriculumState(curriculum, seed=experiment.seed),
+                                  extra_worlds=(experiment.curriculum.world,))
         self.saved_episodes = self.core.state.episodes
         self.stop = threading.Event()
 

@@ -53,6 +53,16 @@ def test_replay_earlier_sends_its_share_back_to_earlier_tasks_and_they_never_fil
     assert restored.replays == state.replays > 0
 
 
+def test_replay_draws_follow_the_experiment_seed(tmp_path):
+    def draws(seed: int) -> list:
+        state = CurriculumState(_state(tmp_path, REPLAY).curriculum, seed=seed)
+        state.advance()
+        return [state.assign() for _ in range(200)]
+
+    assert draws(0) == draws(0), "the same seed draws the same replays"
+    assert draws(0) != draws(1), "two seeds of an ablation must not share their replay draws"
+
+
 LP = """
 name: lp
 stages:
