@@ -283,6 +283,11 @@ def _markdown(rows: list[dict], runs: list[RunResult], headline: str) -> str:
     for condition, group in by_condition.items():
         means = [sum(r.final(t)[0] for r in group) / len(group) for t in targets]
         lines.append(f"| {condition} | {len(group)} | " + " | ".join(_fmt(m) for m in means) + " |")
+    lines += ["", "Environment steps until held-out success first reached 50 %, per target:", "",
+              "| condition | seed | " + " | ".join(targets) + " |", "|" + "---|" * (len(targets) + 2)]
+    for r in runs:
+        lines.append(f"| {r.condition} | {r.seed} | " + " | ".join(_fmt(r.first_reaching(t, 0.5)) for t in targets)
+                     + " |")
     lines += ["", "Success: greedy policy, collisions counted and the trial goes on (the evaluation protocol); base "
               "collisions/trial counts control steps in contact with a wall. Figure: ablation.png."]
     return "\n".join(lines) + "\n"
