@@ -313,7 +313,7 @@ def _plot(path: Path, runs: list[RunResult], targets: list[str]) -> None:
             if group:
                 grid = sorted({s for r in group for s, _, _ in r.curves[target]})
                 mean = [sum(_at(r.curves[target], s) for r in group) / len(group) for s in grid]
-                ax.plot(grid, mean, color=colours[condition], lw=2.0, label=f"{condition} ({len(group)} seeds)")
+                ax.plot(grid, mean, color=colours[condition], lw=2.0, label=f"{condition} ({len(group)} seed{'s' if len(group) > 1 else ''})")
         ax.set_title(f"held-out success: {target}")
         ax.set_xlabel("environment steps")
         ax.set_ylim(-0.03, 1.03)
