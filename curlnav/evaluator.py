@@ -118,6 +118,18 @@ def headline_key(curriculum) -> tuple[str, str] | None:
     return Path(world).stem, pair or HELD_OUT
 
 
+def best_rank(curriculum, rows: list[dict]) -> tuple[float, float]:
+    """How ``policy-best`` orders evaluations (serial and distributed): success on the headline
+    target, then mean success over the rows. An evaluation without the headline target ranks
+    below every one with it; without a curriculum the single row is the headline."""
+    mean = sum(float(r["success_rate"]) for r in rows) / len(rows)
+    headline = headline_key(curriculum)
+    if headline is None:
+        return (mean, mean)
+    head = [float(r["success_rate"]) for r in rows if (r["world"], r["pair"]) == headline]
+    return (head[0] if head else -1.0, mean)
+
+
 class BesideEvaluator:
     """The evaluation loop's parts: ``evaluate(policy, targets)`` -> eval.csv rows."""
 
@@ -181,11 +193,7 @@ class BesideEvaluator:
             log_file.close()
         success = sum(r["success_rate"] for r in rows) / len(rows)
         headline = headline_key(self.curriculum)
-        if headline is None:
-            rank = (success, success)
-        else:  # an evaluation without the headline target ranks below every one with it
-            head = [r["success_rate"] for r in rows if (r["world"], r["pair"]) == headline]
-            rank = (head[0] if head else -1.0, success)
+        rank = best_rank(self.curriculum, rows)
         if self.best is None or rank > self.best:
             self.best = rank
             copy_policy(artefact, self.run_dir / "policy-best",

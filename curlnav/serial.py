@@ -213,7 +213,7 @@ class SerialTrainer:
     def _evaluate_curriculum(self, start: float) -> EvalResult:
         """The current stage's targets and the fixed ``evaluate`` targets, one eval.csv row each;
         returns the last fixed target's result (policy-best and ``stop_at_success`` use it)."""
-        from curlnav.evaluator import BesideEvaluator
+        from curlnav.evaluator import BesideEvaluator, best_rank
 
         if self._evaluator is None:
             self._evaluator = BesideEvaluator(self.run_dir, self.experiment, self.curriculum.curriculum)
@@ -240,8 +240,7 @@ class SerialTrainer:
                    "per_target": {f"{r['world']}/{r['pair']}": r["success_rate"] for r in rows}}
         self.counters["evals"].append(strict_json(summary))
         self.board.scalars({"eval/success_rate": result.success_rate}, self.counters["env_steps"])
-        mean = sum(r["success_rate"] for r in rows) / len(rows)
-        rank = [result.success_rate, mean]
+        rank = list(best_rank(self.curriculum.curriculum, rows))
         best = self.counters.get("best_rank")
         if best is None or rank > best:
             self.counters["best_rank"] = rank

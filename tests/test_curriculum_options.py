@@ -193,7 +193,8 @@ def test_stopping_ablation_run_with_sigterm_stops_its_training_runs_in_order_and
     import signal
     import subprocess
     import sys
-    import time
+
+    from test_service import wait_for
 
     direct = tmp_path / "direct.yaml"
     direct.write_text("name: direct\nstages: [{worlds: [door-corridor], substeps: [through-door]}]\n")
@@ -204,10 +205,9 @@ def test_stopping_ablation_run_with_sigterm_stops_its_training_runs_in_order_and
     ablation = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     run = out / "direct-s0"
     try:
-        deadline = time.monotonic() + 300
-        while not ((run / "metrics.csv").exists() and len((run / "metrics.csv").read_text().splitlines()) >= 2):
-            assert ablation.poll() is None and time.monotonic() < deadline, "the training run never reported"
-            time.sleep(0.5)
+        wait_for("the training run's first metrics row", lambda: ablation.poll() is not None or (
+            (run / "metrics.csv").exists() and len((run / "metrics.csv").read_text().splitlines()) >= 2), timeout=300)
+        assert ablation.poll() is None, "ablation run exited before its training run reported"
         ablation.send_signal(signal.SIGTERM)
         output, _ = ablation.communicate(timeout=180)
     finally:
