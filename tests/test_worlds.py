@@ -158,6 +158,22 @@ def test_t_maze_has_rooms_doors_gates_balls_and_ordered_curriculum_pairs():
     assert distances == sorted(distances)
 
 
+def test_t_maze_last_step_is_four_rooms_with_a_turn_not_a_straight_run():
+    """p4 is the hardest step, as in the authors' T: a wall stands on the straight line from its
+    start to its goal (the robot must turn), while p1 runs straight through one door."""
+    w = generate("t-maze", seed=0)
+
+    def wall_on_straight_line(pair) -> bool:
+        for t in np.linspace(0.0, 1.0, 400):
+            if w.occupancy[w.cell_of(pair.x + t * (pair.gx - pair.x), pair.y + t * (pair.gy - pair.y))]:
+                return True
+        return False
+
+    assert wall_on_straight_line(w.pair("p4")) and not wall_on_straight_line(w.pair("p1"))
+    p4 = w.pair("p4")
+    assert p4.y < 3.0 < p4.gy and p4.gx > 9.75, "p4 starts in the stem room and ends in the far bar room R3"
+
+
 def test_barn_parameter_grid_gives_metric_ranges_like_the_benchmark():
     values, lengths = barn_parameter_grid(per_setting=3)
     med = np.median(values, axis=0)
