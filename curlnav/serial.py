@@ -38,7 +38,8 @@ from curlnav.config import ExperimentConfig
 from curlnav.evaluate import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy
 from curlnav.learner.d4pg import TensorBatch, act, load_checkpoint, save_checkpoint, sgd_step
-from curlnav.record import EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, now_iso, strict_json
+from curlnav.record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, now_iso, read_csv,
+                            strict_json)
 from curlnav.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
 
 
@@ -68,6 +69,7 @@ class SerialTrainer:
         self.builder = builder = D4PGBuilder(experiment)
         self.evaluation = EvaluationProtocol(experiment)
         self.counters = {"env_steps": 0, "episodes": 0, "elapsed_s": 0.0, "evals": []}
+        self._last_evaluation_number: int | None = None  # see _next_evaluation_number
         ckpt, replay_path = self.ckpt_dir / "latest.safetensors", self.ckpt_dir / "replay.npz"
         if resume and ckpt.exists():
             self.state, extra = load_checkpoint(ckpt)
@@ -180,13 +182,24 @@ class SerialTrainer:
         if self.experiment.replay.prioritized:
             self.table.update_priorities(sample.keys, item_loss + 1e-6)
 
+    def _next_evaluation_number(self) -> int:
+        """The next evaluation's number in eval.csv. A resumed run continues after the highest
+        number already there: evaluations made after its last checkpoint stay in eval.csv (they
+        measured a policy that existed) and must not share a number with the ones that follow."""
+        if self._last_evaluation_number is None:
+            numbers = [int(r["evaluation"]) for r in read_csv(self.run_dir / "eval.csv")
+                       if str(r.get("evaluation", "")).isdigit()]
+            self._last_evaluation_number = max(numbers, default=0)
+        self._last_evaluation_number = max(self._last_evaluation_number, len(self.counters["evals"])) + 1
+        return self._last_evaluation_number
+
     def evaluate(self, start: float) -> EvalResult:
         if self.curriculum is not None:
             return self._evaluate_curriculum(start)
         self.state.actor.eval()
         result = self.evaluation.run(lambda o: act(self.state.actor, o))
         self.state.actor.train()
-        row = {"evaluation": len(self.counters["evals"]) + 1, "wall_s": time.monotonic() - start,
+        row = {"evaluation": self._next_evaluation_number(), "wall_s": time.monotonic() - start,
                "env_steps": self.counters["env_steps"], "updates": self.state.steps,
                "policy_version": self.state.steps, "stage_index": 0, "stage": "train", "substep": 0,
                "world": Path(str(self.experiment.curriculum.world)).stem, "pair": "held-out", "rows": 1,
@@ -222,8 +235,7 @@ class SerialTrainer:
         self.state.actor.eval()
         rows = self._evaluator.evaluate(lambda o: act(self.state.actor, o), targets)
         self.state.actor.train()
-        number = len(self.counters["evals"]) + 1
-        head = {"evaluation": number, "wall_s": time.monotonic() - start, "env_steps": self.counters["env_steps"],
+        head = {"evaluation": self._next_evaluation_number(), "wall_s": time.monotonic() - start, "env_steps": self.counters["env_steps"],
                 "updates": self.state.steps, "policy_version": self.state.steps, "rows": len(rows)}
         for row in rows:
             self.eval_log.write({**head, **row})

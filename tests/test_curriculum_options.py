@@ -147,6 +147,11 @@ def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_res
     assert summary["curriculum"]["stage"] == "S2" and summary["curriculum"]["advances"][0]["env_steps"] <= 400
     selected = json.loads((run / "policy-best" / "selected.json").read_text())
     assert selected["target"] == "door-corridor/through-door"
+    # a run killed between an evaluation and its next checkpoint: eval.csv holds an evaluation the
+    # checkpoint does not know; the resumed run's evaluations must not reuse its number
+    after_checkpoint = {**rows[0], "evaluation": "2"}
+    with (run / "eval.csv").open("a", newline="") as f:
+        csv.DictWriter(f, fieldnames=list(rows[0])).writerow(after_checkpoint)
     result = subprocess.run(base + ["--max-env-steps", "500", "--resume"], capture_output=True, text=True, timeout=400)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "[curriculum] advanced" not in result.stdout, "a resumed run stays at its stage"
@@ -160,7 +165,8 @@ def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_res
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "no checkpoint at" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
     rows = list(csv.DictReader((run / "eval.csv").open()))
-    assert len(rows) == 2 and rows[-1]["stage"] == "S2"
+    assert len(rows) == 3 and rows[-1]["stage"] == "S2"
+    assert [r["evaluation"] for r in rows] == ["1", "2", "3"], "each evaluation keeps a number of its own"
 
 
 def test_ablation_run_trains_each_condition_skips_finished_runs_and_writes_the_report(tmp_path):
