@@ -33,7 +33,7 @@ from pathlib import Path
 from curlnav.config import ExperimentConfig, load_config
 from curlnav.evaluate import EvaluationProtocol, evaluate
 from curlnav.launch import die_with_launcher, http_json_or_none
-from curlnav.record import EVAL_FIELDS, CsvLog, copy_policy, read_csv
+from curlnav.record import EVAL_FIELDS, CsvLog, copy_policy, last_evaluation_number
 
 log = logging.getLogger("curlnav.evaluator")
 HELD_OUT = "held-out"
@@ -139,8 +139,7 @@ class BesideEvaluator:
         self.curriculum = curriculum
         self._held_out: dict[str, EvaluationProtocol] = {}
         self._named_envs: dict[str, object] = {}
-        rows = read_csv(run_dir / "eval.csv")
-        self.evaluations = max((int(r["evaluation"]) for r in rows if r.get("evaluation", "").isdigit()), default=0)
+        self.evaluations = last_evaluation_number(run_dir / "eval.csv")
         self.best = self._saved_best()
 
     def _saved_best(self) -> tuple | None:

@@ -105,6 +105,12 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def last_evaluation_number(eval_csv: Path) -> int:
+    """The highest ``evaluation`` number in an eval.csv (0 when there is none): a resumed run's
+    evaluations continue after it, whichever process writes them."""
+    return max((int(r["evaluation"]) for r in read_csv(eval_csv) if r.get("evaluation", "").isdigit()), default=0)
+
+
 class TensorBoardLog:
     """Scalars in TensorBoard event files under ``<run_dir>/tensorboard`` (step: environment
     steps). Without the ``tensorboard`` package it says so once and records nothing."""

@@ -38,8 +38,8 @@ from curlnav.config import ExperimentConfig
 from curlnav.evaluate import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy
 from curlnav.learner.d4pg import TensorBatch, act, load_checkpoint, save_checkpoint, sgd_step
-from curlnav.record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, now_iso, read_csv,
-                            strict_json)
+from curlnav.record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, last_evaluation_number,
+                            now_iso, strict_json)
 from curlnav.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
 
 
@@ -69,7 +69,8 @@ class SerialTrainer:
         self.builder = builder = D4PGBuilder(experiment)
         self.evaluation = EvaluationProtocol(experiment)
         self.counters = {"env_steps": 0, "episodes": 0, "elapsed_s": 0.0, "evals": []}
-        self._last_evaluation_number: int | None = None  # see _next_evaluation_number
+        # a resumed run's evaluations go on after the last in eval.csv, see _next_evaluation_number
+        self._last_evaluation_number = last_evaluation_number(self.run_dir / "eval.csv")
         ckpt, replay_path = self.ckpt_dir / "latest.safetensors", self.ckpt_dir / "replay.npz"
         if resume and ckpt.exists():
             self.state, extra = load_checkpoint(ckpt)
@@ -186,10 +187,6 @@ class SerialTrainer:
         """The next evaluation's number in eval.csv. A resumed run continues after the highest
         number already there: evaluations made after its last checkpoint stay in eval.csv (they
         measured a policy that existed) and must not share a number with the ones that follow."""
-        if self._last_evaluation_number is None:
-            numbers = [int(r["evaluation"]) for r in read_csv(self.run_dir / "eval.csv")
-                       if str(r.get("evaluation", "")).isdigit()]
-            self._last_evaluation_number = max(numbers, default=0)
         self._last_evaluation_number = max(self._last_evaluation_number, len(self.counters["evals"])) + 1
         return self._last_evaluation_number
 
