@@ -94,7 +94,10 @@ def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_res
     cmd = [sys.executable, "-m", "curlnav.cli", "train", "--world", "open-room", "--run-dir", str(run_dir),
            "--minutes", "20", "--eval-every-s", "15", "--eval-episodes", "3", *FAST]
     log = open(tmp_path / "launcher.log", "wb")
-    launcher = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT, start_new_session=True)
+    # as started from a terminal: SIGHUP at its default even when pytest itself runs under nohup (a launcher
+    # that inherits an ignored hang-up keeps ignoring it, by design)
+    launcher = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
     pids: set[int] = set()
     try:
         info = wait_for("run.json", lambda: (run_dir / "run.json").exists() and json.loads(
