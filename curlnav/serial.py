@@ -167,7 +167,7 @@ class SerialTrainer:
             self.recent.append((end.success, end.episode_return, int(end.info["base_collisions"])))
             if self.curriculum is not None:
                 world, pair, epoch = self.task
-                if self.curriculum.record(world, pair, end.success, epoch):
+                if self.curriculum.record(world, pair, end.success, epoch, int(end.info["steps"])):
                     self._note_advance()
             self._begin()
         return end

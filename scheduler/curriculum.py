@@ -28,6 +28,10 @@ Options beyond the paper (each one off unless the file sets it):
 - ``replay_earlier: 0.2`` (per stage): that share of assignments goes back to a task of an
   earlier stage or sub-step (drawn uniformly among them), to keep what was learnt there.
   Replayed episodes are counted per world but never fill the current step's window.
+- ``max_env_steps: 250000`` (in ``advance`` or ``substep_advance``): the step also ends after its
+  episodes used that many environment steps, whichever comes first. The paper's C1 (70 % of the
+  last 100 *training* episodes) may never hold: exploration noise, and episodes that end at the
+  first collision, keep training success in barn under 70 % for 250k steps and more.
 - ``evaluate: [{world: t-maze-0.yaml, pairs: [p1, p2, p3, p4]}]`` (top level): the fixed
   targets every held-out evaluation covers besides the current stage, so that conditions of an
   ablation are measured on the same tasks. Default: the last stage's worlds and sub-steps.
@@ -58,12 +62,15 @@ class CurriculumError(ValueError):
 class Criterion:
     """``success_rate`` (``compare``: ">=" or ">") over the last ``window`` episodes; with
     ``source: evaluation``, over a held-out evaluation of the step's targets (greedy policy, at least
-    ``window`` episodes in all) instead of the noisy training episodes."""
+    ``window`` episodes in all) instead of the noisy training episodes. With ``max_env_steps``
+    (an option beyond the paper), the step also ends once its episodes have used that many
+    environment steps, whichever comes first: a stage that always ends."""
 
     success_rate: float
     window: int
     compare: str = ">="
     source: str = "training"  # or "evaluation"
+    max_env_steps: int = 0  # environment steps of the step's episodes after which it ends anyway; 0: no limit
 
     def met_by(self, rate: float) -> bool:
         return rate >= self.success_rate if self.compare == ">=" else rate > self.success_rate
@@ -107,7 +114,7 @@ class Curriculum:
     def to_dict(self) -> dict:
         def crit(c):
             return None if c is None else {"success_rate": c.success_rate, "window": c.window, "compare": c.compare,
-                                           "source": c.source}
+                                           "source": c.source, "max_env_steps": c.max_env_steps}
 
         return {"name": self.name,  # criteria: see _criterion
                 "stages": [{"name": s.name, "worlds": list(s.worlds), "advance": crit(s.advance),
@@ -119,8 +126,9 @@ class Curriculum:
 def _criterion(path: Path, where: str, raw: Any) -> Criterion | None:
     if raw is None:
         return None
-    if not isinstance(raw, dict) or set(raw) - {"success_rate", "window", "compare", "source"}:
-        raise CurriculumError(f"{path}: {where} must be a mapping of success_rate, window, compare, source")
+    if not isinstance(raw, dict) or set(raw) - {"success_rate", "window", "compare", "source", "max_env_steps"}:
+        raise CurriculumError(f"{path}: {where} must be a mapping of success_rate, window, compare, source, "
+                              f"max_env_steps")
     try:
         rate = float(raw["success_rate"])
         window = int(raw["window"])
@@ -132,7 +140,11 @@ def _criterion(path: Path, where: str, raw: Any) -> Criterion | None:
     source = raw.get("source", "training")
     if source not in ("training", "evaluation"):
         raise CurriculumError(f"{path}: {where}.source must be 'training' or 'evaluation', got {source!r}")
-    return Criterion(rate, window, compare, source)
+    budget = raw.get("max_env_steps", 0)
+    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 0:
+        raise CurriculumError(f"{path}: {where}.max_env_steps must be a whole number of environment steps >= 0 "
+                              f"(0: no limit), got {budget!r}")
+    return Criterion(rate, window, compare, source, budget)
 
 
 def load_curriculum(path: str | Path) -> Curriculum:
@@ -255,6 +267,7 @@ class CurriculumState:
     history: list = field(default_factory=list)  # advances: {epoch, stage, substep, episodes, reason}
     recent: deque = field(default_factory=lambda: deque(maxlen=100))  # last 100 outcomes, any epoch
     replays: int = 0  # assignments given to earlier tasks (``replay_earlier``)
+    step_env_steps: int = 0  # environment steps of episodes reported under the current epoch
     progress: dict = field(default_factory=dict)  # "world/pair" -> [fast, slow, episodes] (learning progress)
     _next_world: int = 0
     rng: Any = None  # numpy Generator for ``replay_earlier`` and learning-progress draws (made on first use)
@@ -340,8 +353,9 @@ class CurriculumState:
             return world in stage.worlds and pair == (stage.substeps[-1] if stage.substeps else "")
         return world in stage.worlds and pair == (stage.substeps[self.substep] if stage.substeps else "")
 
-    def record(self, world: str, pair: str, success: bool, epoch: int) -> bool:
-        """Count one episode; returns True if the curriculum advanced."""
+    def record(self, world: str, pair: str, success: bool, epoch: int, steps: int = 0) -> bool:
+        """Count one episode of ``steps`` environment steps; returns True if the curriculum
+        advanced."""
         self.episodes += 1
         self.recent.append(bool(success))
         key = f"{world}/{pair}"
@@ -351,9 +365,14 @@ class CurriculumState:
         if epoch == self.epoch and self.learning_progress and (world, pair) in self.stage_tasks():
             fast, slow, n = self.progress.get(key, [0.0, 0.0, 0])
             self.progress[key] = [fast + LP_FAST * (success - fast), slow + LP_SLOW * (success - slow), n + 1]
+        crit = self.criterion
+        if epoch == self.epoch:
+            self.step_env_steps += max(int(steps), 0)
+            if crit is not None and crit.max_env_steps and self.step_env_steps >= crit.max_env_steps:
+                return self.advance(f"{self.step_env_steps} environment steps, the step's budget of "
+                                    f"{crit.max_env_steps}")
         if epoch != self.epoch or not self.is_current(world, pair):
             return False  # started before the last advance, or a replay of an earlier task
-        crit = self.criterion
         if crit is None or crit.source == "evaluation":
             return False
         self.window.append(bool(success))
@@ -387,6 +406,7 @@ class CurriculumState:
             return False
         self.epoch += 1
         self.window.clear()
+        self.step_env_steps = 0
         self.history.append({"epoch": self.epoch, "stage": self.current.name, "substep": self.substep,
                              "episodes": self.episodes, "reason": reason})
         return True
@@ -398,7 +418,7 @@ class CurriculumState:
         return {"stage": self.stage, "substep": self.substep, "epoch": self.epoch, "episodes": self.episodes,
                 "window": [int(x) for x in self.window], "per_world": self.per_world, "history": self.history,
                 "next_world": self._next_world, "recent": [int(x) for x in self.recent], "replays": self.replays,
-                "progress": self.progress}
+                "progress": self.progress, "step_env_steps": self.step_env_steps}
 
     @staticmethod
     def from_dict(curriculum: Curriculum, d: dict, seed: int = 0) -> "CurriculumState":
@@ -414,5 +434,6 @@ class CurriculumState:
         state._next_world = int(d.get("next_world", 0))
         state.recent.extend(bool(x) for x in d.get("recent", []))
         state.replays = int(d.get("replays", 0))
+        state.step_env_steps = int(d.get("step_env_steps", 0))
         state.progress = {k: [float(v[0]), float(v[1]), int(v[2])] for k, v in d.get("progress", {}).items()}
         return state

@@ -118,7 +118,7 @@ class SchedulerCore:
             if learner_version is not None:
                 self.m_lag.labels(r.actor_id).set(learner_version - r.weights_version)
             self.recent_episodes.append((r.episode_return, r.base_collisions))
-            advanced = self.state.record(r.world, r.pair, r.success, r.assignment_epoch)
+            advanced = self.state.record(r.world, r.pair, r.success, r.assignment_epoch, r.steps)
             if advanced:
                 self.m_advances.inc()
             return advanced

@@ -274,3 +274,51 @@ stages:
     state.record("door-corridor", "p3", True, 0)
     assert state.record("door-corridor", "p3", True, 0)
     assert state.current.name == "B" and len(state.history) == 1
+
+
+def test_a_step_budget_ends_a_stage_whose_success_criterion_never_holds_and_survives_a_resume(tmp_path):
+    state = _state(tmp_path, """
+stages:
+  - name: S1
+    worlds: [open-room]
+    advance: {success_rate: 0.7, window: 100, max_env_steps: 1000}
+  - name: S2
+    worlds: [door-corridor]
+    substeps: [through-door, p2]
+    substep_advance: {success_rate: 0.5, window: 50, compare: ">", max_env_steps: 300}
+""")
+    assert not state.record("open-room", "", False, 0, steps=200)
+    assert not state.record("open-room", "", False, epoch=5, steps=5000), "another epoch's steps never count"
+    for _ in range(3):
+        assert not state.record("open-room", "", False, 0, steps=200)
+    restored = CurriculumState.from_dict(state.curriculum, json.loads(json.dumps(state.to_dict())))
+    assert restored.step_env_steps == 800
+    assert restored.record("open-room", "", False, 0, steps=200) and restored.current.name == "S2"
+    assert "1000 environment steps, the step's budget of 1000" in restored.history[-1]["reason"]
+    assert restored.step_env_steps == 0, "the next step's budget starts from zero"
+    # sub-steps: the budget of the sub-step criterion; the success criterion still ends one first
+    for _ in range(50):
+        restored.record("door-corridor", "through-door", True, restored.epoch, steps=1)
+    assert restored.substep == 1 and restored.step_env_steps == 0
+    # the last sub-step of the last stage has the stage's criterion (none): it never ends
+    assert not restored.record("door-corridor", "p2", False, restored.epoch, steps=299)
+    assert not restored.record("door-corridor", "p2", False, restored.epoch, steps=1)
+    assert state.curriculum.to_dict()["stages"][0]["advance"]["max_env_steps"] == 1000
+
+
+def test_the_shipped_budget_curriculum_is_the_papers_with_a_250k_step_cap_on_s1():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "scheduler" / "curricula"
+    budget, paper = load_curriculum(root / "s1+s2-budget.yaml"), load_curriculum(root / "s1+s2.yaml")
+    assert budget.stages[0].advance.max_env_steps == 250_000
+    assert budget.stages[0].advance.success_rate == paper.stages[0].advance.success_rate == 0.7
+    assert budget.stages[1] == paper.stages[1] and budget.evaluate == paper.evaluate
+
+
+@pytest.mark.parametrize("value", ["-5", "1.5", "many", "true"])
+def test_a_malformed_step_budget_is_refused_naming_the_field(tmp_path, value):
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"stages: [{{worlds: [open-room], advance: {{success_rate: 0.7, window: 10, max_env_steps: {value}}}}}]")
+    with pytest.raises(CurriculumError, match=r"stages\[0\].advance.max_env_steps must be a whole number"):
+        load_curriculum(path)
