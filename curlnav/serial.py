@@ -36,7 +36,7 @@ from curlnav.actor.loop import EpisodeEnd, EpisodeLoop
 from curlnav.builder import D4PGBuilder
 from curlnav.config import ExperimentConfig
 from curlnav.evaluate import EvalResult, EvaluationProtocol
-from curlnav.learner.artefact import export_policy
+from curlnav.learner.artefact import export_policy, training_worlds
 from curlnav.learner.d4pg import TensorBatch, act, load_checkpoint, save_checkpoint, sgd_step
 from curlnav.record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, last_evaluation_number,
                             now_iso, strict_json)
@@ -253,8 +253,10 @@ class SerialTrainer:
         best = self.counters.get("best_rank")
         if best is None or rank > best:
             self.counters["best_rank"] = rank
-            folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env,
-                                   worlds=sorted({t.world for t in targets}), env_steps=self.counters["env_steps"])
+            worlds, extra = training_worlds(str(self.experiment.curriculum.world), self.experiment.curriculum.file)
+            folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env, worlds=worlds,
+                                   extra=extra, curriculum_stage=self.curriculum.current.name,
+                                   env_steps=self.counters["env_steps"])
             (folder / "selected.json").write_text(json.dumps(strict_json(
                 {"why": f"best held-out success on {summary['target']} so far (then mean over the targets)",
                  "rank": rank, **summary}), indent=2))
@@ -290,8 +292,10 @@ class SerialTrainer:
         save_checkpoint(self.state, self.ckpt_dir / "latest.safetensors", extra={"counters": self.counters})
         if self.run_cfg.save_replay:
             self.table.save(self.ckpt_dir / "replay.npz")
-        export_policy(self.state, self.run_dir / "policy", self.experiment.env,
-                      worlds=[str(self.experiment.curriculum.world)], env_steps=self.counters["env_steps"])
+        worlds, extra = training_worlds(str(self.experiment.curriculum.world), self.experiment.curriculum.file)
+        export_policy(self.state, self.run_dir / "policy", self.experiment.env, worlds=worlds, extra=extra,
+                      curriculum_stage=self.curriculum.current.name if self.curriculum is not None else "none",
+                      env_steps=self.counters["env_steps"])
 
     def _begin(self) -> None:
         if self.curriculum is None:

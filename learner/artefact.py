@@ -41,6 +41,23 @@ def sha256_of(path: Path) -> str:
     return digest.hexdigest()
 
 
+def training_worlds(curriculum_world: str, curriculum_file: str = "") -> tuple[list[str], dict]:
+    """``(worlds, extra)`` for an artefact's ``training`` metadata: the curriculum's stage worlds
+    (file stems, in stage order) and ``{"curriculum": name}`` when a curriculum file drives the
+    run, else ``[curriculum_world]`` and nothing (``curriculum.world`` is only the actors'
+    fallback under a curriculum)."""
+    if not curriculum_file:
+        return [curriculum_world], {}
+    from curlnav.scheduler.curriculum import load_curriculum
+
+    try:
+        curriculum = load_curriculum(curriculum_file)
+    except (ValueError, OSError):  # not readable here (a container without it): name it, never fail an export
+        return [curriculum_world], {"curriculum": Path(curriculum_file).stem}
+    worlds = [Path(w).stem if w.endswith((".yaml", ".yml")) else w for s in curriculum.stages for w in s.worlds]
+    return list(dict.fromkeys(worlds)), {"curriculum": curriculum.name}
+
+
 def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, *, worlds: list[str],
                   curriculum_stage: str = "none", env_steps: int = 0, version: int | None = None,
                   extra: dict | None = None) -> Path:

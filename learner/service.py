@@ -32,7 +32,7 @@ from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, 
 from curlnav.service import Deployment, ServiceShell
 from curlnav.transport import RateMeter, json_response, reliable_publisher
 
-from .artefact import export_policy
+from .artefact import export_policy, training_worlds
 from .d4pg import TensorBatch, load_checkpoint, save_checkpoint, sgd_step
 
 log = logging.getLogger("curlnav.learner")
@@ -149,7 +149,8 @@ class LearnerService:
 
     def export(self) -> Path:
         folder = self.data_dir / "artefacts" / f"v{self.version}"
-        export_policy(self.state, folder, self.experiment.env, worlds=[self.experiment.curriculum.world],
+        worlds, extra = training_worlds(self.experiment.curriculum.world, self.experiment.curriculum.file)
+        export_policy(self.state, folder, self.experiment.env, worlds=worlds, extra=extra,
                       version=self.version, env_steps=self.env_steps)
         versions = sorted(self.artefact_versions())
         for old in versions[:-self.cfg.keep_artefacts]:

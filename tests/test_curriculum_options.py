@@ -147,6 +147,11 @@ def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_res
     assert summary["curriculum"]["stage"] == "S2" and summary["curriculum"]["advances"][0]["env_steps"] <= 400
     selected = json.loads((run / "policy-best" / "selected.json").read_text())
     assert selected["target"] == "door-corridor/through-door"
+    # the artefact names what it trained on: the curriculum's worlds and stage, not the fallback world
+    training = json.loads((run / "policy" / "metadata.json").read_text())["training"]
+    assert training["worlds"] == ["open-room", "door-corridor"] and training["curriculum"] == "tiny"
+    assert training["curriculum_stage"] == "S2"
+    assert json.loads((run / "policy-best" / "metadata.json").read_text())["training"]["worlds"] == training["worlds"]
     # a run killed between an evaluation and its next checkpoint: eval.csv holds an evaluation the
     # checkpoint does not know; the resumed run's evaluations must not reuse its number
     after_checkpoint = {**rows[0], "evaluation": "2"}
