@@ -82,6 +82,8 @@ class SerialTrainer:
             self.state = self._initial_state(builder)
             self.table = builder.make_replay_table()
         self.curriculum = self._load_curriculum()
+        # what artefacts name as their training (worlds, curriculum): fixed for the run, read once
+        self.artefact_training = training_worlds(str(experiment.curriculum.world), experiment.curriculum.file)
         excluded = set(self.evaluation.excluded) if self.curriculum is None else self._curriculum_excluded()
         env = builder.make_env(excluded_pairs=excluded)  # held out, as in every actor
         self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1, stream=self.counters["env_steps"])
@@ -253,7 +255,7 @@ class SerialTrainer:
         best = self.counters.get("best_rank")
         if best is None or rank > best:
             self.counters["best_rank"] = rank
-            worlds, extra = training_worlds(str(self.experiment.curriculum.world), self.experiment.curriculum.file)
+            worlds, extra = self.artefact_training
             folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env, worlds=worlds,
                                    extra=extra, curriculum_stage=self.curriculum.current.name,
                                    env_steps=self.counters["env_steps"])
@@ -292,7 +294,7 @@ class SerialTrainer:
         save_checkpoint(self.state, self.ckpt_dir / "latest.safetensors", extra={"counters": self.counters})
         if self.run_cfg.save_replay:
             self.table.save(self.ckpt_dir / "replay.npz")
-        worlds, extra = training_worlds(str(self.experiment.curriculum.world), self.experiment.curriculum.file)
+        worlds, extra = self.artefact_training
         export_policy(self.state, self.run_dir / "policy", self.experiment.env, worlds=worlds, extra=extra,
                       curriculum_stage=self.curriculum.current.name if self.curriculum is not None else "none",
                       env_steps=self.counters["env_steps"])

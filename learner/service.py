@@ -119,6 +119,8 @@ class LearnerService:
         self.pending_priorities: PriorityUpdate | None = None  # for the replay, when prioritized
         self.stop = threading.Event()
         self.started = time.monotonic()
+        # what artefacts name as their training (worlds, curriculum): fixed for the run, read once
+        self.artefact_training = training_worlds(self.experiment.curriculum.world, self.experiment.curriculum.file)
 
     # -- pure parts ----------------------------------------------------------------------------
     def learn_from(self, payload: bytes) -> dict[str, float]:
@@ -149,7 +151,7 @@ class LearnerService:
 
     def export(self) -> Path:
         folder = self.data_dir / "artefacts" / f"v{self.version}"
-        worlds, extra = training_worlds(self.experiment.curriculum.world, self.experiment.curriculum.file)
+        worlds, extra = self.artefact_training
         export_policy(self.state, folder, self.experiment.env, worlds=worlds, extra=extra,
                       version=self.version, env_steps=self.env_steps)
         versions = sorted(self.artefact_versions())

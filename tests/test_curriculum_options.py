@@ -327,3 +327,23 @@ def test_a_malformed_step_budget_is_refused_naming_the_field(tmp_path, value):
     path.write_text(f"stages: [{{worlds: [open-room], advance: {{success_rate: 0.7, window: 10, max_env_steps: {value}}}}}]")
     with pytest.raises(CurriculumError, match=r"stages\[0\].advance.max_env_steps must be a whole number"):
         load_curriculum(path)
+
+
+def test_the_distributed_learners_artefacts_name_the_curriculums_worlds_read_once_at_start(tmp_path):
+    """A user pulling a learner artefact sees what it was trained on: the curriculum's stage worlds
+    and its name, not the actors' fallback world. The file is read when the learner starts: an
+    artefact exported after the file went away still names it."""
+    from curlnav.ablation import CURRICULA
+    from curlnav.config import resolve_config
+    from curlnav.learner.service import LearnerService, LearnerServiceConfig
+    from curlnav.service import Deployment
+
+    curriculum = tmp_path / "budget.yaml"
+    curriculum.write_text((CURRICULA / "s1+s2-budget.yaml").read_text())
+    (tmp_path / "worlds").symlink_to(CURRICULA / "worlds")
+    service = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(tmp_path / "learner"))),
+                             resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8",
+                                                       f"curriculum.file={curriculum}"]))
+    curriculum.unlink()
+    training = json.loads((service.export() / "metadata.json").read_text())["training"]
+    assert training["worlds"] == ["barn-3x3-0", "t-maze-0"] and training["curriculum"] == "s1+s2-budget"
