@@ -158,9 +158,13 @@ class Comparison:
         episodes: list[Episode] = []
         for world in self.worlds:
             pairs = self.pairs[world.name]
-            env = NamoEnv(world, self.env_config)
-            try:
-                for label, agent in self.agents.items():
+            for label, agent in self.agents.items():
+                # A fresh environment per agent: PyBullet's solver keeps warm-start impulses across
+                # resets, so an agent run after another in the same environment would see physics
+                # perturbed (by about 1e-10 m, growing) by the other's episodes, and two agents
+                # with the same weights would score differently by their place in the list.
+                env = NamoEnv(world, self.env_config)
+                try:
                     for k in range(seeds):
                         base = EVAL_SEED + k * SEED_STRIDE
 
@@ -170,8 +174,8 @@ class Comparison:
                                 on_episode(episodes[-1])
 
                         evaluate(agent, world, pairs, self.env_config, seed=base, on_episode=record, env=env)
-            finally:
-                env.close()
+                finally:
+                    env.close()
         return episodes
 
     def _episode(self, agent: str, world: World, pair: StartGoal, seed: int, info: dict) -> Episode:
