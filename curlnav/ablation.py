@@ -234,8 +234,7 @@ def write_report(folder: Path, runs: list[RunResult] | None = None, headline: st
         raise AblationError(f"no curriculum runs (config.yaml + summary.json + eval.csv) under {folder}")
     targets = fixed_targets(runs[0].run_dir)
     headline = headline or targets[-1]
-    order = {c: i for i, c in enumerate(PAPER_CONDITIONS)}
-    runs.sort(key=lambda r: (order.get(r.condition, len(order)), r.condition, r.seed))
+    runs.sort(key=lambda r: (*_condition_rank(r.condition), r.condition, r.seed))
     _plot(folder / "ablation.png", runs, targets)
     rows = []
     for r in runs:
@@ -255,6 +254,17 @@ def write_report(folder: Path, runs: list[RunResult] | None = None, headline: st
         writer.writerows(rows)
     (folder / "ablation.md").write_text(_markdown(rows, runs, headline))
     return folder / "ablation.md"
+
+
+def _condition_rank(condition: str) -> tuple[int, int]:
+    """Report order: the paper's four conditions in the paper's order, each followed by its
+    variants (``s1+s2-budget`` after ``s1+s2``), then any other curriculum."""
+    for i, paper in enumerate(PAPER_CONDITIONS):
+        if condition == paper:
+            return i, 0
+        if condition.startswith(paper + "-"):
+            return i, 1
+    return len(PAPER_CONDITIONS), 0
 
 
 def _fmt(value) -> str:
