@@ -321,6 +321,18 @@ def test_the_shipped_budget_curriculum_is_the_papers_with_a_250k_step_cap_on_s1(
     assert budget.stages[1] == paper.stages[1] and budget.evaluate == paper.evaluate
 
 
+def test_the_budget_s1_only_differs_from_the_budget_s1_s2_only_in_its_sub_steps():
+    """The ablation's "S1 only" at equal budgets: same S1 (250k-step cap), same held-out targets,
+    then T-Maze p4 at once instead of p1..p4."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "scheduler" / "curricula"
+    s1_only, s1_s2 = load_curriculum(root / "s1-only-budget.yaml"), load_curriculum(root / "s1+s2-budget.yaml")
+    assert s1_only.stages[0] == s1_s2.stages[0] and s1_only.evaluate == s1_s2.evaluate
+    assert s1_only.stages[1].worlds == s1_s2.stages[1].worlds
+    assert list(s1_only.stages[1].substeps) == ["p4"] and list(s1_s2.stages[1].substeps) == ["p1", "p2", "p3", "p4"]
+
+
 @pytest.mark.parametrize("value", ["-5", "1.5", "many", "true"])
 def test_a_malformed_step_budget_is_refused_naming_the_field(tmp_path, value):
     path = tmp_path / "bad.yaml"
