@@ -37,7 +37,8 @@ from curlnav.builder import D4PGBuilder
 from curlnav.config import ExperimentConfig
 from curlnav.evaluate import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy, training_worlds
-from curlnav.learner.d4pg import TensorBatch, act, load_checkpoint, save_checkpoint, sgd_step
+from curlnav.learner.d4pg import (TensorBatch, act, adopt_training_config, load_checkpoint, network_differences,
+                                  save_checkpoint, sgd_step)
 from curlnav.record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, last_evaluation_number,
                             now_iso, strict_json)
 from curlnav.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
@@ -109,9 +110,13 @@ class SerialTrainer:
             raise ValueError(f"--init-from {source}: no checkpoint at {path} (give a serial run folder or its "
                              f"checkpoints/latest.safetensors)")
         state, _ = load_checkpoint(path)
-        if state.config != self.experiment.d4pg or state.layout != builder.layout:
-            raise ValueError(f"--init-from {source}: its networks differ from this experiment's (d4pg config or "
-                             f"observation layout); fine-tune with the same preset and environment")
+        differences = network_differences(state.config, self.experiment.d4pg)
+        if differences or state.layout != builder.layout:
+            what = "; ".join(differences) if differences else "the observation layout"
+            raise ValueError(f"--init-from {source}: its networks differ from this experiment's ({what}); "
+                             f"fine-tune with the same network settings and environment")
+        for change in adopt_training_config(state, self.experiment.d4pg):
+            print(f"fine-tuning with {change}")
         state.steps = 0
         self.counters["init_from"] = str(path)
         print(f"networks from {path} (fine-tuning: no random warm-up)")

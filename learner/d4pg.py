@@ -81,6 +81,33 @@ def init_state(config: D4PGConfig, layout: ObservationLayout, device: torch.devi
                      torch.optim.Adam(critic.parameters(), lr=config.critic_lr))
 
 
+# The D4PG fields that shape the networks' weights (encoder, widths, the return support): a
+# checkpoint's weights fit another config only if these agree. The others (n-step length,
+# discount, batch size, learning rates, target period, clipping, seed) are how it trains.
+NETWORK_FIELDS = ("encoder", "pool", "conv_filters", "hidden", "atoms", "v_min", "v_max")
+
+
+def network_differences(a: D4PGConfig, b: D4PGConfig) -> list[str]:
+    """The network-shaping fields where ``a`` and ``b`` differ, as ``field a vs b``."""
+    return [f"d4pg.{k} {getattr(a, k)!r} vs {getattr(b, k)!r}" for k in NETWORK_FIELDS if getattr(a, k) != getattr(b, k)]
+
+
+def adopt_training_config(state: D4PGState, config: D4PGConfig) -> list[str]:
+    """Continue ``state``'s networks and optimiser moments under ``config``'s training settings
+    (fine-tuning with another n-step length, batch size or learning rate). The networks must be
+    the same shape (``network_differences`` empty). Returns the training fields that changed."""
+    if network_differences(state.config, config):
+        raise ValueError("the networks differ: " + "; ".join(network_differences(state.config, config)))
+    changed = [f"d4pg.{k} {getattr(state.config, k)!r} -> {getattr(config, k)!r}"
+               for k in config.__dataclass_fields__ if k not in NETWORK_FIELDS + ("preset",)
+               and getattr(state.config, k) != getattr(config, k)]
+    for opt, lr in ((state.actor_opt, config.actor_lr), (state.critic_opt, config.critic_lr)):
+        for group in opt.param_groups:
+            group["lr"] = lr
+    state.config = config
+    return changed
+
+
 @dataclass
 class TensorBatch:
     obs: torch.Tensor

@@ -17,7 +17,8 @@ from curlnav.policy import ArtefactError, PolicyArtefact
 from curlnav.sim import EnvConfig
 from curlnav.learner.artefact import export_policy
 from curlnav.config import D4PGConfig, ExperimentConfig
-from curlnav.learner.d4pg import TensorBatch, act, categorical_projection, init_state, load_checkpoint, save_checkpoint, sgd_step
+from curlnav.learner.d4pg import (TensorBatch, act, adopt_training_config, categorical_projection, init_state, load_checkpoint,
+                                  save_checkpoint, sgd_step)
 
 LAYOUT = ObservationLayout()
 
@@ -113,6 +114,22 @@ def test_checkpoint_round_trip_restores_networks_and_optimisers(tmp_path, preset
     assert m1["losses/critic"] == pytest.approx(m2["losses/critic"], rel=1e-5)
     for a, b in zip(state.actor.parameters(), loaded.actor.parameters()):
         assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_fine_tuning_takes_another_n_step_and_learning_rate_but_refuses_other_networks():
+    """--init-from with d4pg.n_step=1 or another learning rate keeps the trained weights; another
+    network width is refused, naming the field."""
+    base = dataclasses.replace(ExperimentConfig.preset("default").d4pg, batch_size=8)
+    state = init_state(base, LAYOUT, "cpu")
+    weights = [p.clone() for p in state.actor.parameters()]
+    tuned = dataclasses.replace(base, n_step=1, actor_lr=3e-5)
+    changes = adopt_training_config(state, tuned)
+    assert state.config == tuned and sorted(changes) == ["d4pg.actor_lr 0.0001 -> 3e-05", "d4pg.n_step 5 -> 1"]
+    assert state.actor_opt.param_groups[0]["lr"] == 3e-5
+    assert all(torch.equal(a, b) for a, b in zip(weights, state.actor.parameters()))
+    sgd_step(state, random_batch(8))  # it trains under the new settings
+    with pytest.raises(ValueError, match=r"d4pg.hidden \(256, 256\) vs \(128,\)"):
+        adopt_training_config(state, dataclasses.replace(tuned, hidden=(128,)))
 
 
 def test_artefact_gives_the_same_actions_as_the_live_network(tmp_path):
