@@ -308,6 +308,7 @@ def _plot(path: Path, runs: list[RunResult], targets: list[str]) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     conditions = list(dict.fromkeys(r.condition for r in runs))
     colours = {c: plt.get_cmap("tab10")(i) for i, c in enumerate(conditions)}
@@ -326,6 +327,7 @@ def _plot(path: Path, runs: list[RunResult], targets: list[str]) -> None:
                 ax.plot(grid, mean, color=colours[condition], lw=2.0, label=f"{condition} ({len(group)} seed{'s' if len(group) > 1 else ''})")
         ax.set_title(f"held-out success: {target}")
         ax.set_xlabel("environment steps")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
         ax.set_ylim(-0.03, 1.03)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("success rate")

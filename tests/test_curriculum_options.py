@@ -333,6 +333,19 @@ def test_the_budget_s1_only_differs_from_the_budget_s1_s2_only_in_its_sub_steps(
     assert list(s1_only.stages[1].substeps) == ["p4"] and list(s1_s2.stages[1].substeps) == ["p1", "p2", "p3", "p4"]
 
 
+def test_the_budget_replay_curriculum_differs_from_the_budget_s1_s2_only_in_its_s2_replay_share():
+    """s1+s2-budget-replay trains S1 exactly as s1+s2-budget (so a run can fork from it at the
+    switch) and sends a fifth of S2's assignments back to earlier tasks."""
+    import dataclasses
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "scheduler" / "curricula"
+    replay, plain = load_curriculum(root / "s1+s2-budget-replay.yaml"), load_curriculum(root / "s1+s2-budget.yaml")
+    assert replay.stages[0] == plain.stages[0] and replay.evaluate == plain.evaluate
+    assert replay.stages[1].replay_earlier == 0.2 and plain.stages[1].replay_earlier == 0.0
+    assert dataclasses.replace(replay.stages[1], replay_earlier=0.0) == plain.stages[1]
+
+
 @pytest.mark.parametrize("value", ["-5", "1.5", "many", "true"])
 def test_a_malformed_step_budget_is_refused_naming_the_field(tmp_path, value):
     path = tmp_path / "bad.yaml"
