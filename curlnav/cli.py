@@ -443,7 +443,9 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--resume", action="store_true", help="continue the run folder's run (its saved config)")
     p.add_argument("--init-from", default=None, metavar="RUN_OR_CHECKPOINT",
                    help="--serial: start from the networks of a serial run (or checkpoint file) instead of fresh "
-                        "ones: two-stage fine-tuning, e.g. an easy world's run, then a hard world")
+                        "ones: two-stage fine-tuning, e.g. an easy world's run, then a hard world. Training "
+                        "settings (d4pg.n_step, batch_size, learning rates, replay, exploration) may differ; the "
+                        "network settings (encoder, widths, atoms, support) and observation layout must agree")
     from .experiment_cli import add_config_arguments, add_train_options
 
     add_train_options(p)

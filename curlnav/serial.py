@@ -111,8 +111,10 @@ class SerialTrainer:
                              f"checkpoints/latest.safetensors)")
         state, _ = load_checkpoint(path)
         differences = network_differences(state.config, self.experiment.d4pg)
-        if differences or state.layout != builder.layout:
-            what = "; ".join(differences) if differences else "the observation layout"
+        if state.layout != builder.layout:
+            differences.append("the observation layout")
+        if differences:
+            what = "; ".join(differences)
             raise ValueError(f"--init-from {source}: its networks differ from this experiment's ({what}); "
                              f"fine-tune with the same network settings and environment")
         for change in adopt_training_config(state, self.experiment.d4pg):

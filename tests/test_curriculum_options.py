@@ -162,10 +162,17 @@ def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_res
     assert "[curriculum] advanced" not in result.stdout, "a resumed run stays at its stage"
     assert json.loads((run / "summary.json").read_text())["curriculum"]["stage"] == "S2"
     # two-stage fine-tuning: a new run starts from this run's networks; a wrong source is one line, exit 2
+    # with another n-step length (a training setting); another width is refused, naming the field
     tuned = subprocess.run(base[:6] + [str(tmp_path / "tuned"), "--world", "door-corridor", "--init-from", str(run),
-                                       "--max-env-steps", "300"] + base[9:], capture_output=True, text=True, timeout=400)
+                                       "--max-env-steps", "300", "--set", "d4pg.n_step=1"] + base[9:],
+                           capture_output=True, text=True, timeout=400)
     assert tuned.returncode == 0, tuned.stderr[-2000:]
     assert f"networks from {run / 'checkpoints' / 'latest.safetensors'}" in tuned.stdout
+    assert "fine-tuning with d4pg.n_step 5 -> 1" in tuned.stdout
+    wider = subprocess.run(base[:6] + [str(tmp_path / "wider"), "--init-from", str(run), "--set", "d4pg.hidden=[64]"]
+                           + base[9:], capture_output=True, text=True, timeout=120)
+    assert wider.returncode == 2 and "d4pg.hidden (256, 256) vs (64,)" in wider.stderr, wider.stderr[-2000:]
+    assert len(wider.stderr.strip().splitlines()) == 1
     bad = subprocess.run(base[:6] + [str(tmp_path / "bad"), "--init-from", str(tmp_path / "nowhere")] + base[9:],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "no checkpoint at" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
@@ -341,6 +348,7 @@ def test_the_budget_replay_curriculum_differs_from_the_budget_s1_s2_only_in_its_
 
     root = Path(__file__).resolve().parents[1] / "scheduler" / "curricula"
     replay, plain = load_curriculum(root / "s1+s2-budget-replay.yaml"), load_curriculum(root / "s1+s2-budget.yaml")
+    assert len(replay.stages) == len(plain.stages) == 2
     assert replay.stages[0] == plain.stages[0] and replay.evaluate == plain.evaluate
     assert replay.stages[1].replay_earlier == 0.2 and plain.stages[1].replay_earlier == 0.0
     assert dataclasses.replace(replay.stages[1], replay_earlier=0.0) == plain.stages[1]

@@ -17,8 +17,8 @@ from curlnav.policy import ArtefactError, PolicyArtefact
 from curlnav.sim import EnvConfig
 from curlnav.learner.artefact import export_policy
 from curlnav.config import D4PGConfig, ExperimentConfig
-from curlnav.learner.d4pg import (TensorBatch, act, adopt_training_config, categorical_projection, init_state, load_checkpoint,
-                                  save_checkpoint, sgd_step)
+from curlnav.learner.d4pg import (NETWORK_FIELDS, TensorBatch, act, adopt_training_config, categorical_projection,
+                                  init_state, load_checkpoint, save_checkpoint, sgd_step)
 
 LAYOUT = ObservationLayout()
 
@@ -116,20 +116,57 @@ def test_checkpoint_round_trip_restores_networks_and_optimisers(tmp_path, preset
         assert torch.allclose(a, b, atol=1e-6)
 
 
-def test_fine_tuning_takes_another_n_step_and_learning_rate_but_refuses_other_networks():
-    """--init-from with d4pg.n_step=1 or another learning rate keeps the trained weights; another
-    network width is refused, naming the field."""
+def test_fine_tuning_takes_another_n_step_and_learning_rate_but_refuses_other_networks(tmp_path):
+    """--init-from with d4pg.n_step=1 and new learning rates continues a saved checkpoint's weights
+    and Adam moments under the new rates (which survive the next save and load); another network
+    width is refused, naming the field."""
     base = dataclasses.replace(ExperimentConfig.preset("default").d4pg, batch_size=8)
-    state = init_state(base, LAYOUT, "cpu")
+    trained = init_state(base, LAYOUT, "cpu")
+    sgd_step(trained, random_batch(8))
+    state, _ = load_checkpoint(save_checkpoint(trained, tmp_path / "a.safetensors"), "cpu")
     weights = [p.clone() for p in state.actor.parameters()]
-    tuned = dataclasses.replace(base, n_step=1, actor_lr=3e-5)
+    moments = [v["exp_avg"].clone() for v in state.critic_opt.state_dict()["state"].values()]
+    tuned = dataclasses.replace(base, n_step=1, actor_lr=3e-5, critic_lr=7e-5)
     changes = adopt_training_config(state, tuned)
-    assert state.config == tuned and sorted(changes) == ["d4pg.actor_lr 0.0001 -> 3e-05", "d4pg.n_step 5 -> 1"]
-    assert state.actor_opt.param_groups[0]["lr"] == 3e-5
+    assert state.config == tuned
+    assert sorted(changes) == ["d4pg.actor_lr 0.0001 -> 3e-05", "d4pg.critic_lr 0.0001 -> 7e-05", "d4pg.n_step 5 -> 1"]
     assert all(torch.equal(a, b) for a, b in zip(weights, state.actor.parameters()))
+    kept = [v["exp_avg"] for v in state.critic_opt.state_dict()["state"].values()]
+    assert moments and all(torch.equal(a, b) for a, b in zip(moments, kept)), "the Adam moments carry over"
     sgd_step(state, random_batch(8))  # it trains under the new settings
+    again, _ = load_checkpoint(save_checkpoint(state, tmp_path / "b.safetensors"), "cpu")
+    assert again.config.n_step == 1
+    assert [g["lr"] for g in again.actor_opt.param_groups] == [3e-5]
+    assert [g["lr"] for g in again.critic_opt.param_groups] == [7e-5]
     with pytest.raises(ValueError, match=r"d4pg.hidden \(256, 256\) vs \(128,\)"):
         adopt_training_config(state, dataclasses.replace(tuned, hidden=(128,)))
+
+
+def test_only_the_network_fields_change_the_networks_so_a_fine_tune_never_adopts_another_shape():
+    """adopt_training_config takes every D4PG field outside NETWORK_FIELDS from the new config; a
+    new field that shapes the networks but is missing from NETWORK_FIELDS would let a fine-tune
+    describe networks its weights do not have. Checked by building the networks: each training
+    field leaves every weight shape and the return support as they were, each network field changes
+    one of them."""
+    def networks(**change):
+        state = init_state(dataclasses.replace(D4PGConfig(), **change), LAYOUT, "cpu")
+        shapes = {k: tuple(v.shape) for net in (state.actor, state.critic) for k, v in net.state_dict().items()}
+        return shapes, state.critic.support.tolist()
+
+    training = {"n_step": 2, "discount": 0.9, "batch_size": 3, "actor_lr": 1e-3, "critic_lr": 1e-3,
+                "target_update_period": 7, "grad_clip_norm": 1.0, "seed": 5, "preset": "paper"}
+    shaping = {"encoder": {"encoder": "conv"}, "pool": {"pool": 8},
+               "conv_filters": {"encoder": "conv", "conv_filters": 8}, "hidden": {"hidden": (64,)},
+               "atoms": {"atoms": 11}, "v_min": {"v_min": -10.0}, "v_max": {"v_max": 100.0}}
+    assert set(D4PGConfig.__dataclass_fields__) == set(training) | set(NETWORK_FIELDS), \
+        "sort the new D4PGConfig field into learner.d4pg.NETWORK_FIELDS or this test's training fields"
+    assert set(shaping) == set(NETWORK_FIELDS)
+    reference = networks()
+    for field, value in training.items():
+        assert networks(**{field: value}) == reference, f"d4pg.{field} changes the networks"
+    conv = networks(encoder="conv")
+    for field, change in shaping.items():
+        assert networks(**change) != (conv if field == "conv_filters" else reference), f"d4pg.{field} shapes nothing"
 
 
 def test_artefact_gives_the_same_actions_as_the_live_network(tmp_path):
