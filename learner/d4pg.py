@@ -96,8 +96,9 @@ def adopt_training_config(state: D4PGState, config: D4PGConfig) -> list[str]:
     """Continue ``state``'s networks and optimiser moments under ``config``'s training settings
     (fine-tuning with another n-step length, batch size or learning rate). The networks must be
     the same shape (``network_differences`` empty). Returns the training fields that changed."""
-    if network_differences(state.config, config):
-        raise ValueError("the networks differ: " + "; ".join(network_differences(state.config, config)))
+    differences = network_differences(state.config, config)
+    if differences:
+        raise ValueError("the networks differ: " + "; ".join(differences))
     changed = [f"d4pg.{k} {getattr(state.config, k)!r} -> {getattr(config, k)!r}"
                for k in config.__dataclass_fields__ if k not in NETWORK_FIELDS + ("preset",)
                and getattr(state.config, k) != getattr(config, k)]
