@@ -7,12 +7,13 @@ who assigns the next world and pair.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
-
 from curlnav.replay import FrameBatch, NStepWriter
+
 from curlnav.sim import NamoEnv
 
 

@@ -20,14 +20,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.builder import D4PGBuilder
+from curlnav.bus.service import Deployment, ServiceShell
+from curlnav.bus.transport import RateMeter, reliable_publisher
 from curlnav.config import ConfigError, D4PGConfig, ExperimentConfig
-from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
-from curlnav.service import Deployment, ServiceShell
-from curlnav.transport import RateMeter, reliable_publisher
 
 from .loop import EpisodeLoop
 

@@ -66,14 +66,14 @@ class D4PGBuilder:
                                warmup_steps=exploration.warmup_share(actor_count),
                                rng=np.random.default_rng([self.config.seed, actor_index, stream]))
 
-    def make_env(self, world=None, excluded_pairs: "set | None" = None) -> NamoEnv:
+    def make_env(self, world=None, excluded_pairs: set | None = None) -> NamoEnv:
         """The training environment (episodes end at a base collision). On the experiment's own
         world, the evaluation protocol's held-out pairs are never drawn for training
         (``excluded_pairs``: those keys when the caller already has them, else drawn here)."""
         env = NamoEnv(world if world is not None else self.config.curriculum.world, self.config.env)
         if world is None or world == self.config.curriculum.world:
             if excluded_pairs is None:
-                from curlnav.evaluate import excluded_keys, held_out_pairs
+                from curlnav.evaluation.protocol import excluded_keys, held_out_pairs
 
                 excluded_pairs = excluded_keys(held_out_pairs(self.config.curriculum.world,
                                                               self.config.evaluation.episodes))

@@ -12,9 +12,9 @@ from pathlib import Path
 def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: str, gif: bool = False) -> int:
     """One episode of ``policy`` (observation -> action) in ``world``, drawn to a PNG in ``out``
     (and, with ``gif``, animated step by step in a GIF beside it)."""
-    from .animation import EpisodeRecorder
-    from .sim import NamoEnv
-    from .sim.render import save_env_picture
+    from curlnav.evaluation.animation import EpisodeRecorder
+    from curlnav.sim import NamoEnv
+    from curlnav.sim.render import save_env_picture
 
     env = NamoEnv(world, cfg)
     obs, info = env.reset(seed=seed, options={"pair": pair} if pair is not None else None)
@@ -47,8 +47,8 @@ def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: s
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
     """Drive the goal-seeking controller for one episode and draw it."""
-    from .sim import EnvConfig
-    from .sim.controllers import GoalSeekingController
+    from curlnav.sim import EnvConfig
+    from curlnav.sim.controllers import GoalSeekingController
 
     cfg = EnvConfig(max_episode_steps=args.steps, end_on_base_collision=False)
     return _drive_and_draw(GoalSeekingController(cfg).act, args.world, args.pair, args.seed, cfg, args.out, "rollout")
@@ -58,7 +58,7 @@ DEFAULT_BENCH_WORLDS = ("bench-36m", "barn-3x3:0", "slam-office:0")
 
 
 def _cmd_bench_env(args: argparse.Namespace) -> int:
-    from .sim.bench import run_env_bench
+    from curlnav.sim.bench import run_env_bench
 
     specs = args.world or list(DEFAULT_BENCH_WORLDS)
     run_env_bench(steps=args.steps, worlds=[_world_from_spec(spec) for spec in specs], pin=not args.no_pin)
@@ -66,13 +66,13 @@ def _cmd_bench_env(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .train import run_train
+    from curlnav.run.train import run_train
 
     return run_train(args)
 
 
 def _cmd_config_show(args: argparse.Namespace) -> int:
-    from .train import show_config
+    from curlnav.run.train import show_config
 
     return show_config(args)
 
@@ -86,7 +86,7 @@ def _load_policy(path: str):
     if not p.exists():
         raise ValueError(f"no policy at {path}: {POLICY_EXPECTED}")
     if p.is_dir() or p.name == "metadata.json":
-        from .policy import PolicyArtefact
+        from curlnav.policy import PolicyArtefact
 
         return PolicyArtefact(p if p.is_dir() else p.parent)
     return _checkpoint_policy(p)
@@ -115,10 +115,19 @@ def _checkpoint_policy(p: Path):
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    """Evaluate one or more agents (policies, ``planner``) side by side (``curlnav.compare``)."""
-    from .compare import OVERALL, Comparison, draw_trajectories, episode_pairs, make_agent, summarise, table, write_csv
-    from .config import ExperimentConfig
-    from .sim.pairs import check_pairs_possible
+    """Evaluate one or more agents (policies, ``planner``) side by side (``curlnav.evaluation.compare``)."""
+    from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.compare import (
+        OVERALL,
+        Comparison,
+        draw_trajectories,
+        episode_pairs,
+        make_agent,
+        summarise,
+        table,
+        write_csv,
+    )
+    from curlnav.sim.pairs import check_pairs_possible
 
     if args.seeds < 1:
         raise ValueError(f"--seeds must be at least 1, got {args.seeds}")
@@ -150,8 +159,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_policy_run(args: argparse.Namespace) -> int:
-    from .evaluate import evaluation_config
-    from .policy import PolicyArtefact
+    from curlnav.evaluation.protocol import evaluation_config
+    from curlnav.policy import PolicyArtefact
 
     policy = PolicyArtefact(args.artefact)
     return _drive_and_draw(policy, args.world, args.pair, args.seed, evaluation_config(), args.out,
@@ -167,8 +176,8 @@ def _cmd_bench_learner(args: argparse.Namespace) -> int:
 
 def _world_from_spec(spec: str):
     """A built-in name, a world YAML path, or FAMILY:SEED for a generated world."""
-    from .sim import get_world
-    from .worlds.generators import FAMILIES, generate
+    from curlnav.sim import get_world
+    from curlnav.worlds.generators import FAMILIES, generate
 
     family, sep, seed = spec.rpartition(":")
     if sep and family in FAMILIES and seed.isdigit():
@@ -187,8 +196,8 @@ def _parse_params(items: list[str]) -> dict:
 
 
 def _cmd_worlds_generate(args: argparse.Namespace) -> int:
-    from .sim import save_world
-    from .worlds.generators import generate
+    from curlnav.sim import save_world
+    from curlnav.worlds.generators import generate
 
     out = Path(args.out)
     for seed in range(args.seed, args.seed + args.count):
@@ -205,8 +214,8 @@ def _cmd_worlds_show(args: argparse.Namespace) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .sim.render import draw_world
-    from .worlds.rank import measure, measured_pairs, path_points, world_paths
+    from curlnav.sim.render import draw_world
+    from curlnav.worlds.rank import measure, measured_pairs, path_points, world_paths
 
     world = _world_from_spec(args.world)
     pairs = measured_pairs(world)
@@ -230,8 +239,8 @@ def _cmd_worlds_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_worlds_scatter_balls(args: argparse.Namespace) -> int:
-    from .sim import save_world
-    from .worlds.scatter import scatter_balls
+    from curlnav.sim import save_world
+    from curlnav.worlds.scatter import scatter_balls
 
     world = _world_from_spec(args.world)
     out = Path(args.out)
@@ -247,8 +256,8 @@ def _cmd_worlds_scatter_balls(args: argparse.Namespace) -> int:
 def _check_world(spec: str) -> None:
     """Fail fast, before any service or PyBullet scene starts: the world loads and, when it
     draws random pairs, a pair is possible (one-line ``WorldError`` otherwise)."""
-    from .sim import get_world
-    from .sim.pairs import check_pairs_possible
+    from curlnav.sim import get_world
+    from curlnav.sim.pairs import check_pairs_possible
 
     check_pairs_possible(get_world(spec))
 
@@ -256,7 +265,7 @@ def _check_world(spec: str) -> None:
 def _cmd_worlds_rank(args: argparse.Namespace) -> int:
     import time as _time
 
-    from .worlds.rank import rank, table, write_outputs
+    from curlnav.worlds.rank import rank, table, write_outputs
 
     worlds = [_world_from_spec(spec) for spec in args.worlds]
     t0 = _time.perf_counter()
@@ -269,14 +278,14 @@ def _cmd_worlds_rank(args: argparse.Namespace) -> int:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    from .launch import serve
+    from curlnav.run.launch import serve
 
     return serve(args)
 
 
 def _cmd_pull(args: argparse.Namespace) -> int:
-    from .policy import PolicyArtefact
-    from .pull import pull_policy, unreachable_reason
+    from curlnav.policy import PolicyArtefact
+    from curlnav.run.pull import pull_policy, unreachable_reason
 
     try:
         folder = pull_policy(args.source, args.out, args.version)
@@ -288,20 +297,20 @@ def _cmd_pull(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
-    from .status import run_status
+    from curlnav.run.status import run_status
 
     return run_status(args.target, raw_json=args.json)
 
 
 def _cmd_bench_transport(args: argparse.Namespace) -> int:
-    from .bench_transport import run_transport_bench
+    from curlnav.bench.transport import run_transport_bench
 
     run_transport_bench(publishers=args.publishers, batches=args.batches)
     return 0
 
 
 def _cmd_bench_faults(args: argparse.Namespace) -> int:
-    from .bench_faults import run_fault_bench
+    from curlnav.bench.faults import run_fault_bench
 
     rows = run_fault_bench(actors=args.actors, warm_s=args.warm_s, run_dir=args.run_dir)
     return 0 if all(r.get("lost", 0) == 0 and r.get("forward", True) and r.get("back_s") is not None
@@ -309,7 +318,7 @@ def _cmd_bench_faults(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_metrics(args: argparse.Namespace) -> int:
-    from .worlds.bench import run_metrics_bench
+    from curlnav.worlds.bench import run_metrics_bench
 
     run_metrics_bench(per_setting=args.per_setting)
     return 0
@@ -362,8 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_ablation_commands(sub) -> None:
-    """ablation run, ablation report (curlnav.ablation)."""
-    from .ablation import PAPER_CONDITIONS
+    """ablation run, ablation report (curlnav.evaluation.ablation)."""
+    from curlnav.evaluation.ablation import PAPER_CONDITIONS
 
     ablation = sub.add_parser("ablation", help="the curriculum ablation (the paper's Fig. 5): conditions x seeds "
                                                "at one env-step budget, serial runs, and their report")
@@ -384,7 +393,7 @@ def _add_ablation_commands(sub) -> None:
 
 
 def _add_experiment_command(sub) -> None:
-    from .experiment import BUDGETS
+    from curlnav.evaluation.experiment import BUDGETS
 
     p = sub.add_parser("experiment", help="the paper's evaluation with our numbers: Table I, Fig. 4, Fig. 5 and "
                                           "Table II in report.md (resumable)")
@@ -397,7 +406,7 @@ def _add_experiment_command(sub) -> None:
 
 
 def _cmd_experiment(args: argparse.Namespace) -> int:
-    from .experiment import BUDGETS, run_experiment, write_experiment_report
+    from curlnav.evaluation.experiment import BUDGETS, run_experiment, write_experiment_report
 
     out, budget = Path(args.out), BUDGETS[args.budget]
     if args.report_only:
@@ -415,7 +424,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def _cmd_ablation_run(args: argparse.Namespace) -> int:
-    from .ablation import plan_runs, run_all, write_report
+    from curlnav.evaluation.ablation import plan_runs, run_all, write_report
 
     out = Path(args.out)
     specs = plan_runs(out, args.conditions, args.seeds, args.max_env_steps,
@@ -426,7 +435,7 @@ def _cmd_ablation_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_ablation_report(args: argparse.Namespace) -> int:
-    from .ablation import write_report
+    from curlnav.evaluation.ablation import write_report
 
     print(f"report: {write_report(Path(args.folder))} (ablation.png, ablation.csv beside it)")
     return 0
@@ -446,7 +455,7 @@ def _add_training_commands(sub) -> None:
                         "ones: two-stage fine-tuning, e.g. an easy world's run, then a hard world. Training "
                         "settings (d4pg.n_step, batch_size, learning rates, replay, exploration) may differ; the "
                         "network settings (encoder, widths, atoms, support) and observation layout must agree")
-    from .experiment_cli import add_config_arguments, add_train_options
+    from curlnav.evaluation.experiment_cli import add_config_arguments, add_train_options
 
     add_train_options(p)
     add_config_arguments(p)
@@ -489,7 +498,7 @@ def _add_training_commands(sub) -> None:
     p.set_defaults(func=_cmd_policy_run)
 
     p = sub.add_parser("serve", help="run one service (the container entry point)")
-    from .launch import add_serve_arguments
+    from curlnav.run.launch import add_serve_arguments
 
     add_serve_arguments(p)
     p.set_defaults(func=_cmd_serve)
@@ -508,11 +517,11 @@ def _add_training_commands(sub) -> None:
 
 
 def _add_bus_commands(sub) -> None:
-    """bus credentials: the run's Zenoh users and access control (curlnav.bus_security)."""
-    from .launch import env_default
+    """bus credentials: the run's Zenoh users and access control (curlnav.bus.security)."""
+    from curlnav.run.launch import env_default
 
     def credentials(args: argparse.Namespace) -> int:
-        from .bus_security import acl_table, make_credentials
+        from curlnav.bus.security import acl_table, make_credentials
 
         done = make_credentials(args.out, args.run)
         print(f"bus credentials of run {args.run!r} in {args.out}: "
@@ -606,11 +615,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if getattr(args, "pair", None) is not None and str(args.pair).isdigit():
         args.pair = int(args.pair)
-    from .policy import ArtefactError
-    from .sim.world import WorldError
-    from .service import ConfigMismatch
-    from .transport import RouterUnreachable
-    from .worlds.metrics import MetricsError
+    from curlnav.bus.service import ConfigMismatch
+    from curlnav.bus.transport import RouterUnreachable
+    from curlnav.policy import ArtefactError
+    from curlnav.sim.world import WorldError
+    from curlnav.worlds.metrics import MetricsError
 
     try:
         return int(args.func(args) or 0)

@@ -89,7 +89,7 @@ class D4PGConfig:
         return config_to_dict(self)
 
     @staticmethod
-    def from_dict(data: dict) -> "D4PGConfig":
+    def from_dict(data: dict) -> D4PGConfig:
         """From ``to_dict`` output. Keys that older curlnav versions kept here (replay and
         exploration settings, now in their own sections) are ignored, so old checkpoints and
         weights messages still load."""
@@ -167,7 +167,7 @@ class CurriculumConfig:
 
 @dataclass(frozen=True)
 class EvaluationConfig:
-    """The held-out evaluation protocol (``curlnav.evaluate``): greedy policy, collisions
+    """The held-out evaluation protocol (``curlnav.evaluation.protocol``): greedy policy, collisions
     counted and the trial goes on, start/goal pairs never drawn in training."""
 
     every_s: float = 120.0  # s of training between evaluations
@@ -228,7 +228,7 @@ class ExperimentConfig:
                                    max_episode_steps=self.evaluation.max_episode_steps)
 
     @staticmethod
-    def preset(name: str) -> "ExperimentConfig":
+    def preset(name: str) -> ExperimentConfig:
         """A named preset (``PRESETS``)."""
         if name not in PRESETS:
             raise ConfigError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")

@@ -22,7 +22,7 @@ class ObservationLayout:
     max_range: float = 10.0  # m
 
     @staticmethod
-    def from_env_config(cfg) -> "ObservationLayout":
+    def from_env_config(cfg) -> ObservationLayout:
         return ObservationLayout(cfg.lidar_beams, cfg.range_frames, cfg.label_frames, cfg.goal_frames,
                                  cfg.lidar_max_range)
 

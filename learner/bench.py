@@ -9,9 +9,9 @@ import time
 
 import torch
 
+from curlnav.config import ExperimentConfig
 from curlnav.layout import ObservationLayout
 
-from curlnav.config import ExperimentConfig
 from .d4pg import TensorBatch, init_state, sgd_step
 
 

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from curlnav.config import D4PGConfig
 from curlnav.layout import ObservationLayout
 
-from curlnav.config import D4PGConfig
 from .networks import ACTION_HIGH, ACTION_LOW, Actor, DistributionalCritic, act  # noqa: F401  (act: re-exported)
 
 
@@ -119,7 +119,7 @@ class TensorBatch:
     weights: torch.Tensor | None = None  # importance weights for prioritised replay
 
     @staticmethod
-    def from_sample(sample, device: torch.device, weights: np.ndarray | None = None) -> "TensorBatch":
+    def from_sample(sample, device: torch.device, weights: np.ndarray | None = None) -> TensorBatch:
         def t(x):
             return torch.tensor(x, dtype=torch.float32, device=device)  # a copy: decoded arrays are read-only
 

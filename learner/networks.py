@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from safetensors.torch import load as safetensors_load
 from torch import nn
-import torch.nn.functional as F
-
-from curlnav.layout import ObservationLayout
 
 from curlnav.config import D4PGConfig
+from curlnav.layout import ObservationLayout
 
 # Action bounds of NamoEnv: v in [0, 1], w in [-1, 1], L in [0, 1].
 ACTION_LOW = (0.0, -1.0, 0.0)

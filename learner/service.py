@@ -22,15 +22,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, Weights
 from prometheus_client import CollectorRegistry, Counter, Gauge
 from safetensors.torch import save as safetensors_bytes
 
 from curlnav.builder import D4PGBuilder
+from curlnav.bus.service import Deployment, ServiceShell
+from curlnav.bus.transport import RateMeter, json_response, reliable_publisher
 from curlnav.config import ConfigError, ExperimentConfig, config_differences, config_to_dict
-from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, Weights
-from curlnav.service import Deployment, ServiceShell
-from curlnav.transport import RateMeter, json_response, reliable_publisher
 
 from .artefact import export_policy, training_worlds
 from .d4pg import TensorBatch, load_checkpoint, save_checkpoint, sgd_step
@@ -280,7 +280,7 @@ class LearnerService:
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
 
-    def _prefetch(self, session, key: str, ready: "queue.Queue[bytes]") -> None:
+    def _prefetch(self, session, key: str, ready: queue.Queue[bytes]) -> None:
         """Keep the next batches coming while the current one is learned from."""
         request = SampleRequest(self.experiment.d4pg.batch_size, timeout_s=0.5).encode()
         while not self.stop.is_set():

@@ -1,1 +1,4 @@
-"""curlnav proto: message schemas, msgpack codec, Zenoh key expressions (topology.py)."""
+"""curlnav proto: message schemas (`messages`), the msgpack codec (`codec`), frame layout (`frames`)
+and every Zenoh key expression of the run (`topology`). Imports nothing of the services."""
+
+__all__ = ["codec", "frames", "messages", "topology"]

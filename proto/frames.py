@@ -39,7 +39,7 @@ class FrameBatch:
         return len(self.obs_id)
 
     @staticmethod
-    def empty(beams: int, action_size: int = 3) -> "FrameBatch":
+    def empty(beams: int, action_size: int = 3) -> FrameBatch:
         return FrameBatch(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, beams), np.float16),
                           np.zeros((0, beams), np.uint8), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
                           np.zeros(0, np.int64), np.zeros((0, action_size), np.float32), np.zeros(0, np.float32),

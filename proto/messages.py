@@ -6,13 +6,13 @@ All carry ``kind`` and ``v`` (schema version, 1 for all today). Units: metres, s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 
-from .frames import FrameBatch
-
 from .codec import ProtoError, check_header, dumps, field, loads, pack_array, unpack_array
+from .frames import FrameBatch
 
 VERSION = 1
 MAX_BEAMS = 4096
@@ -41,7 +41,7 @@ class TransitionBatch:
                       **{name: pack_array(getattr(b, name)) for name in FRAME_FIELDS}})
 
     @staticmethod
-    def decode(data: bytes, beams: int | None = None) -> "TransitionBatch":
+    def decode(data: bytes, beams: int | None = None) -> TransitionBatch:
         obj = loads(data)
         kind = TransitionBatch.KIND
         check_header(obj, kind, VERSION)
@@ -91,7 +91,7 @@ class SampleRequest:
         return dumps({"kind": self.KIND, "v": VERSION, "batch_size": self.batch_size, "timeout_s": self.timeout_s})
 
     @staticmethod
-    def decode(data: bytes) -> "SampleRequest":
+    def decode(data: bytes) -> SampleRequest:
         obj = loads(data)
         check_header(obj, SampleRequest.KIND, VERSION)
         size = field(obj, "batch_size", int, SampleRequest.KIND)
@@ -123,7 +123,7 @@ class SampledBatch:
                                                                 "keys", "probabilities")}})
 
     @staticmethod
-    def decode(data: bytes) -> "SampledBatch":
+    def decode(data: bytes) -> SampledBatch:
         obj = loads(data)
         check_header(obj, SampledBatch.KIND, SampledBatch.VERSION)
         try:
@@ -150,7 +150,7 @@ class PriorityUpdate:
                       "priorities": pack_array(self.priorities)})
 
     @staticmethod
-    def decode(data: bytes) -> "PriorityUpdate":
+    def decode(data: bytes) -> PriorityUpdate:
         obj = loads(data)
         check_header(obj, PriorityUpdate.KIND, VERSION)
         try:
@@ -182,7 +182,7 @@ class RunConfig:
                       "config_hash": self.config_hash, "config_json": self.config_json})
 
     @staticmethod
-    def decode(data: bytes) -> "RunConfig":
+    def decode(data: bytes) -> RunConfig:
         obj = loads(data)
         check_header(obj, RunConfig.KIND, VERSION)
         return RunConfig(*(field(obj, name, str, RunConfig.KIND) for name in ("role", "instance", "config_hash",
@@ -205,7 +205,7 @@ class Weights:
                       "safetensors": self.safetensors, "d4pg_config": self.d4pg_config})
 
     @staticmethod
-    def decode(data: bytes) -> "Weights":
+    def decode(data: bytes) -> Weights:
         obj = loads(data)
         check_header(obj, Weights.KIND, VERSION)
         blob = field(obj, "safetensors", bytes, Weights.KIND)
@@ -253,7 +253,7 @@ class EpisodeReport:
         return _encode_flat(self)
 
     @staticmethod
-    def decode(data: bytes) -> "EpisodeReport":
+    def decode(data: bytes) -> EpisodeReport:
         return _decode_flat(EpisodeReport, data)
 
 
@@ -268,7 +268,7 @@ class AssignmentRequest:
         return dumps({"kind": self.KIND, "v": VERSION, "actor_id": self.actor_id})
 
     @staticmethod
-    def decode(data: bytes) -> "AssignmentRequest":
+    def decode(data: bytes) -> AssignmentRequest:
         obj = loads(data)
         check_header(obj, AssignmentRequest.KIND, VERSION)
         actor_id = field(obj, "actor_id", str, AssignmentRequest.KIND)
@@ -296,7 +296,7 @@ class Assignment:
         return _encode_flat(self)
 
     @staticmethod
-    def decode(data: bytes) -> "Assignment":
+    def decode(data: bytes) -> Assignment:
         return _decode_flat(Assignment, data)
 
 
@@ -312,7 +312,7 @@ class ServiceStatus:
         return dumps({"kind": self.KIND, "v": VERSION, "role": self.role, "values": self.values})
 
     @staticmethod
-    def decode(data: bytes) -> "ServiceStatus":
+    def decode(data: bytes) -> ServiceStatus:
         obj = loads(data)
         check_header(obj, ServiceStatus.KIND, VERSION)
         values = field(obj, "values", dict, ServiceStatus.KIND)

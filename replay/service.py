@@ -30,14 +30,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.builder import D4PGBuilder
+from curlnav.bus.service import Deployment, ServiceShell
+from curlnav.bus.transport import RateMeter
 from curlnav.config import ExperimentConfig
-from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
-from curlnav.service import Deployment, ServiceShell
-from curlnav.transport import RateMeter
 
 from .table import RateLimiterTimeout, ReplayInputError
 from .wal import SegmentLog

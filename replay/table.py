@@ -78,7 +78,7 @@ class SampleToInsertRatio:
         self.samples = 0
 
     @staticmethod
-    def unlimited(min_size_to_sample: int = 1) -> "SampleToInsertRatio":
+    def unlimited(min_size_to_sample: int = 1) -> SampleToInsertRatio:
         return SampleToInsertRatio(1.0, min_size_to_sample, 1e18)
 
     @property
@@ -421,7 +421,7 @@ class ReplayTable:
         return path
 
     @classmethod
-    def restore(cls, path: str | Path, rate_limiter: SampleToInsertRatio | None = None, seed: int = 0) -> "ReplayTable":
+    def restore(cls, path: str | Path, rate_limiter: SampleToInsertRatio | None = None, seed: int = 0) -> ReplayTable:
         """Load a table written by ``save`` (format version 2, or 1: the whole capacity) into a
         table of the saved capacity. The limiter is re-centred (see ``SampleToInsertRatio``)."""
         with np.load(Path(path), allow_pickle=False) as data:

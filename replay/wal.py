@@ -20,8 +20,8 @@ from __future__ import annotations
 import os
 import struct
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 HEADER = struct.Struct("<IIQ")  # payload length, crc32 of the payload, first transition index
 MAX_RECORD_BYTES = 64 * 1024 * 1024

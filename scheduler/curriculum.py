@@ -190,7 +190,8 @@ def load_curriculum(path: str | Path) -> Curriculum:
         if sampler == "learning-progress" and len(substeps) * len(worlds) < 2:
             raise CurriculumError(f"{path}: {where}.sampler learning-progress needs at least two tasks "
                                   f"(worlds x substeps)")
-        stages.append(Stage(str(s.get("name", f"S{i + 1}")), tuple(worlds), _criterion(path, f"{where}.advance", s.get("advance")),
+        stages.append(Stage(str(s.get("name", f"S{i + 1}")), tuple(worlds),
+                            _criterion(path, f"{where}.advance", s.get("advance")),
                             tuple(substeps), _criterion(path, f"{where}.substep_advance", s.get("substep_advance")),
                             float(replay), sampler))
     return Curriculum(str(raw.get("name", path.stem)), tuple(stages), _evaluate_targets(path, raw.get("evaluate")))
@@ -421,7 +422,7 @@ class CurriculumState:
                 "progress": self.progress, "step_env_steps": self.step_env_steps}
 
     @staticmethod
-    def from_dict(curriculum: Curriculum, d: dict, seed: int = 0) -> "CurriculumState":
+    def from_dict(curriculum: Curriculum, d: dict, seed: int = 0) -> CurriculumState:
         state = CurriculumState(curriculum, seed=seed)
         stage = int(d.get("stage", 0))
         if not 0 <= stage < len(curriculum.stages):

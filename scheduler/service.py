@@ -23,13 +23,13 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
-from prometheus_client import CollectorRegistry, Counter, Gauge
-
-from curlnav.config import ExperimentConfig
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
-from curlnav.service import Deployment, ServiceShell
-from curlnav.transport import json_response
+from prometheus_client import CollectorRegistry, Counter, Gauge
+
+from curlnav.bus.service import Deployment, ServiceShell
+from curlnav.bus.transport import json_response
+from curlnav.config import ExperimentConfig
 
 from .curriculum import Curriculum, CurriculumState, load_curriculum
 

@@ -1,6 +1,6 @@
 """Fault injection on a running ``docker compose`` training (the Docker Python SDK): SIGKILL the
 replay, learner and scheduler containers in turn, start each again, and print what was lost
-(``curlnav.bench_faults.measure_kill``, through the scheduler's published /status).
+(``curlnav.bench.faults.measure_kill``, through the scheduler's published /status).
 
     python scripts/compose_faults.py --project curlnavsmoke --status http://127.0.0.1:18080/status
 
@@ -14,8 +14,7 @@ import sys
 import time
 
 import docker
-
-from curlnav.bench_faults import FaultTarget, measure_kill, print_rows
+from curlnav.bench.faults import FaultTarget, measure_kill, print_rows
 
 
 def container_of(client, project: str, service: str):

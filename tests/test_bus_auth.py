@@ -18,14 +18,24 @@ from pathlib import Path
 
 import pytest
 import zenoh
-
-from curlnav.bus_security import (ALLOWED, ROLES, BusCredentialsError, BusUser, access_control, allowed,
-                                  load_router, load_user, make_credentials, permissions)
-from curlnav.bench_faults import poll
-from curlnav.launch import free_port
 from curlnav.proto.messages import EpisodeReport, Weights
 from curlnav.proto.topology import Topology
-from curlnav.transport import RouterUnreachable, open_session
+
+from curlnav.bench.faults import poll
+from curlnav.bus.security import (
+    ALLOWED,
+    ROLES,
+    BusCredentialsError,
+    BusUser,
+    access_control,
+    allowed,
+    load_router,
+    load_user,
+    make_credentials,
+    permissions,
+)
+from curlnav.bus.transport import RouterUnreachable, open_session
+from curlnav.run.launch import free_port
 
 RUN = "authtest"
 TOPO = Topology(RUN)
@@ -74,7 +84,7 @@ def test_the_table_names_only_topology_keys_and_the_acl_is_default_deny():
              topo.weights_latest, topo.status(), topo.status("replay"), topo.status("learner"), topo.priorities,
              topo.alive("actor")}
     for role, rows in ALLOWED.items():
-        for message, key in rows:
+        for _message, key in rows:
             assert f"{topo.prefix}/{key}" in known, (role, key)
     acl = access_control("x")
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
@@ -274,7 +284,7 @@ def test_learner_credentials_cannot_forge_episodes_or_transitions(bus):
     replay.declare_subscriber(TOPO.transitions(), transitions)
     report = EpisodeReport("actor-0", "open-room", "across", True, 1.0, 0, 0, 10, 1, 0).encode()
     learner, actor = bus.session("learner"), bus.session("actor")
-    for i in range(20):
+    for _i in range(20):
         learner.put(TOPO.episodes("actor-0"), report + b"forged")
         learner.put(TOPO.transitions("actor-0"), b"forged")
     deliver_until(lambda p: actor.put(TOPO.episodes("actor-0"), p), report, episodes, "an actor's report")

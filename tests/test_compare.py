@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from curlnav.cli import main
-from curlnav.compare import Episode, summarise
+from curlnav.evaluation.compare import Episode, summarise
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig
 from curlnav.worlds.generators import FAMILIES, generate
@@ -23,9 +23,10 @@ PLANNER = "planner (TARE-L stand-in)"
 
 @pytest.fixture(scope="module")
 def untrained_policy(tmp_path_factory) -> Path:
-    from curlnav.config import D4PGConfig
     from curlnav.learner.artefact import export_policy
     from curlnav.learner.d4pg import init_state
+
+    from curlnav.config import D4PGConfig
 
     state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
     return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])
@@ -132,8 +133,8 @@ def test_an_agent_scores_the_same_whatever_its_place_in_the_eval_list():
     depend on which agents ran before it (PyBullet keeps solver warm-start state across resets, so
     a shared environment made the second copy drift; measured once: 93 % against 90 %)."""
     from curlnav.cli import _load_policy
-    from curlnav.compare import Comparison, episode_pairs, make_agent
     from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.compare import Comparison, episode_pairs, make_agent
     from curlnav.sim import get_world
 
     env_config = ExperimentConfig().eval_env

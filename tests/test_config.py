@@ -12,14 +12,22 @@ import time
 from pathlib import Path
 
 import pytest
-
-from curlnav.cli import build_parser, main
-from curlnav.config import (ConfigError, ExperimentConfig, PRESETS, config_hash, config_to_dict, load_config,
-                            resolve_config, service_config_hash)
-from curlnav.launch import build_service, free_port
 from curlnav.proto.messages import RunConfig
-from curlnav.serial import SerialRunConfig, SerialTrainer
-from curlnav.service import ConfigMismatch, check_agreement
+
+from curlnav.bus.service import ConfigMismatch, check_agreement
+from curlnav.cli import build_parser, main
+from curlnav.config import (
+    PRESETS,
+    ConfigError,
+    ExperimentConfig,
+    config_hash,
+    config_to_dict,
+    load_config,
+    resolve_config,
+    service_config_hash,
+)
+from curlnav.run.launch import build_service, free_port
+from curlnav.run.serial import SerialRunConfig, SerialTrainer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -183,14 +191,16 @@ def test_curlnav_and_proto_plus_install_and_import_side_by_side():
 # -- layering: imports point down only ------------------------------------------------------------
 LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.sim": 0, "curlnav.worlds": 0, "curlnav.proto": 0, "curlnav.layout": 0, "curlnav.config": 0,
-    "curlnav.transport": 0, "curlnav.bus_security": 0, "curlnav.policy": 0, "curlnav.record": 0,
+    "curlnav.bus": 0, "curlnav.bus.transport": 0, "curlnav.bus.security": 0, "curlnav.policy": 0,
+    "curlnav.run": 0, "curlnav.run.record": 0, "curlnav.evaluation": 0, "curlnav.bench": 0,
     "curlnav.replay": 1, "curlnav.learner": 1, "curlnav.scheduler": 1, "curlnav.actor": 1, "curlnav.builder": 1,
-    "curlnav.service": 1, "curlnav.evaluate": 1, "curlnav.baseline": 1,
-    "curlnav.cli": 2, "curlnav.launch": 2, "curlnav.train": 2, "curlnav.serial": 2, "curlnav.experiment_cli": 2,
-    "curlnav.bench_transport": 2, "curlnav.plots": 2, "curlnav.pull": 2, "curlnav.learner.bench": 2,
-    "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2, "curlnav.evaluator": 2, "curlnav.supervise": 2,
-    "curlnav.status": 2, "curlnav.animation": 2, "curlnav.bench_faults": 2, "curlnav.compare": 2,
-    "curlnav.ablation": 2, "curlnav.experiment": 2,
+    "curlnav.bus.service": 1, "curlnav.evaluation.protocol": 1, "curlnav.evaluation.baseline": 1,
+    "curlnav.cli": 2, "curlnav.run.launch": 2, "curlnav.run.train": 2, "curlnav.run.serial": 2,
+    "curlnav.run.pull": 2, "curlnav.run.evaluator": 2, "curlnav.run.supervise": 2, "curlnav.run.status": 2,
+    "curlnav.evaluation.experiment_cli": 2, "curlnav.evaluation.plots": 2, "curlnav.evaluation.animation": 2,
+    "curlnav.evaluation.compare": 2, "curlnav.evaluation.ablation": 2, "curlnav.evaluation.experiment": 2,
+    "curlnav.bench.transport": 2, "curlnav.bench.faults": 2,
+    "curlnav.learner.bench": 2, "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2,
 }
 FOLDERS = {"curlnav": "curlnav", "proto": "curlnav.proto", "replay": "curlnav.replay", "learner": "curlnav.learner",
            "actor": "curlnav.actor", "scheduler": "curlnav.scheduler"}
@@ -241,3 +251,41 @@ def test_imports_point_down_only():
                     and target != "curlnav.learner.networks":
                 upward.append(f"{module} imports learner internals ({target}), not the networks module")
     assert not upward, "\n".join(upward)
+
+
+def test_no_import_circle_between_modules():
+    """A circle (a imports b imports a, at import time or for type checking) makes a module
+    impossible to read or move alone; `sim/env.py` <-> `sim/render.py` was one."""
+    graph = {module: {t for t in imports_of(module, path, is_package)} for module, path, is_package in project_modules()}
+    graph = {m: {t for t in targets if t in graph and t != m} for m, targets in graph.items()}
+    state: dict[str, int] = {}
+    circles = []
+
+    def visit(module: str, stack: list[str]) -> None:
+        state[module] = 1
+        for target in sorted(graph[module]):
+            if state.get(target) == 1:
+                circles.append(" -> ".join(stack[stack.index(target):] + [target]))
+            elif target not in state:
+                visit(target, stack + [target])
+        state[module] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+    # a package's face importing its own submodules is not a circle a reader trips on
+    circles = [c for c in circles if not any(c.startswith(p + " ->") for p in graph if c.split(" -> ")[1].startswith(p + "."))]
+    assert not circles, "\n".join(circles)
+
+
+def test_curlnav_keeps_at_most_twelve_modules_at_its_top_level_and_packages_declare_all():
+    top = sorted(p.name for p in (ROOT / "curlnav").glob("*.py"))
+    assert len(top) <= 12, top
+    for folder in ["curlnav", *FOLDERS]:
+        for init in (ROOT / folder).rglob("__init__.py"):
+            tree = ast.parse(init.read_text())
+            names = {t.id for node in tree.body if isinstance(node, ast.Assign) for t in node.targets
+                     if isinstance(t, ast.Name)}
+            if init.parent == ROOT / "curlnav":
+                continue  # the namespace itself: a docstring and a version
+            assert "__all__" in names, f"{init.relative_to(ROOT)} declares no __all__"

@@ -11,14 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from curlnav.config import resolve_config
 from curlnav.replay.service import ReplayService, ReplayServiceConfig
 from curlnav.replay.wal import SegmentLog
-from curlnav.service import Deployment
 from test_proto_and_cores import a_batch
-from curlnav.launch import http_json_or_none
 from test_service import wait_for
+
+from curlnav.bus.service import Deployment
+from curlnav.config import resolve_config
+from curlnav.run.launch import http_json_or_none
 
 SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])
 
@@ -155,7 +155,7 @@ def test_kill_9_of_replay_learner_and_scheduler_loses_nothing_accepted(tmp_path)
     """A training cluster of real processes; each stateful service is killed with SIGKILL and
     started again: the replay holds every transition it had accepted, the learner's versions
     only go forward, the curriculum keeps its episodes."""
-    from curlnav.launch import LocalCluster
+    from curlnav.run.launch import LocalCluster
 
     experiment = resolve_config(overrides=["replay.min_size=200", "replay.samples_per_insert=8", "d4pg.batch_size=128",
                                            "exploration.warmup_steps=200"])

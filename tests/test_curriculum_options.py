@@ -8,7 +8,6 @@ import json
 from collections import Counter
 
 import pytest
-
 from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
 
 REPLAY = """
@@ -260,7 +259,7 @@ stages:
 
 def test_the_current_steps_rate_counts_only_its_own_rows_weighted_by_episodes(tmp_path):
     from curlnav.config import ExperimentConfig
-    from curlnav.evaluator import Target, current_step_rate, targets_for
+    from curlnav.run.evaluator import Target, current_step_rate, targets_for
 
     state = _state(tmp_path, REPLAY)
     state.advance()  # S2, sub-step through-door
@@ -366,10 +365,11 @@ def test_the_distributed_learners_artefacts_name_the_curriculums_worlds_read_onc
     """A user pulling a learner artefact sees what it was trained on: the curriculum's stage worlds
     and its name, not the actors' fallback world. The file is read when the learner starts: an
     artefact exported after the file went away still names it."""
-    from curlnav.ablation import CURRICULA
-    from curlnav.config import resolve_config
     from curlnav.learner.service import LearnerService, LearnerServiceConfig
-    from curlnav.service import Deployment
+
+    from curlnav.bus.service import Deployment
+    from curlnav.config import resolve_config
+    from curlnav.evaluation.ablation import CURRICULA
 
     curriculum = tmp_path / "budget.yaml"
     curriculum.write_text((CURRICULA / "s1+s2-budget.yaml").read_text())

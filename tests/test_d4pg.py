@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import subprocess
 import sys
@@ -11,14 +10,23 @@ import sys
 import numpy as np
 import pytest
 import torch
+from curlnav.learner.artefact import export_policy
+from curlnav.learner.d4pg import (
+    NETWORK_FIELDS,
+    TensorBatch,
+    act,
+    adopt_training_config,
+    categorical_projection,
+    init_state,
+    load_checkpoint,
+    save_checkpoint,
+    sgd_step,
+)
 
+from curlnav.config import D4PGConfig, ExperimentConfig
 from curlnav.layout import ObservationLayout
 from curlnav.policy import ArtefactError, PolicyArtefact
 from curlnav.sim import EnvConfig
-from curlnav.learner.artefact import export_policy
-from curlnav.config import D4PGConfig, ExperimentConfig
-from curlnav.learner.d4pg import (NETWORK_FIELDS, TensorBatch, act, adopt_training_config, categorical_projection,
-                                  init_state, load_checkpoint, save_checkpoint, sgd_step)
 
 LAYOUT = ObservationLayout()
 

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from curlnav.transport import HttpServer, Request, json_response
+from curlnav.bus.transport import HttpServer, Request, json_response
 
 
 def routes():
@@ -151,9 +151,10 @@ def test_beyond_max_threads_connections_wait_in_the_backlog_and_are_then_served(
 # -- the learner's artefacts -------------------------------------------------------------------------
 
 def test_the_learner_serves_no_artefact_through_a_symlink(tmp_path):
-    from curlnav.config import resolve_config
     from curlnav.learner.service import LearnerService, LearnerServiceConfig
-    from curlnav.service import Deployment
+
+    from curlnav.bus.service import Deployment
+    from curlnav.config import resolve_config
 
     service = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(tmp_path / "learner"))),
                              resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"]))
@@ -201,8 +202,8 @@ def test_the_learner_serves_no_artefact_through_a_symlink(tmp_path):
 def test_local_services_bind_http_to_the_loopback_and_containers_to_all_interfaces(tmp_path, monkeypatch):
     import argparse
 
-    from curlnav.launch import LocalCluster, add_serve_arguments
-    from curlnav.service import Deployment
+    from curlnav.bus.service import Deployment
+    from curlnav.run.launch import LocalCluster, add_serve_arguments
 
     monkeypatch.delenv("CURLNAV_HTTP_HOST", raising=False)
     parser = argparse.ArgumentParser()

@@ -7,18 +7,25 @@ import json
 import msgpack
 import numpy as np
 import pytest
-
-from curlnav.layout import ObservationLayout
 from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import (Assignment, AssignmentRequest, EpisodeReport, SampleRequest, ServiceStatus, TransitionBatch,
-                            Weights)
+from curlnav.proto.messages import (
+    Assignment,
+    AssignmentRequest,
+    EpisodeReport,
+    SampleRequest,
+    ServiceStatus,
+    TransitionBatch,
+    Weights,
+)
 from curlnav.proto.topology import Topology
 from curlnav.replay.nstep import NStepWriter
-from curlnav.config import resolve_config
 from curlnav.replay.service import ReplayService, ReplayServiceConfig
-from curlnav.service import Deployment
 from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
 from curlnav.scheduler.service import SchedulerCore
+
+from curlnav.bus.service import Deployment
+from curlnav.config import resolve_config
+from curlnav.layout import ObservationLayout
 
 LAYOUT = ObservationLayout()
 
@@ -115,7 +122,7 @@ def test_curriculum_advances_on_its_criteria(tmp_path):
     path.write_text(CURRICULUM)
     state = CurriculumState(load_curriculum(path))
     assert state.assign() == ("open-room", "")
-    for i in range(9):
+    for _i in range(9):
         assert not state.record("open-room", "", True, epoch=0)
     assert state.record("open-room", "", False, epoch=0)  # 9/10 >= 70 %
     assert state.current.name == "S2" and state.epoch == 1 and state.assign() == ("door-corridor", "through-door")

@@ -13,10 +13,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_service import wait_for
 
 from curlnav.cli import main
-from curlnav.launch import http_json
-from test_service import wait_for
+from curlnav.run.launch import http_json
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = ["--set", "replay.min_size=200", "--set", "d4pg.batch_size=128", "--set", "replay.samples_per_insert=8",
@@ -203,9 +203,10 @@ def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_res
 def test_a_service_that_refuses_its_config_stops_the_run_with_a_nonzero_exit(tmp_path):
     """The learner finds a checkpoint of another network: it exits 2, the run stops (exit 1)
     and the reason is on the console, instead of restarting it forever."""
+    from curlnav.learner.d4pg import save_checkpoint
+
     from curlnav.builder import D4PGBuilder
     from curlnav.config import resolve_config
-    from curlnav.learner.d4pg import save_checkpoint
 
     run_dir = tmp_path / "run"
     other = resolve_config(overrides=["d4pg.hidden=[64, 64]"])
@@ -259,13 +260,14 @@ def test_serial_run_stops_on_sigterm_with_exit_130_and_resumes_with_curves_and_p
 
 # -- evaluation beside a curriculum ----------------------------------------------------------------
 def test_the_evaluator_follows_the_curriculum_evaluates_the_fixed_targets_and_keeps_the_best_on_the_headline(tmp_path):
+    from curlnav.learner.artefact import export_policy
+    from curlnav.scheduler.curriculum import load_curriculum
+
     from curlnav.builder import D4PGBuilder
     from curlnav.config import resolve_config
-    from curlnav.evaluator import BesideEvaluator, evaluation_plan, targets_for
-    from curlnav.learner.artefact import export_policy
     from curlnav.policy import PolicyArtefact
-    from curlnav.record import read_csv
-    from curlnav.scheduler.curriculum import load_curriculum
+    from curlnav.run.evaluator import BesideEvaluator, evaluation_plan, targets_for
+    from curlnav.run.record import read_csv
 
     file = ROOT / "scheduler" / "curricula" / "s1+s2.yaml"
     experiment = resolve_config(overrides=[f"curriculum.file={file}", "evaluation.episodes=8",
@@ -308,8 +310,8 @@ def test_the_evaluator_follows_the_curriculum_evaluates_the_fixed_targets_and_ke
 
 def test_an_evaluation_cut_short_does_not_hold_back_the_ones_after_it(tmp_path):
     from curlnav.config import resolve_config
-    from curlnav.record import EVAL_FIELDS, CsvLog, TensorBoardLog
-    from curlnav.supervise import DistributedRun
+    from curlnav.run.record import EVAL_FIELDS, CsvLog, TensorBoardLog
+    from curlnav.run.supervise import DistributedRun
 
     run = DistributedRun(tmp_path / "run", resolve_config(overrides=["evaluation.stop_at_success=0.8"]), actors=1)
     rows = CsvLog(run.run_dir / "eval.csv", EVAL_FIELDS)

@@ -9,11 +9,11 @@ import urllib.error
 import urllib.request
 
 import pytest
-
-from curlnav.config import resolve_config
-from curlnav.launch import LocalCluster, http_json
-from curlnav.transport import reliable_publisher
 from curlnav.proto.topology import Topology
+
+from curlnav.bus.transport import reliable_publisher
+from curlnav.config import resolve_config
+from curlnav.run.launch import LocalCluster, http_json
 
 CURRICULUM = """
 name: tiny

@@ -120,7 +120,7 @@ def test_reaching_the_goal_terminates_with_plus_200(make_env):
 def test_episode_is_truncated_at_the_step_limit(make_env):
     env = make_env(room_world(), max_episode_steps=5)
     env.reset(seed=0)
-    for i in range(5):
+    for _i in range(5):
         _, _, terminated, truncated, info = env.step([0.0, 0.0, 0.0])
     assert truncated and not terminated and not info["is_success"]
     # Standing still is "not moving" and "not heading toward the goal".

@@ -13,8 +13,19 @@ import pytest
 from curlnav.sim import StartGoal, World
 from curlnav.worlds.bench import barn_parameter_grid
 from curlnav.worlds.generators import FAMILIES, barn_cellular_automaton, cspace, generate
-from curlnav.worlds.metrics import (GridGraph, MetricMaps, MetricsError, barn_metrics, characteristic_dimension_map,
-                                    dispersion_map, distance_map, free_run_lengths, inflate, tortuosity, visibility_map)
+from curlnav.worlds.metrics import (
+    GridGraph,
+    MetricMaps,
+    MetricsError,
+    barn_metrics,
+    characteristic_dimension_map,
+    dispersion_map,
+    distance_map,
+    free_run_lengths,
+    inflate,
+    tortuosity,
+    visibility_map,
+)
 from curlnav.worlds.rank import measure, rank
 
 S2 = math.sqrt(2)

@@ -1,7 +1,7 @@
 """The PyBullet NAMO simulator: worlds, scene, environment, pictures."""
 
-from .config import ConfigError, EnvConfig, RewardConfig, RobotConfig
 from .builtin import BUILTIN_WORLDS, get_world
+from .config import ConfigError, EnvConfig, RewardConfig, RobotConfig
 from .env import NamoEnv
 from .world import Ball, Box, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world, save_world
 

@@ -87,7 +87,7 @@ def bare_pybullet_steps_per_second(world: World, cfg: EnvConfig, steps: int, ray
     return steps / elapsed
 
 
-def env_steps_per_second(world: "World | str", cfg: EnvConfig, steps: int, seed: int = 0) -> tuple[float, int]:
+def env_steps_per_second(world: World | str, cfg: EnvConfig, steps: int, seed: int = 0) -> tuple[float, int]:
     """Full ``NamoEnv.step`` (physics, contacts, LiDAR, reward, stacked observation), with a
     wandering action sequence, resets included. Returns (steps/s, episodes)."""
     env = NamoEnv(world, cfg)
@@ -132,12 +132,13 @@ def bench_world(world: World, cfg: EnvConfig, steps: int) -> EnvBenchResult:
     return result
 
 
-def run_env_bench(steps: int = 5000, worlds: "list[World] | None" = None, cfg: EnvConfig | None = None,
+def run_env_bench(steps: int = 5000, worlds: list[World] | None = None, cfg: EnvConfig | None = None,
                   pin: bool = True) -> list[EnvBenchResult]:
     """Benchmark each of ``worlds`` (default: bench-36m, barn-3x3-0 and slam-office-0)."""
     cfg = cfg or EnvConfig()
     if worlds is None:
         from curlnav.worlds.generators import generate
+
         from .builtin import get_world
 
         worlds = [get_world("bench-36m"), generate("barn-3x3", 0), generate("slam-office", 0)]

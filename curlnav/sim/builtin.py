@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -102,7 +102,7 @@ BUILTIN_WORLDS: dict[str, Callable[[], World]] = {
 _CACHE: dict[str, World] = {}
 
 
-def get_world(spec: "str | os.PathLike | World") -> World:
+def get_world(spec: str | os.PathLike | World) -> World:
     """A world from a built-in name, a path to a world YAML, or a ``World`` (returned as is).
 
     Raises ``WorldError`` naming the known built-ins when ``spec`` is neither.

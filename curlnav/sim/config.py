@@ -38,11 +38,11 @@ class RobotConfig:
     arm_speed: float = 1.0  # m/s, prismatic actuator speed limit
 
     @staticmethod
-    def husky() -> "RobotConfig":
+    def husky() -> RobotConfig:
         return RobotConfig()
 
     @staticmethod
-    def jackal() -> "RobotConfig":
+    def jackal() -> RobotConfig:
         return RobotConfig(base_length=0.51, base_width=0.43, base_height=0.25, base_mass=17.0,
                            max_linear_speed=0.5, max_angular_speed=1.57, arm_reach=0.3,
                            arm_length=0.3, drive_force=1000.0)
@@ -130,7 +130,7 @@ class EnvConfig:
         if self.lidar_fov > 2 * math.pi:
             raise ConfigError("lidar_fov must be at most 2 pi")
 
-    def replace(self, **changes: Any) -> "EnvConfig":
+    def replace(self, **changes: Any) -> EnvConfig:
         return dataclasses.replace(self, **changes)
 
 

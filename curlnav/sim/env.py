@@ -38,8 +38,8 @@ from scipy import ndimage
 
 from .builtin import get_world
 from .config import EnvConfig
-from .scene import Scene, connect
 from .pairs import PairSampler, check_pairs_possible, pair_key  # noqa: F401  (pair_key: public here too)
+from .scene import Scene, connect
 from .world import StartGoal, World
 
 
@@ -60,7 +60,7 @@ class NamoEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 5}
 
-    def __init__(self, world: "str | os.PathLike | World" = "open-room", config: EnvConfig | None = None,
+    def __init__(self, world: str | os.PathLike | World = "open-room", config: EnvConfig | None = None,
                  render_mode: str | None = None) -> None:
         super().__init__()
         self.config = config or EnvConfig()
@@ -97,7 +97,7 @@ class NamoEnv(gym.Env):
     def steps(self) -> int:
         return self._steps
 
-    def set_world(self, world: "str | os.PathLike | World") -> None:
+    def set_world(self, world: str | os.PathLike | World) -> None:
         """Switch worlds; the PyBullet scene is rebuilt on the next reset. The same world file
         named again (unchanged on disk) keeps the current world and scene."""
         key = _file_key(world)

@@ -30,6 +30,7 @@ import math
 import numba
 import numpy as np
 
+
 @numba.njit(cache=True)
 def _merge_rectangles(occ: np.ndarray) -> np.ndarray:
     work = occ.copy()

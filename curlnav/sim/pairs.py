@@ -100,7 +100,7 @@ class PairSampler:
             self._members[label] = np.argwhere(self.labels == label)
         return self._members[label]
 
-    def draw(self, rng: np.random.Generator, excluded: "set | frozenset" = frozenset(),
+    def draw(self, rng: np.random.Generator, excluded: set | frozenset = frozenset(),
              name: str = "random") -> StartGoal:
         """A seeded pair: start and goal on connected free C-space cells at least
         ``spec.min_distance`` apart, the footprint free at the start's yaw, not in ``excluded``

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 import os
-from typing import TYPE_CHECKING, Sequence
+from collections.abc import Sequence
+from typing import Any, Protocol
 
 import matplotlib
 
@@ -16,8 +17,18 @@ from matplotlib.transforms import Affine2D  # noqa: E402
 
 from .world import StartGoal, World  # noqa: E402
 
-if TYPE_CHECKING:
-    from .env import NamoEnv
+
+class DrawableEnv(Protocol):
+    """What a picture of a running environment reads (``NamoEnv`` has it all). A protocol, so this
+    module does not import the environment that imports it for ``render()``."""
+
+    scene: Any  # robot_pose(), ball_positions(), door_angles(), box_poses()
+    world: World
+    config: Any  # .robot (footprint), .goal_tolerance (m)
+    last_hits: Any  # (241, 2) LiDAR hit points in the map frame (m), or None before the first scan
+    last_labels: Any  # (241,) movable labels of those beams
+    trajectory: list  # [(x, y)] robot positions so far (m)
+    pair: StartGoal | None
 
 
 def draw_world(ax, world: World, pairs: Sequence[StartGoal] | None = None,
@@ -62,7 +73,7 @@ def _rotated_rect(cx: float, cy: float, length: float, width: float, yaw: float,
     return Polygon([(cx + c * dx - s * dy, cy + s * dx + c * dy) for dx, dy in corners], closed=True, **kw)
 
 
-def draw_env(ax, env: "NamoEnv", title: str | None = None) -> None:
+def draw_env(ax, env: DrawableEnv, title: str | None = None) -> None:
     """Draw the environment's current state: world, robot, LiDAR hits, trajectory, goal."""
     scene = env.scene
     draw_world(ax, env.world, ball_positions=scene.ball_positions(), door_angles=scene.door_angles(),
@@ -88,7 +99,7 @@ def draw_env(ax, env: "NamoEnv", title: str | None = None) -> None:
         ax.set_title(title, fontsize=9)
 
 
-def save_env_picture(env: "NamoEnv", path: str | os.PathLike, title: str | None = None) -> str:
+def save_env_picture(env: DrawableEnv, path: str | os.PathLike, title: str | None = None) -> str:
     """Write a PNG of the environment's current state; returns the path."""
     x0, y0, x1, y1 = env.world.bounds
     fig, ax = plt.subplots(figsize=(7, 7 * (y1 - y0) / max(x1 - x0, 1e-9) + 0.5), dpi=110)
@@ -99,7 +110,7 @@ def save_env_picture(env: "NamoEnv", path: str | os.PathLike, title: str | None 
     return os.fspath(path)
 
 
-def render_topdown_array(env: "NamoEnv") -> np.ndarray:
+def render_topdown_array(env: DrawableEnv) -> np.ndarray:
     """The environment's current state as an RGB array (H, W, 3), uint8."""
     fig, ax = plt.subplots(figsize=(5, 5), dpi=80)
     draw_env(ax, env)

@@ -278,13 +278,12 @@ class World:
                     return pair
         raise KeyError(f"world {self.name!r} has no pair {key!r}; it has {[p.name for p in self.pairs] or 'none'}")
 
-    def with_changes(self, **changes: Any) -> "World":
+    def with_changes(self, **changes: Any) -> World:
         return dataclasses.replace(self, **changes)
 
 
 # -- static geometry -----------------------------------------------------------------------
 from .geometry import merge_cells_into_rectangles  # noqa: E402,F401  (re-exported: part of the world API)
-
 
 # -- file format ---------------------------------------------------------------------------
 MAP_MODES = ("trinary", "scale", "raw")

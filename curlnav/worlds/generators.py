@@ -15,7 +15,7 @@ character of the paper's others: ``cave``, ``forest``, ``garage``, ``indoor``, `
 from __future__ import annotations
 
 import math
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy import ndimage
@@ -132,7 +132,7 @@ def barn(seed: int = 0, fill_pct: float = 0.25, smooth_iter: int = 3, max_tries:
         cs = inflate(grid, 2)
         labels, n = _flood_4(~cs)
         shared = sorted(set(labels[:, 0][labels[:, 0] > 0]) & set(labels[:, -1][labels[:, -1] > 0]),
-                        key=lambda l: -int((labels == l).sum()))
+                        key=lambda label: -int((labels == label).sum()))
         if not shared:
             continue
         region = shared[0]

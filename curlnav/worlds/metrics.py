@@ -144,7 +144,7 @@ class MetricMaps:
     characteristic_dimension: np.ndarray
 
     @staticmethod
-    def of(blocked: np.ndarray) -> "MetricMaps":
+    def of(blocked: np.ndarray) -> MetricMaps:
         blocked = np.asarray(blocked, dtype=bool)
         return MetricMaps(blocked, distance_map(blocked), visibility_map(blocked), dispersion_map(blocked),
                           characteristic_dimension_map(blocked))

@@ -176,7 +176,8 @@ def rank(worlds: list[World]) -> list[WorldDifficulty]:
 
 def table(rows: list[WorldDifficulty]) -> str:
     """A text table like the paper's Table I."""
-    head = f"{'world':<16} {'size (m)':>11} {'Dist':>6} {'Vis':>6} {'Disp':>6} {'CD':>6} {'Tor':>6} {'pairs':>5} {'difficulty':>10}  class"
+    head = (f"{'world':<16} {'size (m)':>11} {'Dist':>6} {'Vis':>6} {'Disp':>6} {'CD':>6} {'Tor':>6} "
+            f"{'pairs':>5} {'difficulty':>10}  class")
     lines = [head, "-" * len(head)]
     for d in rows:
         size = f"{d.width_m:.0f} x {d.height_m:.0f}"

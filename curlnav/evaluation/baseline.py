@@ -6,7 +6,8 @@ movable obstacles. That is a ROS/C++ stack; ``StaticMapPlanner`` is the honest s
 every table and picture calls it that (``PLANNER_LABEL``). It drives the same robot through the
 same ``NamoEnv`` interface, with the same action limits and the same observation:
 
-- **Global planner** (``GridPlanner``): A* on the world's static occupancy grid, 8-connected. A cell is free when its centre lies more than the robot's half-width (plus
+- **Global planner** (``GridPlanner``): A* on the world's static occupancy grid, 8-connected. A cell is free
+  when its centre lies more than the robot's half-width (plus
   ``clearance_margin_m``) from every obstacle cell (the inscribed radius, as a cost map's lethal
   layer: the circumscribed radius, 0.6 m for the Husky, would close the 1.1 m doorways); closer
   than ``inflation_m`` to a wall a step costs more (the inflation layer), so paths keep to the
@@ -22,7 +23,7 @@ same ``NamoEnv`` interface, with the same action limits and the same observation
 - The arm stays retracted (L = 0): TARE-L's robot has none.
 
 Use it like a policy: ``agent.reset(world, pair)`` at the start of an episode, then
-``agent.act(observation, info) -> action`` each step (``curlnav.evaluate.evaluate`` does both).
+``agent.act(observation, info) -> action`` each step (``curlnav.evaluation.protocol.evaluate`` does both).
 """
 
 from __future__ import annotations

@@ -7,16 +7,17 @@ It produces ``<out>/report.md`` with its figures and tables:
   environment steps). Finding 1: the metrics predict which worlds train from scratch.
 - **Fig. 4**: two-stage fine-tuning (the networks of the easy world's run, then the hard
   world) against training from scratch, on the hardest worlds, at equal steps. Finding 2.
-- **Fig. 5**: the curriculum ablation (``curlnav.ablation``): S1+S2, S1 only, S2 only, no
+- **Fig. 5**: the curriculum ablation (``curlnav.evaluation.ablation``): S1+S2, S1 only, S2 only, no
   curriculum, held-out success on T-Maze p1..p4. Finding 3: S1+S2 is the most sample-efficient.
 - **Table II**: the S1+S2 policy (and the no-curriculum one) against the classical planner (a
   stand-in for TARE's local planner, movable objects ignored) on unseen NAMO worlds with doors
-  and balls, never used in training (``curlnav.compare``).
+  and balls, never used in training (``curlnav.evaluation.compare``).
 
 Every run is a serial run (one core each, ``--parallel`` at once) in its own folder; the command
 skips what is done and resumes what was cut short, so Ctrl-C and running it again loses only
 minutes. ``--report-only`` regenerates the report from the saved runs without training.
-Budgets: ``smoke`` (a few minutes: checks the whole pipeline, no findings), ``small`` (sized for a 2-core machine, under 2 hours; reduced budgets, labelled as
+Budgets: ``smoke`` (a few minutes: checks the whole pipeline, no findings), ``small`` (sized for a 2-core
+machine, under 2 hours; reduced budgets, labelled as
 such in the report) and ``full`` (the step budgets the findings need; for a bigger machine,
 raise ``--parallel`` to its cores).
 """
@@ -29,9 +30,18 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from curlnav.record import read_csv
-from curlnav.ablation import (PAPER_CONDITIONS, RunResult, RunSpec, fixed_targets, load_run, plan_runs, run_all,
-                              say, write_report)
+from curlnav.evaluation.ablation import (
+    PAPER_CONDITIONS,
+    RunResult,
+    RunSpec,
+    fixed_targets,
+    load_run,
+    plan_runs,
+    run_all,
+    say,
+    write_report,
+)
+from curlnav.run.record import read_csv
 
 #: one world of each family for Table I (seed 0 of each)
 TABLE1_FAMILIES = ("barn-3x3", "forest", "cave", "garage", "indoor", "office", "auditorium", "campus")
@@ -184,8 +194,16 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
         cached = None
     if (folder / "summary.csv").exists() and cached == key:
         return folder  # the same policies were compared already
-    from curlnav.compare import Comparison, draw_trajectories, episode_pairs, make_agent, summarise, table, write_csv
     from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.compare import (
+        Comparison,
+        draw_trajectories,
+        episode_pairs,
+        make_agent,
+        summarise,
+        table,
+        write_csv,
+    )
     from curlnav.policy import PolicyArtefact
     from curlnav.sim import get_world
 

@@ -5,21 +5,22 @@ It follows the authors' protocol: a base collision is counted and the trial goes
 that has not reached the goal after ``evaluation.max_episode_steps`` (60 s) is a failure.
 Held-out pairs are drawn from their own seeds and excluded from training draws. The serial
 trainer and the launcher of the distributed run use ``EvaluationProtocol``; ``curlnav eval``
-(``curlnav.compare``) runs ``evaluate`` on the same held-out pairs, for policies and for the
+(``curlnav.evaluation.compare``) runs ``evaluate`` on the same held-out pairs, for policies and for the
 classical planner (an ``EpisodeAgent``) alike.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .sim import EnvConfig, NamoEnv, StartGoal, World, get_world
-from .sim.env import pair_key
-from .sim.pairs import draws_random_pairs
+from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World, get_world
+from curlnav.sim.env import pair_key
+from curlnav.sim.pairs import draws_random_pairs
 
 EVAL_SEED = 1_000_003  # seeds of held-out pairs live far from training seeds
 
@@ -42,13 +43,13 @@ class EvalResult:
 
 def evaluation_config(base: EnvConfig | None = None) -> EnvConfig:
     """The evaluation environment of the default experiment (or of ``base``'s robot and sensors)."""
-    from .config import ExperimentConfig
+    from curlnav.config import ExperimentConfig
 
     experiment = ExperimentConfig() if base is None else dataclasses.replace(ExperimentConfig(), env=base)
     return experiment.eval_env
 
 
-def held_out_pairs(world: "str | World", count: int = 50, seed: int = EVAL_SEED) -> list[StartGoal]:
+def held_out_pairs(world: str | World, count: int = 50, seed: int = EVAL_SEED) -> list[StartGoal]:
     """``count`` evaluation pairs: random draws (from their own seeds) for worlds that draw
     random pairs (``random_pairs`` set, or no pairs of their own), else the world's own pairs in
     turn."""
@@ -81,7 +82,7 @@ class EpisodeAgent(Protocol):
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray: ...
 
 
-def evaluate(policy: "Callable[[np.ndarray], np.ndarray] | EpisodeAgent", world: "str | World",
+def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: str | World,
              pairs: list[StartGoal], env_config: EnvConfig | None = None, seed: int = EVAL_SEED,
              on_episode: Callable[[int, dict], None] | None = None, env: NamoEnv | None = None) -> EvalResult:
     """Run ``policy`` (``obs -> action``, or an ``EpisodeAgent``) greedily once per pair (balls
@@ -125,7 +126,7 @@ class EvaluationProtocol:
     """Held-out evaluation of one experiment on one world (``ExperimentConfig.evaluation``):
     ``pairs`` (held out: give ``excluded`` to the training environments), ``run(policy)``."""
 
-    def __init__(self, experiment, world: "str | World | None" = None, episodes: int | None = None) -> None:
+    def __init__(self, experiment, world: str | World | None = None, episodes: int | None = None) -> None:
         self.world = world if world is not None else experiment.curriculum.world
         self.env_config = experiment.eval_env
         self.pairs = held_out_pairs(self.world, episodes or experiment.evaluation.episodes)

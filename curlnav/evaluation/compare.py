@@ -1,8 +1,8 @@
 """Compare agents on the same worlds, start/goal pairs and seeds: ``curlnav eval A B ...``.
 
 An agent is a policy (``obs -> action``: an artefact folder or a checkpoint) or the classical
-planner (``curlnav.baseline.StaticMapPlanner``, a stand-in for TARE's local planner). Every
-agent runs the evaluation protocol (``curlnav.evaluate.evaluate``: the evaluation environment,
+planner (``curlnav.evaluation.baseline.StaticMapPlanner``, a stand-in for TARE's local planner). Every
+agent runs the evaluation protocol (``curlnav.evaluation.protocol.evaluate``: the evaluation environment,
 collisions counted and the trial goes on, 60 s limit) on every world's pairs, once per seed
 (a seed places the balls of worlds that re-place them on reset; the same for every agent).
 
@@ -22,16 +22,16 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 
-from .baseline import GridPlanner, StaticMapPlanner, polyline_length
-from .evaluate import EVAL_SEED, evaluate, held_out_pairs
-from .sim import EnvConfig, NamoEnv, StartGoal, World
-from .sim.pairs import draws_random_pairs
+from curlnav.evaluation.baseline import GridPlanner, StaticMapPlanner, polyline_length
+from curlnav.evaluation.protocol import EVAL_SEED, evaluate, held_out_pairs
+from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
+from curlnav.sim.pairs import draws_random_pairs
 
 DEFAULT_EPISODES = 50  # held-out pairs per world when neither pairs nor episodes are given
 SEED_STRIDE = 100_000  # seed k's episodes place their balls from EVAL_SEED + k * SEED_STRIDE + i
@@ -168,7 +168,7 @@ class Comparison:
                     for k in range(seeds):
                         base = EVAL_SEED + k * SEED_STRIDE
 
-                        def record(i: int, info: dict, label=label, base=base) -> None:
+                        def record(i: int, info: dict, label=label, base=base, world=world, pairs=pairs) -> None:
                             episodes.append(self._episode(label, world, pairs[i], base + i, info))
                             if on_episode:
                                 on_episode(episodes[-1])
@@ -273,7 +273,7 @@ def draw_trajectories(episodes: list[Episode], worlds: list[World], out: str | P
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .sim.render import draw_world
+    from curlnav.sim.render import draw_world
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from .pull import http_get, unreachable_reason
+from curlnav.run.pull import http_get, unreachable_reason
 
 
 def newest_run(root: str | Path = "runs") -> Path:

@@ -34,15 +34,29 @@ import torch
 
 from curlnav.actor.loop import EpisodeEnd, EpisodeLoop
 from curlnav.builder import D4PGBuilder
+from curlnav.bus.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
 from curlnav.config import ExperimentConfig
-from curlnav.evaluate import EvalResult, EvaluationProtocol
+from curlnav.evaluation.protocol import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy, training_worlds
-from curlnav.learner.d4pg import (TensorBatch, act, adopt_training_config, load_checkpoint, network_differences,
-                                  save_checkpoint, sgd_step)
-from curlnav.record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, last_evaluation_number,
-                            now_iso, strict_json)
-from curlnav.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
-
+from curlnav.learner.d4pg import (
+    TensorBatch,
+    act,
+    adopt_training_config,
+    load_checkpoint,
+    network_differences,
+    save_checkpoint,
+    sgd_step,
+)
+from curlnav.run.record import (
+    EVAL_FIELDS,
+    TRAIN_FIELDS,
+    CsvLog,
+    RunSummary,
+    TensorBoardLog,
+    last_evaluation_number,
+    now_iso,
+    strict_json,
+)
 
 
 @dataclass(frozen=True)
@@ -139,7 +153,7 @@ class SerialTrainer:
 
     def _curriculum_excluded(self) -> set:
         """The held-out pairs of every curriculum world that draws random pairs."""
-        from curlnav.evaluate import excluded_keys, held_out_pairs
+        from curlnav.evaluation.protocol import excluded_keys, held_out_pairs
         from curlnav.sim import get_world
         from curlnav.sim.pairs import draws_random_pairs
 
@@ -154,7 +168,7 @@ class SerialTrainer:
     def _eval_targets(self):
         """The current stage's targets, then the fixed ``evaluate`` targets (the last one is the
         run's headline: policy-best and ``stop_at_success`` follow it)."""
-        from curlnav.evaluator import evaluation_plan
+        from curlnav.run.evaluator import evaluation_plan
 
         state = self.curriculum
         return evaluation_plan(self.experiment, state.curriculum, {"stage_index": state.stage, "substep": state.substep})
@@ -232,7 +246,7 @@ class SerialTrainer:
     def _evaluate_curriculum(self, start: float) -> EvalResult:
         """The current stage's targets and the fixed ``evaluate`` targets, one eval.csv row each;
         returns the last fixed target's result (policy-best and ``stop_at_success`` use it)."""
-        from curlnav.evaluator import BesideEvaluator, best_rank
+        from curlnav.run.evaluator import BesideEvaluator, best_rank
 
         if self._evaluator is None:
             self._evaluator = BesideEvaluator(self.run_dir, self.experiment, self.curriculum.curriculum)
@@ -241,7 +255,8 @@ class SerialTrainer:
         self.state.actor.eval()
         rows = self._evaluator.evaluate(lambda o: act(self.state.actor, o), targets)
         self.state.actor.train()
-        head = {"evaluation": self._next_evaluation_number(), "wall_s": time.monotonic() - start, "env_steps": self.counters["env_steps"],
+        head = {"evaluation": self._next_evaluation_number(), "wall_s": time.monotonic() - start,
+                "env_steps": self.counters["env_steps"],
                 "updates": self.state.steps, "policy_version": self.state.steps, "rows": len(rows)}
         for row in rows:
             self.eval_log.write({**head, **row})
@@ -277,7 +292,7 @@ class SerialTrainer:
 
     def _advance_on_evaluation(self, targets, rows: list[dict], epoch: int) -> None:
         """Give the current step's held-out rows to a criterion ``source: evaluation``."""
-        from curlnav.evaluator import current_step_rate
+        from curlnav.run.evaluator import current_step_rate
 
         step = current_step_rate(self.curriculum.curriculum, targets, rows)
         if step is not None and self.curriculum.record_evaluation(step[0], step[1], epoch):
@@ -323,7 +338,7 @@ class SerialTrainer:
         """Train until the budget, a held-out success target or Ctrl-C; returns the summary."""
         from tqdm import tqdm
 
-        from curlnav.plots import plot_learning_curve
+        from curlnav.evaluation.plots import plot_learning_curve
 
         experiment, budget = self.experiment, self.experiment.budget
         self.train_log = CsvLog(self.run_dir / "metrics.csv", TRAIN_FIELDS)
@@ -433,7 +448,8 @@ class SerialTrainer:
         if self.bar is not None:
             self.bar.n = min(int(now - start), int(budget_s))
             self.bar.set_postfix_str(f"steps {self.counters['env_steps']} ({sps:.0f}/s) updates {self.state.steps} "
-                                     f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%} {row['stage']}.{row['substep']} "
+                                     f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%} "
+                                     f"{row['stage']}.{row['substep']} "
                                      f"| {max(budget_s - (now - start), 0) / 60:.1f} min left")
 
 

@@ -21,8 +21,8 @@ import numpy as np
 
 
 def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: int) -> None:
+    from curlnav.bus.transport import open_session, reliable_publisher
     from curlnav.layout import ObservationLayout
-    from curlnav.transport import open_session, reliable_publisher
     from curlnav.proto.messages import TransitionBatch
     from curlnav.proto.topology import Topology
     from curlnav.replay.nstep import NStepWriter
@@ -43,15 +43,16 @@ def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: in
     session.close()
 
 
-def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64, run_dir: str = "runs/bench-transport") -> dict:
-    from curlnav.launch import free_port, http_json
-    from curlnav.transport import open_session, reliable_publisher
+def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64,
+                        run_dir: str = "runs/bench-transport") -> dict:
+    from curlnav.bus.transport import open_session, reliable_publisher
     from curlnav.config import D4PGConfig
+    from curlnav.layout import ObservationLayout
     from curlnav.learner.d4pg import init_state
     from curlnav.learner.service import weights_message
-    from curlnav.layout import ObservationLayout
     from curlnav.proto.messages import SampledBatch, SampleRequest, Weights
     from curlnav.proto.topology import Topology
+    from curlnav.run.launch import free_port, http_json
 
     run_dir = Path(run_dir)
     if run_dir.exists():
@@ -80,7 +81,7 @@ def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int 
         # each publisher's n-step writer (n = 5) holds its last 4 steps back: they never complete
         sent = publishers * (batches * per_batch - 4)
         print(f"{publishers} publisher processes x {batches} batches x {per_batch} steps = {sent:,} transitions")
-        pubs = [subprocess.Popen([sys.executable, "-m", "curlnav.bench_transport", router, run, f"pub-{i}", str(batches),
+        pubs = [subprocess.Popen([sys.executable, "-m", "curlnav.bench.transport", router, run, f"pub-{i}", str(batches),
                                   str(per_batch)]) for i in range(publishers)]
         sampled = [0]
         sample_stop = threading.Event()

@@ -1,6 +1,6 @@
 """``curlnav train`` (distributed, the default): the launcher that owns a run's services.
 
-It starts router, replay, learner, scheduler, the actors and the evaluator (``curlnav.evaluator``)
+It starts router, replay, learner, scheduler, the actors and the evaluator (``curlnav.run.evaluator``)
 as one process group (``LocalCluster``), then supervises them every half second, never blocked by
 anything else (the scheduler's status is polled in a thread, evaluations run in their own
 process):
@@ -10,7 +10,8 @@ process):
   saved state (checkpoint, replay log, curriculum state), each within a restart budget
   (``RESTART_BUDGET``); a service that exits 2 (it refused its configuration) or one past its
   budget stops the run with exit code 1 and the reason;
-- SIGINT, SIGTERM and SIGHUP stop every service in order (the learner checkpoints; the replay's log already holds everything accepted), exit 130;
+- SIGINT, SIGTERM and SIGHUP stop every service in order (the learner checkpoints; the replay's log already
+  holds everything accepted), exit 130;
 - the budget (``budget.minutes`` of the run, earlier sessions included, or ``budget.max_env_steps``
   transitions accepted by the replay) or the held-out target ends it with exit 0.
 
@@ -31,10 +32,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .launch import LocalCluster, http_json
-from .transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
-from .record import (EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, copy_policy, now_iso,
-                     read_csv)
+from curlnav.bus.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
+from curlnav.run.launch import LocalCluster, http_json
+from curlnav.run.record import EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, copy_policy, now_iso, read_csv
 
 #: restarts allowed per service name before the run stops (an actor, as RLlib restarts env runners)
 RESTART_BUDGET = {"actor": 5, "evaluator": 3, "router": 3, "replay": 3, "learner": 3, "scheduler": 3}
@@ -69,7 +69,7 @@ def wait_for_earlier_services(group: int | None, timeout_s: float = 60.0) -> Non
     """The services of a launcher that was killed get SIGTERM and may take a few seconds to save
     and exit; its lock is already gone. Wait for its process group to empty before starting
     another set on the same folder (``RunFolderBusy`` if it does not)."""
-    from .record import RunFolderBusy
+    from curlnav.run.record import RunFolderBusy
 
     if not group:
         return
@@ -197,7 +197,7 @@ class DistributedRun:
 
     def start_evaluator(self) -> None:
         c = self.cluster
-        c.spawn("evaluator", [sys.executable, "-m", "curlnav.evaluator", "--run-dir", str(self.run_dir),
+        c.spawn("evaluator", [sys.executable, "-m", "curlnav.run.evaluator", "--run-dir", str(self.run_dir),
                               "--config", str(c.config_path), "--learner-url", c.learner_url,
                               "--status-url", c.status_url, "--admin-token-file", str(self.admin_token_file),
                               "--run-started-unix", f"{time.time() - self.wall_s():.3f}"])
@@ -342,7 +342,7 @@ class DistributedRun:
 
     # -- the session -----------------------------------------------------------------------------
     def run(self) -> RunOutcome:
-        from .plots import plot_learning_curve
+        from curlnav.evaluation.plots import plot_learning_curve
 
         budget = self.experiment.budget
         previous = on_stop_signals(self._on_signal)

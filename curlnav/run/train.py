@@ -12,10 +12,18 @@ import argparse
 import time
 from pathlib import Path
 
-from .config import (ConfigError, ExperimentConfig, config_differences, config_hash, config_to_dict, config_to_yaml,
-                     load_config)
-from .config import apply_overrides, overrides_from_environment
-from .experiment_cli import experiment_from_args, option_overrides
+from curlnav.config import (
+    ConfigError,
+    ExperimentConfig,
+    apply_overrides,
+    config_differences,
+    config_hash,
+    config_to_dict,
+    config_to_yaml,
+    load_config,
+    overrides_from_environment,
+)
+from curlnav.evaluation.experiment_cli import experiment_from_args, option_overrides
 
 DEFAULT_ACTORS = 2
 RESUMABLE_CHANGES = ("budget.", "evaluation.stop_at_success")  # fields a resume may change
@@ -66,14 +74,14 @@ def check_before_start(experiment: ExperimentConfig) -> None:
     """Everything the run will load, loaded now (one line, exit 2, nothing started): the world,
     that it can draw pairs, and with a curriculum every world of every stage and every named
     sub-step pair."""
-    from .sim import get_world
-    from .sim.pairs import check_pairs_possible
+    from curlnav.sim import get_world
+    from curlnav.sim.pairs import check_pairs_possible
 
     world = get_world(experiment.curriculum.world)
     robot = experiment.env.robot
     check_pairs_possible(world, (robot.base_length, robot.base_width))
     if experiment.curriculum.file:
-        from curlnav.evaluator import check_evaluation_criteria
+        from curlnav.run.evaluator import check_evaluation_criteria
         from curlnav.scheduler.curriculum import check_curriculum, load_curriculum
 
         curriculum = load_curriculum(experiment.curriculum.file)
@@ -88,7 +96,7 @@ def run_train(args: argparse.Namespace) -> int:
     """``curlnav train``. Exit codes: 0 the budget or the target was reached, 130 interrupted
     (SIGINT, SIGTERM, SIGHUP), 1 a service failed past its restart budget, 2 refused before
     starting (a bad config, curriculum or world, a busy run folder)."""
-    from .record import RunLock
+    from curlnav.run.record import RunLock
 
     if getattr(args, "init_from", None) and not args.serial:
         raise TrainRefused("--init-from is for the serial trainer (add --serial)")
@@ -121,7 +129,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 def _train_locked(args, run_dir: Path, experiment: ExperimentConfig, actors: int) -> int:
     """The run, once everything is checked and the run folder is this launcher's."""
-    from .record import RunSummary
+    from curlnav.run.record import RunSummary
 
     used_s = RunSummary(run_dir).elapsed_before_s
     if args.resume and used_s >= experiment.budget.minutes * 60:
@@ -148,7 +156,7 @@ def _print_evaluations(summary: dict, run_dir: Path) -> None:
 
 
 def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
-    from .serial import SerialRunConfig, train_serial
+    from curlnav.run.serial import SerialRunConfig, train_serial
 
     summary = train_serial(run_dir, experiment, SerialRunConfig(torch_threads=args.threads or 2,
                                                                 init_from=getattr(args, "init_from", None) or ""),
@@ -164,7 +172,7 @@ def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
 
 
 def _train_distributed(args, run_dir: Path, experiment: ExperimentConfig, actors: int) -> int:
-    from .supervise import say, train_distributed
+    from curlnav.run.supervise import say, train_distributed
 
     outcome = train_distributed(run_dir, experiment, actors, learner_threads=args.threads or 1)
     summary = outcome.summary

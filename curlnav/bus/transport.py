@@ -7,15 +7,15 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Callable
 
 import zenoh
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
-from curlnav.bus_security import BusUser, RouterAuth, load_router
+from curlnav.bus.security import BusUser, RouterAuth, load_router
 
 log = logging.getLogger("curlnav")
 
@@ -30,7 +30,7 @@ def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen:
     """Multicast scouting off (Docker networks carry none). Clients wait ``connect_timeout_s``
     for their router at start (-1: forever), so services can start in any order. ``user``: the
     bus user this session authenticates as (Zenoh usrpwd); ``guard``: a router's dictionary of
-    users and access control (``curlnav.bus_security``)."""
+    users and access control (``curlnav.bus.security``)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from curlnav.config import ExperimentConfig, PRESETS, resolve_config
+from curlnav.config import PRESETS, ExperimentConfig, resolve_config
 
 #: train's short options and the config field each one sets
 OPTION_FIELDS = {

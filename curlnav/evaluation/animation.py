@@ -47,7 +47,7 @@ class EpisodeRecorder:
         from matplotlib.animation import PillowWriter
         from matplotlib.patches import Rectangle
 
-        from .sim.render import draw_world
+        from curlnav.sim.render import draw_world
 
         if not self.frames:
             raise ValueError("no frames recorded: call record() after reset and after each step")

@@ -27,10 +27,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from curlnav.record import read_csv
-from curlnav.transport import on_stop_signals, restore_signals
-
 import yaml
+
+from curlnav.bus.transport import on_stop_signals, restore_signals
+from curlnav.run.record import read_csv
 
 ROOT = Path(__file__).resolve().parent.parent
 CURRICULA = ROOT / "scheduler" / "curricula"
@@ -324,7 +324,8 @@ def _plot(path: Path, runs: list[RunResult], targets: list[str]) -> None:
             if group:
                 grid = sorted({s for r in group for s, _, _ in r.curves[target]})
                 mean = [sum(_at(r.curves[target], s) for r in group) / len(group) for s in grid]
-                ax.plot(grid, mean, color=colours[condition], lw=2.0, label=f"{condition} ({len(group)} seed{'s' if len(group) > 1 else ''})")
+                ax.plot(grid, mean, color=colours[condition], lw=2.0,
+                        label=f"{condition} ({len(group)} seed{'s' if len(group) > 1 else ''})")
         ax.set_title(f"held-out success: {target}")
         ax.set_xlabel("environment steps")
         ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))

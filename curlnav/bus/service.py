@@ -15,20 +15,20 @@ from __future__ import annotations
 import json
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from prometheus_client import CollectorRegistry
 
-from curlnav.bus_security import load_user
+from curlnav.bus.security import load_user
+from curlnav.bus.transport import HttpServer, Route, json_response, open_session
 from curlnav.config import ExperimentConfig, config_differences, config_to_dict, service_config_hash
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import RunConfig
 from curlnav.proto.topology import Topology
-from curlnav.transport import HttpServer, Route, json_response, open_session
 
-log = logging.getLogger("curlnav.service")
+log = logging.getLogger("curlnav.bus.service")
 
 CONFIG_QUERY_TIMEOUT_S = 3.0  # how long a joining service listens for the run's configs
 
@@ -160,7 +160,7 @@ class ServiceShell:
             except Exception:  # teardown goes on: one failure must not leave the rest open
                 log.exception("%s: closing the %s failed", self.role, what)
 
-    def __enter__(self) -> "ServiceShell":
+    def __enter__(self) -> ServiceShell:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -29,7 +29,7 @@ def env_default(name: str, default):
 def add_serve_arguments(p) -> None:
     """``curlnav serve ROLE``: deployment options, plus the experiment config (``--preset``,
     ``--config``, ``--set``, ``--world``, ``--curriculum``), which every service of a run must share."""
-    from .experiment_cli import add_config_arguments
+    from curlnav.evaluation.experiment_cli import add_config_arguments
 
     p.add_argument("role", choices=ROLES)
     p.add_argument("--run", default=env_default("run", "default"), help="run name: the Zenoh key prefix")
@@ -68,9 +68,9 @@ def build_service(args):
     validated, its worlds and curriculum loaded. Raises on any bad input, before any network."""
     import zlib
 
-    from .experiment_cli import experiment_from_args
-    from .service import Deployment
-    from .sim import get_world
+    from curlnav.bus.service import Deployment
+    from curlnav.evaluation.experiment_cli import experiment_from_args
+    from curlnav.sim import get_world
 
     experiment = experiment_from_args(args)
     get_world(experiment.curriculum.world)  # an unknown world fails here, with its name
@@ -113,8 +113,8 @@ def build_service(args):
 
 def serve(args) -> int:
     """Run one service until SIGTERM/SIGINT. Bad configuration exits with a one-line reason."""
-    import curlnav.transport as transport
-    from curlnav.transport import run_router, stop_on_signals
+    import curlnav.bus.transport as transport
+    from curlnav.bus.transport import run_router, stop_on_signals
 
     transport.ROUTER_TIMEOUT_S = args.router_timeout_s
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {args.role} %(levelname)s %(message)s")
@@ -139,10 +139,10 @@ def serve(args) -> int:
 
 
 def _refusals() -> tuple[type, ...]:
-    from .bus_security import BusCredentialsError
-    from .config import ConfigError
-    from .service import ConfigMismatch
-    from .transport import RouterUnreachable
+    from curlnav.bus.security import BusCredentialsError
+    from curlnav.bus.service import ConfigMismatch
+    from curlnav.bus.transport import RouterUnreachable
+    from curlnav.config import ConfigError
 
     return ConfigError, ConfigMismatch, RouterUnreachable, BusCredentialsError
 
@@ -202,7 +202,7 @@ class LocalCluster:
     def __init__(self, run_dir: str | Path, experiment=None, actors: int = 2, run: str = "local",
                  extra: dict[str, list[str]] | None = None, admin_token: str = "", learner_threads: int = 1,
                  scheduler_port: int | None = None, learner_port: int | None = None) -> None:
-        from .config import ExperimentConfig, config_to_yaml
+        from curlnav.config import ExperimentConfig, config_to_yaml
 
         self.run_dir = Path(run_dir)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -214,7 +214,7 @@ class LocalCluster:
         self.learner_http_port = learner_port or free_port()
         self.router = f"tcp/127.0.0.1:{self.router_port}"
         # the bus credentials of the run: made once, kept across --resume, given to every service
-        from .bus_security import make_credentials
+        from curlnav.bus.security import make_credentials
 
         self.bus_dir = self.run_dir / "bus"
         make_credentials(self.bus_dir, run)
@@ -236,8 +236,8 @@ class LocalCluster:
 
     def bus_session(self, role: str, connect_timeout_s: float = 10.0):
         """A Zenoh session to this cluster's router, authenticated as ``role`` (tests, tools)."""
-        from .bus_security import load_user
-        from .transport import open_session
+        from curlnav.bus.security import load_user
+        from curlnav.bus.transport import open_session
 
         return open_session(self.router, connect_timeout_s, user=load_user(self.bus_dir, role, self.run))
 
@@ -362,7 +362,7 @@ class LocalCluster:
             except (ProcessLookupError, PermissionError):
                 pass
 
-    def __enter__(self) -> "LocalCluster":
+    def __enter__(self) -> LocalCluster:
         self.start()
         return self
 

@@ -1,4 +1,4 @@
-"""Evaluation beside a distributed run, in its own process (``python -m curlnav.evaluator``,
+"""Evaluation beside a distributed run, in its own process (``python -m curlnav.run.evaluator``,
 started and supervised by ``curlnav train``).
 
 Every ``evaluation.every_s`` it takes the learner's newest policy artefact over HTTP (a version
@@ -31,11 +31,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from curlnav.config import ExperimentConfig, load_config
-from curlnav.evaluate import EvaluationProtocol, evaluate
-from curlnav.launch import die_with_launcher, http_json_or_none
-from curlnav.record import EVAL_FIELDS, CsvLog, copy_policy, last_evaluation_number
+from curlnav.evaluation.protocol import EvaluationProtocol, evaluate
+from curlnav.run.launch import die_with_launcher, http_json_or_none
+from curlnav.run.record import EVAL_FIELDS, CsvLog, copy_policy, last_evaluation_number
 
-log = logging.getLogger("curlnav.evaluator")
+log = logging.getLogger("curlnav.run.evaluator")
 HELD_OUT = "held-out"
 
 
@@ -242,7 +242,7 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
     """The loop: wait ``every_s``, evaluate the newest unevaluated policy, record, repeat; with
     an admin token, send each evaluation of the current step to the scheduler."""
     from curlnav.policy import PolicyArtefact
-    from curlnav.pull import pull_policy
+    from curlnav.run.pull import pull_policy
 
     curriculum = None
     if experiment.curriculum.file:
@@ -296,9 +296,9 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
 
 
 def main(argv: list[str] | None = None) -> int:
-    from curlnav.transport import stop_on_signals
+    from curlnav.bus.transport import stop_on_signals
 
-    p = argparse.ArgumentParser(prog="python -m curlnav.evaluator", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m curlnav.run.evaluator", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run-dir", required=True, help="the run folder (eval.csv, policy-best/)")
     p.add_argument("--config", required=True, help="the run's config.yaml")

@@ -14,10 +14,10 @@ Figures per kill:
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
-from .launch import http_json_or_none
+from curlnav.run.launch import http_json_or_none
 
 
 def poll(predicate: Callable[[], object], timeout: float, every: float = 0.2):
@@ -90,8 +90,8 @@ def run_fault_bench(actors: int = 2, warm_s: float = 60.0, run_dir: str = "runs/
     import shutil
     from pathlib import Path
 
-    from .config import resolve_config
-    from .launch import LocalCluster
+    from curlnav.config import resolve_config
+    from curlnav.run.launch import LocalCluster
 
     shutil.rmtree(run_dir, ignore_errors=True)
     experiment = resolve_config(overrides=["replay.min_size=500", "exploration.warmup_steps=500"])

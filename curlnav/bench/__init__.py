@@ -1,0 +1,5 @@
+"""Benchmarks of the distributed service: `curlnav bench transport` (`transport`) and
+`curlnav bench faults` (`faults`). The simulator's, the worlds' and the learner's benches live with
+their packages (`curlnav.sim.bench`, `curlnav.worlds.bench`, `curlnav.learner.bench`)."""
+
+__all__ = ["faults", "transport"]
