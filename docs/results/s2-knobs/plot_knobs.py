@@ -1,7 +1,7 @@
-"""The figure of docs/s2-knobs: held-out success on T-Maze p4 over the fine-tune's environment
+"""The figure of docs/results/s2-knobs: held-out success on T-Maze p4 over the fine-tune's environment
 steps, one line per knob and seed, from each run folder's eval.csv (rows with pair p4).
 
-    python docs/s2-knobs/plot_knobs.py OUT.png START_SUCCESS RUN_DIR [RUN_DIR ...]
+    python docs/results/s2-knobs/plot_knobs.py OUT.png START_SUCCESS RUN_DIR [RUN_DIR ...]
 
 START_SUCCESS: the starting policy's p4 success (``curlnav eval``, 30 episodes), drawn at 0 steps.
 
