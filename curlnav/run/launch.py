@@ -150,6 +150,22 @@ def _refusals() -> tuple[type, ...]:
 REFUSALS = _refusals()
 
 
+def shell_command(program: str, *args: str) -> str:
+    """``program args`` as a line that works typed in a shell where the virtual environment is
+    not activated: ``program`` by the absolute path of the console script beside the running
+    interpreter (``.venv/bin/curlnav``); without one, ``curlnav`` runs as ``python -m curlnav.cli``
+    and ``tensorboard`` as ``python -m tensorboard.main`` (same interpreter)."""
+    import shlex
+
+    script = Path(sys.executable).absolute().parent / program
+    if script.is_file() and os.access(script, os.X_OK):
+        head = [str(script)]
+    else:
+        module = {"curlnav": "curlnav.cli", "tensorboard": "tensorboard.main"}.get(program)
+        head = [sys.executable, "-m", module] if module else [program]
+    return shlex.join([*head, *(str(a) for a in args)])
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

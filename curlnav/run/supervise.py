@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from curlnav.bus.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
-from curlnav.run.launch import LocalCluster, http_json
+from curlnav.run.launch import LocalCluster, http_json, shell_command
 from curlnav.run.record import EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, copy_policy, now_iso, read_csv
 
 #: restarts allowed per service name before the run stops (an actor, as RLlib restarts env runners)
@@ -116,6 +116,15 @@ class StatusPoller(threading.Thread):
             except (OSError, ValueError):
                 pass
             self.stop.wait(self.period_s)
+
+
+def start_hints(run_dir: Path, status_url: str, learner_url: str) -> list[str]:
+    """What the launcher prints at start: where to watch the run and take its policy, each as a
+    command that works without activating the virtual environment (``shell_command``)."""
+    return [f"status:  {status_url}   ({shell_command('curlnav', 'status', run_dir)})",
+            f"policy:  {learner_url}/policy/latest   ({shell_command('curlnav', 'pull', '--from', learner_url)}); "
+            f"copies in {run_dir / 'policy'} and {run_dir / 'policy-best'}",
+            f"curves:  {shell_command('tensorboard', '--logdir', run_dir / 'tensorboard')}"]
 
 
 @dataclass
@@ -358,10 +367,8 @@ class DistributedRun:
             self.start_evaluator()
             self.write_run_json()
             say(f"services started ({len(c.processes)} processes, process group {c.pgid}); logs in {self.run_dir / 'logs'}")
-            say(f"status:  {c.status_url}   (curlnav status {self.run_dir})")
-            say(f"policy:  {c.learner_url}/policy/latest   (curlnav pull --from {c.learner_url}); "
-                f"copies in {self.run_dir / 'policy'} and {self.run_dir / 'policy-best'}")
-            say(f"tensorboard --logdir {self.run_dir / 'tensorboard'}")
+            for line in start_hints(self.run_dir, c.status_url, c.learner_url):
+                say(line)
             poller.start()
             rate: dict = {}
             last_progress = last_sync = time.monotonic()

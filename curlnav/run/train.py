@@ -147,12 +147,14 @@ def _train_locked(args, run_dir: Path, experiment: ExperimentConfig, actors: int
 
 
 def _print_evaluations(summary: dict, run_dir: Path) -> None:
+    from curlnav.run.launch import shell_command
+
     reached = summary.get("first_eval_reaching_80")
     if reached:
         print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
     print(f"policy (newest): {run_dir / 'policy'}; policy (best evaluation): {run_dir / 'policy-best'}")
     print(f"learning curve: {run_dir / 'learning_curve.png'}; metrics.csv, eval.csv, summary.json; "
-          f"tensorboard --logdir {run_dir / 'tensorboard'}")
+          f"{shell_command('tensorboard', '--logdir', run_dir / 'tensorboard')}")
 
 
 def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
