@@ -48,3 +48,54 @@ def test_hints_fall_back_to_python_dash_m_where_no_console_script_is_beside_the_
     monkeypatch.setattr(sys, "executable", str(fake))
     words = _first_word_runs(shell_command("curlnav", "status", "runs/x"))
     assert words[1:] == ["-m", "curlnav.cli", "status", "runs/x"]
+
+
+def _row(success: float, collisions: float, world: str = "t-maze-0", pair: str = "p4", episodes: int = 50) -> dict:
+    return {"world": world, "pair": pair, "success_rate": success, "collisions_per_episode": collisions,
+            "episodes": episodes}
+
+
+def test_policy_best_prefers_the_policy_that_avoids_walls_at_equal_success():
+    from curlnav.scheduler.curriculum import load_curriculum
+
+    from curlnav.run.evaluator import RANKING, best_rank, rank_beats
+
+    curriculum = load_curriculum(ROOT / "scheduler" / "curricula" / "s1+s2.yaml")  # headline: T-Maze p4
+    clean = best_rank(curriculum, [_row(0.98, 0.00)])
+    bumping = best_rank(curriculum, [_row(1.00, 0.50)])
+    # the case a user saw: 100 % with 0.50 contact steps per trial chosen over 98 % with none
+    assert rank_beats(clean, bumping) and not rank_beats(bumping, clean)
+    # at the same success, fewer collisions win; more success (beyond one episode) still comes first
+    assert rank_beats(best_rank(curriculum, [_row(0.9, 0.1)]), best_rank(curriculum, [_row(0.9, 0.2)]))
+    assert rank_beats(best_rank(curriculum, [_row(0.9, 3.0)]), best_rank(curriculum, [_row(0.8, 0.0)]))
+    # the headline decides: success elsewhere never outranks it
+    assert not rank_beats(best_rank(curriculum, [_row(1.0, 0.0, "barn-3x3-0", "held-out")]), clean)
+    # a rank saved by an older curlnav (success, mean) is replaced at equal success
+    assert rank_beats(clean, [0.98, 0.98]) and not rank_beats(best_rank(curriculum, [_row(0.5, 0.0)]), [0.98, 0.98])
+    # without a curriculum the one held-out row is the headline
+    assert rank_beats(best_rank(None, [_row(0.98, 0.0, "open-room", "held-out")]),
+                      best_rank(None, [_row(1.0, 0.5, "open-room", "held-out")]))
+    assert "success" in RANKING and "collisions" in RANKING
+
+
+def test_selected_json_says_policy_best_ranks_by_success_then_collisions(tmp_path):
+    import json
+
+    from curlnav.config import resolve_config
+    from curlnav.run.evaluator import RANKING, BesideEvaluator
+
+    artefact = tmp_path / "artefact"
+    artefact.mkdir()
+    (artefact / "metadata.json").write_text("{}")
+    evaluator = BesideEvaluator(tmp_path, resolve_config(), None)
+    for version, (success, collisions) in enumerate([(1.0, 0.5), (0.98, 0.0), (1.0, 0.25)], start=1):
+        evaluator.record([_row(success, collisions, "open-room", "held-out")], wall_s=60.0 * version,
+                         version=version, env_steps=1000 * version, updates=10, artefact=artefact)
+    selected = json.loads((tmp_path / "policy-best" / "selected.json").read_text())
+    assert selected["policy_version"] == 2 and selected["ranked_by"] == RANKING
+    assert selected["rows"][0]["collisions_per_episode"] == 0.0
+    # a new evaluator on the folder (a resumed run) keeps that choice
+    again = BesideEvaluator(tmp_path, resolve_config(), None)
+    again.record([_row(1.0, 0.5, "open-room", "held-out")], wall_s=300.0, version=4, env_steps=4000, updates=10,
+                 artefact=artefact)
+    assert json.loads((tmp_path / "policy-best" / "selected.json").read_text())["policy_version"] == 2

@@ -23,6 +23,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import shutil
 import sys
 import threading
@@ -118,16 +119,41 @@ def headline_key(curriculum) -> tuple[str, str] | None:
     return Path(world).stem, pair or HELD_OUT
 
 
-def best_rank(curriculum, rows: list[dict]) -> tuple[float, float]:
-    """How ``policy-best`` orders evaluations (serial and distributed): success on the headline
-    target, then mean success over the rows. An evaluation without the headline target ranks
-    below every one with it; without a curriculum the single row is the headline."""
+#: how ``policy-best`` ranks evaluations, as ``selected.json`` says it
+RANKING = ("success on the headline target (within one episode of it counts as equal), then fewer base "
+           "collisions per episode there, then mean success over the targets")
+
+
+def best_rank(curriculum, rows: list[dict]) -> tuple[float, float, float, int]:
+    """How ``policy-best`` orders evaluations (serial and distributed; compare two with
+    ``rank_beats``): (success on the headline target, minus its base collisions per episode,
+    mean success over the rows, the headline's episodes). An evaluation without the headline
+    target ranks below every one with it; without a curriculum the single row is the headline."""
     mean = sum(float(r["success_rate"]) for r in rows) / len(rows)
     headline = headline_key(curriculum)
-    if headline is None:
-        return (mean, mean)
-    head = [float(r["success_rate"]) for r in rows if (r["world"], r["pair"]) == headline]
-    return (head[0] if head else -1.0, mean)
+    head = rows[-1:] if headline is None else [r for r in rows if (r["world"], r["pair"]) == headline]
+    if not head:
+        return (-1.0, -math.inf, mean, 0)
+    collisions = head[0].get("collisions_per_episode")
+    return (float(head[0]["success_rate"]), -float(collisions) if collisions is not None else -math.inf, mean,
+            int(head[0].get("episodes") or 0))
+
+
+def rank_beats(new, old) -> bool:
+    """Whether an evaluation ranked ``new`` (``best_rank``) is better than one ranked ``old``:
+    more headline success, where a difference of at most one episode (a coin's throw over the
+    evaluation's episodes) counts as equal and fewer collisions decide; then mean success.
+    ``old`` may be a rank saved by an older curlnav, (headline success, mean success)."""
+    if old is None:
+        return True
+    old = tuple(-math.inf if v is None else v for v in old)  # JSON keeps no infinity
+    if len(old) == 2:  # no collisions recorded: any measured count beats it at equal success
+        old = (old[0], -math.inf, old[1], 0)
+    episodes = max(int(new[3] or 0), int(old[3] or 0))
+    tolerance = 1.0 / episodes + 1e-9 if episodes else 1e-9
+    if abs(new[0] - old[0]) > tolerance:
+        return new[0] > old[0]
+    return (new[1], new[2], new[0]) > (old[1], old[2], old[0])
 
 
 class BesideEvaluator:
@@ -193,14 +219,13 @@ class BesideEvaluator:
         success = sum(r["success_rate"] for r in rows) / len(rows)
         headline = headline_key(self.curriculum)
         rank = best_rank(self.curriculum, rows)
-        if self.best is None or rank > self.best:
+        if rank_beats(rank, self.best):
             self.best = rank
             copy_policy(artefact, self.run_dir / "policy-best",
-                        {"why": "best evaluation so far, ordered by (success on the headline target "
-                                f"{'/'.join(headline) if headline else 'held-out'}, mean success over the targets)",
-                         "rank": list(rank), "evaluation": self.evaluations, "policy_version": version,
+                        {"why": f"best evaluation so far (headline target {'/'.join(headline) if headline else 'held-out'})",
+                         "ranked_by": RANKING, "rank": list(rank), "evaluation": self.evaluations, "policy_version": version,
                          "success_rate": success, "wall_s": wall_s, "env_steps": env_steps,
-                         "rows": [{k: r[k] for k in ("world", "pair", "success_rate")} for r in rows]})
+                         "rows": [{k: r[k] for k in ("world", "pair", "success_rate", "collisions_per_episode")} for r in rows]})
         return {"evaluation": self.evaluations, "success_rate": success, "version": version}
 
     def close(self) -> None:

@@ -230,15 +230,19 @@ class SerialTrainer:
                             f"eval/success/{row['world']}/held-out": result.success_rate,
                             f"eval/base_collisions_per_episode/{row['world']}/held-out": result.collisions_per_episode},
                            self.counters["env_steps"])
-        best = self.counters.get("best_success")
-        if best is None or result.success_rate > best:
-            self.counters["best_success"] = result.success_rate
+        from curlnav.run.evaluator import RANKING, best_rank, rank_beats
+
+        rank = list(best_rank(None, [row]))
+        earlier = self.counters.get("best_success")  # a checkpoint of an older curlnav ranked success only
+        if rank_beats(rank, self.counters.get("best_rank") or (None if earlier is None else [earlier, earlier])):
+            self.counters["best_rank"] = rank
             folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env,
                                    worlds=[str(self.experiment.curriculum.world)], env_steps=self.counters["env_steps"])
             (folder / "selected.json").write_text(json.dumps(strict_json(
-                {"why": "best held-out evaluation so far", "evaluation": row["evaluation"],
-                 "success_rate": result.success_rate, "env_steps": row["env_steps"], "updates": row["updates"],
-                 "wall_s": row["wall_s"]}), indent=2))
+                {"why": "best held-out evaluation so far", "ranked_by": RANKING, "rank": rank,
+                 "evaluation": row["evaluation"], "success_rate": result.success_rate,
+                 "collisions_per_episode": result.collisions_per_episode, "env_steps": row["env_steps"],
+                 "updates": row["updates"], "wall_s": row["wall_s"]}), indent=2))
         self._print(f"[eval {row['wall_s'] / 60:5.1f} min, {self.counters['env_steps']} steps, {self.state.steps} "
                     f"updates] {result.line()}")
         return result
@@ -246,7 +250,7 @@ class SerialTrainer:
     def _evaluate_curriculum(self, start: float) -> EvalResult:
         """The current stage's targets and the fixed ``evaluate`` targets, one eval.csv row each;
         returns the last fixed target's result (policy-best and ``stop_at_success`` use it)."""
-        from curlnav.run.evaluator import BesideEvaluator, best_rank
+        from curlnav.run.evaluator import RANKING, BesideEvaluator, best_rank, rank_beats
 
         if self._evaluator is None:
             self._evaluator = BesideEvaluator(self.run_dir, self.experiment, self.curriculum.curriculum)
@@ -274,15 +278,14 @@ class SerialTrainer:
         self.counters["evals"].append(strict_json(summary))
         self.board.scalars({"eval/success_rate": result.success_rate}, self.counters["env_steps"])
         rank = list(best_rank(self.curriculum.curriculum, rows))
-        best = self.counters.get("best_rank")
-        if best is None or rank > best:
+        if rank_beats(rank, self.counters.get("best_rank")):
             self.counters["best_rank"] = rank
             worlds, extra = self.artefact_training
             folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env, worlds=worlds,
                                    extra=extra, curriculum_stage=self.curriculum.current.name,
                                    env_steps=self.counters["env_steps"])
             (folder / "selected.json").write_text(json.dumps(strict_json(
-                {"why": f"best held-out success on {summary['target']} so far (then mean over the targets)",
+                {"why": f"best held-out evaluation on {summary['target']} so far", "ranked_by": RANKING,
                  "rank": rank, **summary}), indent=2))
         per = "  ".join(f"{r['world']}/{r['pair']} {r['success_rate']:.0%}" for r in rows)
         self._print(f"[eval {summary['wall_s'] / 60:5.1f} min, {self.counters['env_steps']} steps, {self.state.steps} "
