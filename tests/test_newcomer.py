@@ -99,3 +99,52 @@ def test_selected_json_says_policy_best_ranks_by_success_then_collisions(tmp_pat
     again.record([_row(1.0, 0.5, "open-room", "held-out")], wall_s=300.0, version=4, env_steps=4000, updates=10,
                  artefact=artefact)
     assert json.loads((tmp_path / "policy-best" / "selected.json").read_text())["policy_version"] == 2
+
+
+FINISHED = {"stop_reason": "held-out success on t-maze-0/p4 90% >= 80%", "exit_code": 0, "elapsed_s": 1800.0,
+            "env_steps": 123456, "updates": 7890, "run_dir": "x",
+            "evals": [{"evaluation": 1, "wall_s": 600.0, "env_steps": 40000, "version": 12, "success_rate": 0.4,
+                       "collisions_per_episode": 0.3},
+                      {"evaluation": 2, "wall_s": 1700.0, "env_steps": 120000, "version": 40, "success_rate": 0.9,
+                       "collisions_per_episode": 0.05}],
+            "first_eval_reaching_80": {"wall_s": 1700.0, "env_steps": 120000},
+            "sessions": [{"mode": "distributed", "wall_s": 1800.0, "stop_reason": "held-out success"}]}
+
+
+def _closed_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_status_of_a_finished_run_reports_its_outcome_not_connection_refused(tmp_path, capsys):
+    import json
+
+    from curlnav.cli import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"status_url": f"http://127.0.0.1:{_closed_port()}/status"}))
+    (run / "summary.json").write_text(json.dumps(FINISHED))
+    assert main(["status", str(run)]) == 0
+    out, err = capsys.readouterr()
+    assert "connection refused" not in (out + err).lower() and "still going" not in out + err
+    assert f"run {run} has finished: stopped (held-out success on t-maze-0/p4 90% >= 80%), exit code 0" in out
+    assert "123456 env steps, 7890 updates" in out and "30.0 min" in out
+    assert "last evaluation: success 90%, 0.05 base collisions/episode (policy v40)" in out
+    assert main(["status", str(run), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["env_steps"] == 123456
+    # a serial run (no scheduler, no run.json) that has finished: its outcome too
+    serial = tmp_path / "serial"
+    serial.mkdir()
+    (serial / "summary.json").write_text(json.dumps({**FINISHED, "final_eval": {"success_rate": 1.0,
+                                                                                  "collisions_per_episode": 0.0},
+                                                     "sessions": [{"mode": "serial", "wall_s": 60.0}]}))
+    assert main(["status", str(serial)]) == 0
+    assert "last evaluation: success 100%, 0.00 base collisions/episode" in capsys.readouterr().out
+    # still running (the launcher's summary says so) but its scheduler does not answer: the error stays
+    (run / "summary.json").write_text(json.dumps({**FINISHED, "stop_reason": "running"}))
+    assert main(["status", str(run)]) == 2
+    assert "is the run still going?" in capsys.readouterr().err

@@ -1,7 +1,9 @@
 """``curlnav status``: the curriculum scheduler's ``/status`` of a distributed run, for a person.
 
 The target is the scheduler's URL, or a run folder whose ``run.json`` (written by the launcher)
-names it; by default the newest run folder under ``runs/`` that has one.
+names it; by default the newest run folder under ``runs/`` that has one. A run folder whose run
+has finished (its scheduler gone, ``summary.json`` closed) gets the run's outcome instead:
+why it stopped, its counts and its last evaluation (serial runs too).
 """
 
 from __future__ import annotations
@@ -119,7 +121,60 @@ def format_status(s: dict) -> str:
     return "\n".join(lines)
 
 
+def finished_summary(folder: Path) -> dict | None:
+    """A run folder's ``summary.json`` when its last session has ended (None while running, or
+    without one)."""
+    try:
+        summary = json.loads((folder / "summary.json").read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not isinstance(summary, dict) or summary.get("stop_reason") in (None, "running"):
+        return None
+    return summary
+
+
+def format_outcome(folder: Path, summary: dict) -> str:
+    """A finished run's outcome (``summary.json``) as lines of text for a terminal."""
+    sessions = summary.get("sessions") or [{}]
+    last = sessions[-1]
+    minutes = (summary.get("elapsed_s") or 0.0) / 60
+    lines = [f"run {folder} has finished: stopped ({summary.get('stop_reason')}), exit code {summary.get('exit_code', '-')}, "
+             f"{len(sessions)} session{'s' if len(sessions) != 1 else ''}, {minutes:.1f} min of training "
+             f"({last.get('mode', 'distributed')})",
+             f"counts: {summary.get('env_steps', '-')} env steps, {summary.get('updates', '-')} updates"
+             + (f", {summary['episodes']} episodes" if summary.get("episodes") is not None else "")]
+    evals = summary.get("evals") or []
+    final = summary.get("final_eval") or (evals[-1] if evals else None)
+    if final:
+        collisions = final.get("collisions_per_episode")
+        version = final.get("version", final.get("policy_version"))
+        lines.append(f"last evaluation: success {_percent(final.get('success_rate'))}"
+                     + ("" if collisions is None else f", {collisions:.2f} base collisions/episode")
+                     + ("" if version is None else f" (policy v{version})")
+                     + f"; {len(evals)} evaluation{'s' if len(evals) != 1 else ''} in eval.csv")
+    reached = summary.get("first_eval_reaching_80")
+    if reached:
+        lines.append(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
+    lines.append(f"policy (newest): {folder / 'policy'}; policy (best evaluation): {folder / 'policy-best'}")
+    from curlnav.run.launch import shell_command
+
+    lines.append(f"continue it: {shell_command('curlnav', 'train', '--run-dir', folder, '--resume')} "
+                 "(with a larger --minutes or --max-env-steps)")
+    return "\n".join(lines)
+
+
 def run_status(target: str | None, raw_json: bool = False) -> int:
-    status = fetch_status(status_url(target))
+    """Print the scheduler's status, or a finished run's outcome from its ``summary.json``."""
+    folder = None
+    if target is None or not target.startswith(("http://", "https://")):
+        folder = newest_run() if target is None else Path(target)
+    try:
+        status = fetch_status(status_url(target))
+    except ValueError:
+        summary = finished_summary(folder) if folder is not None else None
+        if summary is None:
+            raise
+        print(json.dumps(summary, indent=2) if raw_json else format_outcome(folder, summary))
+        return 0
     print(json.dumps(status, indent=2) if raw_json else format_status(status))
     return 0
