@@ -154,7 +154,7 @@ def test_config_show_prints_the_resolved_config_and_a_file_round_trips(tmp_path,
     (tmp_path / "shown.yaml").write_text(text)
     loaded = load_config(tmp_path / "shown.yaml")
     assert loaded.d4pg.encoder == "conv" and loaded.replay.prioritized and loaded.replay.min_size == 10_000
-    assert f"# config hash {config_hash(loaded)}" in text
+    assert f"# experiment config hash {config_hash(loaded)}" in text
 
 
 @pytest.mark.parametrize("argv, message", [

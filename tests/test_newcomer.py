@@ -148,3 +148,38 @@ def test_status_of_a_finished_run_reports_its_outcome_not_connection_refused(tmp
     (run / "summary.json").write_text(json.dumps({**FINISHED, "stop_reason": "running"}))
     assert main(["status", str(run)]) == 2
     assert "is the run still going?" in capsys.readouterr().err
+
+
+def test_the_launcher_names_both_config_hashes_and_how_they_differ(tmp_path, capsys, monkeypatch):
+    import json
+    import re
+
+    from curlnav.proto.messages import RunConfig
+
+    import curlnav.run.train as train
+    from curlnav.bus.service import ConfigMismatch, check_agreement
+    from curlnav.cli import main
+    from curlnav.config import config_hash, config_to_dict, resolve_config, service_config_hash
+
+    monkeypatch.setattr(train, "_train_serial", lambda args, run_dir, experiment: 0)  # the first line is enough
+    assert main(["train", "--serial", "--run-dir", str(tmp_path / "run"), "--minutes", "7"]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    experiment = resolve_config(overrides=["budget.minutes=7"], environ={})
+    found = re.search(r"experiment config ([0-9a-f]{12}) \(config.yaml\); service-agreement hash ([0-9a-f]{12}) "
+                      r"\(the services' logs: the same config without budget and evaluation\)", line)
+    assert found, line
+    assert found.groups() == (config_hash(experiment)[:12], service_config_hash(experiment)[:12])
+    assert not re.search(r"(?<!experiment )config [0-9a-f]{12}", line), f"an unlabelled hash in {line!r}"
+    # config show names both as well
+    assert main(["config", "show"]) == 0
+    shown = capsys.readouterr().out
+    assert "# experiment config hash " in shown and "# service-agreement hash " in shown
+    # a service that disagrees names the service-agreement hash
+    other = resolve_config(overrides=["d4pg.batch_size=64"], environ={})
+    reply = RunConfig("learner", "0", service_config_hash(other), json.dumps(config_to_dict(other)))
+    try:
+        check_agreement(experiment, [reply])
+    except ConfigMismatch as exc:
+        assert f"runs service-agreement hash {service_config_hash(other)[:12]}" in str(exc)
+    else:
+        raise AssertionError("no mismatch")

@@ -66,8 +66,9 @@ def check_agreement(own: ExperimentConfig, replies: list[RunConfig]) -> None:
         except ValueError:
             diffs = []
         detail = "; ".join(diffs[:3]) + (f" (+{len(diffs) - 3} more)" if len(diffs) > 3 else "")
-        raise ConfigMismatch(f"the run's {reply.role} {reply.instance} runs config {reply.config_hash[:12]}, this "
-                             f"service {own_hash[:12]}: {detail or 'they differ'} (this service's value first)")
+        raise ConfigMismatch(f"the run's {reply.role} {reply.instance} runs service-agreement hash "
+                             f"{reply.config_hash[:12]}, this service {own_hash[:12]}: {detail or 'they differ'} "
+                             "(this service's value first)")
 
 
 class ServiceShell:
@@ -127,7 +128,7 @@ class ServiceShell:
         except BaseException:
             self.close()
             raise
-        log.info("%s %s up: run %s, router %s, http port %d, config %s", self.role, self.instance,
+        log.info("%s %s up: run %s, router %s, http port %d, service-agreement hash %s", self.role, self.instance,
                  self.deployment.run, self.deployment.router, self.http.port, self.config_hash[:12])
         return session
 

@@ -22,6 +22,7 @@ from curlnav.config import (
     config_to_yaml,
     load_config,
     overrides_from_environment,
+    service_config_hash,
 )
 from curlnav.evaluation.experiment_cli import experiment_from_args, option_overrides
 
@@ -136,7 +137,7 @@ def _train_locked(args, run_dir: Path, experiment: ExperimentConfig, actors: int
         raise TrainRefused(f"--resume: the run has used {used_s / 60:.1f} of its {experiment.budget.minutes:g} min "
                            f"budget (earlier sessions count): raise --minutes to train on")
     (run_dir / "config.yaml").write_text(config_to_yaml(experiment))
-    print(f"run folder: {run_dir}; config {config_hash(experiment)[:12]} (config.yaml), preset "
+    print(f"run folder: {run_dir}; {hash_labels(experiment)}; preset "
           f"{experiment.d4pg.preset}, world {experiment.curriculum.world}, curriculum "
           f"{experiment.curriculum.file or 'none'}, {experiment.budget.minutes:g} min"
           + (f" ({used_s / 60:.1f} used before)" if used_s else "")
@@ -144,6 +145,15 @@ def _train_locked(args, run_dir: Path, experiment: ExperimentConfig, actors: int
     if args.serial:
         return _train_serial(args, run_dir, experiment)
     return _train_distributed(args, run_dir, experiment, actors)
+
+
+def hash_labels(experiment: ExperimentConfig) -> str:
+    """The run's two config hashes, named: the experiment config's (all of config.yaml) and the
+    service-agreement hash the services log and compare (the same config without ``budget`` and
+    ``evaluation``, which only the launcher reads, so a resume with a new budget still agrees)."""
+    return (f"experiment config {config_hash(experiment)[:12]} (config.yaml); service-agreement hash "
+            f"{service_config_hash(experiment)[:12]} (the services' logs: the same config without budget and "
+            f"evaluation)")
 
 
 def _print_evaluations(summary: dict, run_dir: Path) -> None:
@@ -195,7 +205,9 @@ def show_config(args: argparse.Namespace) -> int:
     """``curlnav config show``: the resolved config as YAML, and its hash."""
     experiment = experiment_from_args(args)
     print(config_to_yaml(experiment), end="")
-    print(f"# config hash {config_hash(experiment)}")
+    print(f"# experiment config hash {config_hash(experiment)}")
+    print(f"# service-agreement hash {service_config_hash(experiment)} (without budget and evaluation: "
+          f"what the services compare)")
     return 0
 
 
