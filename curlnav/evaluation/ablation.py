@@ -29,11 +29,13 @@ from pathlib import Path
 
 import yaml
 
+import curlnav.scheduler
+
 from curlnav.bus.transport import on_stop_signals, restore_signals
 from curlnav.run.record import read_csv
 
-ROOT = Path(__file__).resolve().parent.parent
-CURRICULA = ROOT / "scheduler" / "curricula"
+#: the shipped curricula, wherever the scheduler package is installed (the scheduler/ folder in a checkout)
+CURRICULA = Path(curlnav.scheduler.__file__).resolve().parent / "curricula"
 #: the paper's four conditions (Fig. 5), as shipped curriculum files
 PAPER_CONDITIONS = ("s1+s2", "s1-only", "s2-only", "no-curriculum")
 
