@@ -30,7 +30,6 @@ from pathlib import Path
 import yaml
 
 import curlnav.scheduler
-
 from curlnav.bus.transport import on_stop_signals, restore_signals
 from curlnav.run.record import read_csv
 
@@ -123,7 +122,7 @@ def run_all(specs: list[RunSpec], parallel: int, log=say, poll_s: float = 2.0) -
                 spec.run_dir.mkdir(parents=True, exist_ok=True)
                 handle = open(spec.run_dir / "train.log", "a")
                 cmd = spec.command()
-                proc = subprocess.Popen(cmd, stdout=handle, stderr=subprocess.STDOUT, cwd=ROOT,
+                proc = subprocess.Popen(cmd, stdout=handle, stderr=subprocess.STDOUT,
                                         env={**os.environ, "PYTHONUNBUFFERED": "1"})
                 log(f"[ablation] {spec.run_dir.name}: started ({'resumed' if '--resume' in cmd else 'new'}, "
                     f"budget {spec.max_env_steps} env steps, pid {proc.pid})")
