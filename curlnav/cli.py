@@ -54,6 +54,9 @@ def _cmd_rollout(args: argparse.Namespace) -> int:
     return _drive_and_draw(GoalSeekingController(cfg).act, args.world, args.pair, args.seed, cfg, args.out, "rollout")
 
 
+#: every world argument takes the same forms (one resolver, ``curlnav.sim.get_world``)
+WORLD_HELP = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
+
 DEFAULT_BENCH_WORLDS = ("bench-36m", "barn-3x3:0", "slam-office:0")
 
 
@@ -175,13 +178,10 @@ def _cmd_bench_learner(args: argparse.Namespace) -> int:
 
 
 def _world_from_spec(spec: str):
-    """A built-in name, a world YAML path, or FAMILY:SEED for a generated world."""
+    """A world argument, resolved as everywhere else (``curlnav.sim.get_world``): a built-in
+    name, a world YAML path, or FAMILY:SEED for a generated world."""
     from curlnav.sim import get_world
-    from curlnav.worlds.generators import FAMILIES, generate
 
-    family, sep, seed = spec.rpartition(":")
-    if sep and family in FAMILIES and seed.isdigit():
-        return generate(family, int(seed))
     return get_world(spec)
 
 
@@ -490,7 +490,7 @@ def _add_training_commands(sub) -> None:
     policy_sub = policy.add_subparsers(dest="policy_command", required=True)
     p = policy_sub.add_parser("run", help="drive the robot with an artefact and draw the trajectory")
     p.add_argument("artefact", help="artefact folder (with metadata.json, actor.onnx)")
-    p.add_argument("--world", default="open-room", help="built-in world name or world YAML path")
+    p.add_argument("--world", default="open-room", help=WORLD_HELP)
     p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
     p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
     p.add_argument("--out", default="runs/policy-run", help="folder for the picture")
@@ -543,7 +543,7 @@ def _add_bus_commands(sub) -> None:
 def _add_world_commands(sub) -> None:
     """rollout and worlds (generate, show, scatter-balls, rank)."""
     p = sub.add_parser("rollout", help="drive a reactive controller for one episode and draw the trajectory")
-    p.add_argument("--world", default="door-corridor", help="built-in world name or world YAML path")
+    p.add_argument("--world", default="door-corridor", help=WORLD_HELP)
     p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
     p.add_argument("--steps", type=int, default=300, help="episode length limit (steps of 0.2 s)")
     p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")

@@ -158,7 +158,7 @@ class ExplorationConfig:
 class CurriculumConfig:
     """What to train on: one world (with its pairs, or random pairs), or a curriculum file."""
 
-    world: str = "open-room"  # built-in name or world YAML; also the actors' fallback
+    world: str = "open-room"  # built-in name, world YAML or FAMILY:SEED; also the actors' fallback
     file: str = ""  # curriculum YAML for the scheduler; empty: train on `world` only
 
     def __post_init__(self) -> None:

@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -183,3 +185,38 @@ def test_the_launcher_names_both_config_hashes_and_how_they_differ(tmp_path, cap
         assert f"runs service-agreement hash {service_config_hash(other)[:12]}" in str(exc)
     else:
         raise AssertionError("no mismatch")
+
+
+def test_every_world_argument_takes_family_seed_like_eval(tmp_path, capsys, monkeypatch):
+    import curlnav.run.train as train
+    from curlnav.cli import build_parser, main
+    from curlnav.run.launch import build_service
+    from curlnav.sim import WorldError, get_world
+
+    world = get_world("t-maze:0")  # the one resolver
+    assert world.name == "t-maze-0" and {p.name for p in world.pairs} >= {"p1", "p4"}
+    # train, both modes: the world is checked and the run starts (the training itself is not needed here)
+    monkeypatch.setattr(train, "_train_serial", lambda args, run_dir, experiment: 0)
+    monkeypatch.setattr(train, "_train_distributed", lambda args, run_dir, experiment, actors: 0)
+    for mode in (["--serial"], []):
+        run = tmp_path / f"run{len(mode)}"
+        assert main(["train", *mode, "--world", "t-maze:0", "--run-dir", str(run), "--minutes", "1"]) == 0, \
+            capsys.readouterr().err
+        assert "world t-maze:0" in capsys.readouterr().out and "t-maze:0" in (run / "config.yaml").read_text()
+    # serve: a service builds on it (no network yet)
+    service = build_service(build_parser().parse_args(["serve", "replay", "--world", "t-maze:0", "--data-dir",
+                                                       str(tmp_path / "svc")]))
+    assert service.experiment.curriculum.world == "t-maze:0"
+    # rollout and policy run drive in it; worlds show draws it
+    assert main(["rollout", "--world", "t-maze:0", "--steps", "3", "--out", str(tmp_path / "roll")]) == 0
+    assert "on t-maze-0/" in capsys.readouterr().out
+    assert main(["policy", "run", str(ROOT / "policies" / "namo-s1s2"), "--world", "t-maze:0", "--pair", "p1",
+                 "--out", str(tmp_path / "drive")]) == 0
+    assert "on t-maze-0/p1" in capsys.readouterr().out
+    assert main(["worlds", "show", "t-maze:0", "--out", str(tmp_path / "w.png")]) == 0
+    # a family that does not exist: one line naming the families
+    assert main(["train", "--serial", "--world", "t-mase:0", "--run-dir", str(tmp_path / "bad"), "--minutes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown world family 't-mase'" in err and "t-maze" in err
+    with pytest.raises(WorldError, match="FAMILY:SEED"):
+        get_world("atlantis")

@@ -39,7 +39,9 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_train_options(p: argparse.ArgumentParser) -> None:
     """The short options of ``train``; each is an alias of a config field (default: the config's)."""
-    p.add_argument("--world", default=None, help="world to train on: built-in name or world YAML (curriculum.world)")
+    p.add_argument("--world", default=None,
+                   help="world to train on: built-in name, world YAML, or FAMILY:SEED for a generated world, "
+                        "e.g. t-maze:0 (curriculum.world)")
     p.add_argument("--curriculum", default=None, help="curriculum YAML (curriculum.file)")
     p.add_argument("--minutes", type=float, default=None, help="wall-clock budget (budget.minutes; default 15)")
     p.add_argument("--max-env-steps", type=int, default=None, help="environment step budget (budget.max_env_steps)")

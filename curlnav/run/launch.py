@@ -59,7 +59,8 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--router-timeout-s", type=float, default=env_default("router_timeout_s", 60.0),
                    help="give up (exit 2) when the router does not answer within this at start; -1 waits forever")
     add_config_arguments(p)
-    p.add_argument("--world", default=None, help="world to train on (curriculum.world; CURLNAV_WORLD)")
+    p.add_argument("--world", default=None, help="world to train on: built-in name, world YAML or FAMILY:SEED "
+                                                 "(curriculum.world; CURLNAV_WORLD)")
     p.add_argument("--curriculum", default=None, help="curriculum YAML (curriculum.file; CURLNAV_CURRICULUM)")
 
 

@@ -111,7 +111,8 @@ def run_train(args: argparse.Namespace) -> int:
             raise TrainRefused("--resume needs --run-dir: the folder of the run to continue")
         experiment = experiment_from_args(args)
         suffix = "" if args.serial else f"-x{actors}"
-        run_dir = Path(f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{Path(experiment.curriculum.world).stem}{suffix}")
+        world = Path(experiment.curriculum.world).stem.replace(":", "-")  # t-maze:0 -> t-maze-0
+        run_dir = Path(f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{world}{suffix}")
     else:
         run_dir = Path(args.run_dir)
     lock = RunLock(run_dir)

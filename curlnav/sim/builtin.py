@@ -103,9 +103,11 @@ _CACHE: dict[str, World] = {}
 
 
 def get_world(spec: str | os.PathLike | World) -> World:
-    """A world from a built-in name, a path to a world YAML, or a ``World`` (returned as is).
+    """The one resolver of a world argument (every command, service and curriculum file): a
+    built-in name, a path to a world YAML, ``FAMILY:SEED`` for a generated world
+    (``t-maze:0``, ``barn-3x3:12``: ``curlnav.worlds.generators``), or a ``World`` (returned as is).
 
-    Raises ``WorldError`` naming the known built-ins when ``spec`` is neither.
+    Raises ``WorldError`` naming the forms and the known built-ins when ``spec`` is none of them.
     """
     if isinstance(spec, World):
         return spec
@@ -117,4 +119,14 @@ def get_world(spec: str | os.PathLike | World) -> World:
     path = Path(key)
     if path.suffix in (".yaml", ".yml") or path.exists():
         return load_world(path)
-    raise WorldError(f"unknown world {key!r}: not a built-in ({', '.join(BUILTIN_WORLDS)}) and not a world YAML file")
+    family, sep, seed = key.rpartition(":")
+    if sep and seed.isdigit():
+        from curlnav.worlds.generators import FAMILIES, generate  # the families build on this module's World
+
+        if family in FAMILIES:
+            if key not in _CACHE:
+                _CACHE[key] = generate(family, int(seed))
+            return _CACHE[key]
+        raise WorldError(f"unknown world family {family!r} in {key!r}: FAMILY:SEED takes one of {', '.join(FAMILIES)}")
+    raise WorldError(f"unknown world {key!r}: not a built-in ({', '.join(BUILTIN_WORLDS)}), not a world YAML file "
+                     f"and not FAMILY:SEED (a generated world, e.g. t-maze:0)")
