@@ -32,3 +32,29 @@ class PackageDir(griffe.Extension):
             # griffe has no public call to load a folder as a submodule of a loaded package
             sub = loader._load_module(child, folder / "__init__.py", submodules=True, parent=pkg)
             pkg.set_member(child, sub)
+
+
+class CommentDocstrings(griffe.Extension):
+    """Fields documented the way this code base documents them, with a comment (``n_step: int = 5
+    # steps per n-step return``, or comment lines just above), get that comment as their docstring,
+    so the reference shows every config field with its unit."""
+
+    def on_attribute_instance(self, *, attr: griffe.Attribute, **kwargs) -> None:
+        if attr.docstring is not None or not attr.lineno or attr.filepath is None or isinstance(attr.filepath, list):
+            return
+        lines = attr.lines_collection[attr.filepath] if attr.filepath in attr.lines_collection else []
+        if not lines or attr.lineno > len(lines):
+            return
+        first = lines[attr.lineno - 1]
+        comment = ""
+        if "  # " in first:
+            comment = first.split("  # ", 1)[1].strip()
+        else:
+            above = []
+            i = attr.lineno - 2
+            while i >= 0 and lines[i].strip().startswith("#"):
+                above.insert(0, lines[i].strip().lstrip("#").strip())
+                i -= 1
+            comment = " ".join(above)
+        if comment:
+            attr.docstring = griffe.Docstring(comment, lineno=attr.lineno, parent=attr)
