@@ -134,16 +134,24 @@ def test_a_silent_client_blocks_nobody_and_is_dropped_after_the_timeout(server):
         assert 0.8 < time.monotonic() - began < 3.0  # ... after its 1 s timeout
 
 
-def test_beyond_max_threads_connections_wait_in_the_backlog_and_are_then_served():
-    s = HttpServer("127.0.0.1", 0, routes(), timeout_s=1.0, max_threads=2)
+def test_beyond_max_threads_requests_wait_for_a_handler_and_are_then_served():
+    def slow(request):
+        time.sleep(1.0)
+        return json_response({"slow": True})
+
+    s = HttpServer("127.0.0.1", 0, {**routes(), ("GET", "/slow"): slow}, timeout_s=1.0, max_threads=2)
     try:
-        silent = [socket.create_connection(("127.0.0.1", s.port)) for _ in range(2)]  # both threads held
+        silent = socket.create_connection(("127.0.0.1", s.port))  # holds no handler thread (issue 26)
+        busy = [threading.Thread(target=get, args=(s.port, "/slow")) for _ in range(2)]  # both handlers held
+        for t in busy:
+            t.start()
         time.sleep(0.2)
         began = time.monotonic()
-        assert get(s.port, timeout=5.0)[0] == 200  # waited for a thread, not refused
+        assert get(s.port, timeout=5.0)[0] == 200  # waited for a handler, not refused
         assert 0.5 < time.monotonic() - began < 3.0
-        for c in silent:
-            c.close()
+        for t in busy:
+            t.join(5)
+        silent.close()
     finally:
         s.close()
 

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import logging
+import queue
+import re
+import selectors
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 
 import zenoh
 from prometheus_client import CollectorRegistry, generate_latest
@@ -101,28 +107,74 @@ def json_response(obj, status: int = 200) -> tuple[int, str, bytes]:
     return status, "application/json", (json.dumps(obj, indent=1) + "\n").encode()
 
 
+class _SocketWriter(io.BufferedIOBase):
+    """``wfile`` of a handler: every write is one ``sendall`` (bounded by the socket timeout)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b) -> int:
+        self._sock.sendall(b)
+        return len(b)
+
+
+@dataclass
+class _Incoming:
+    """A connection still sending its request: read by the server's loop, no thread held."""
+
+    sock: socket.socket
+    client: str  # the client's address
+    started: float  # time.monotonic() of the connect
+    deadline: float  # time.monotonic() by which the whole request (head and body) must be in
+    data: bytearray
+    head_end: int = -1  # index just past the blank line that ends the head; -1: not yet
+    need: int = -1  # bytes to wait for in all (head + Content-Length); -1: head not complete
+    oversize: bool = False  # the head passed its budget: discarded until its end, then 431
+
+
+_HEAD_END = re.compile(rb"\r?\n\r?\n")
+_CONTENT_LENGTH = re.compile(rb"(?im)^content-length[ \t]*:[ \t]*([^\r\n]*)")
+
+
 class HttpServer:
     """A threaded HTTP server. ``routes`` maps (method, path prefix) to handlers; the longest
     matching prefix wins. Unknown paths get 404, other methods (HEAD, PUT, ...) 405, handler
     errors 500; the server keeps running in every case.
 
-    Limits, so that no client can hold the service: a listen backlog of ``backlog`` connections
-    (with 128, a third of a burst of 200 connects waited for the kernel's 1 s SYN retry); every
-    socket operation of a connection times out after ``timeout_s`` (a silent or slow client is
-    dropped); at most ``max_threads`` connections are handled at once, and beyond that new
-    connections wait in the backlog until a handler thread is free (no 503: a burst is served
-    late rather than refused). One request per connection (HTTP/1.0). A
-    ``Content-Length`` that is not a non-negative integer gets 400, a body above ``max_body``
-    bytes 413 (not read); malformed request lines and headers 400/431. Every error is JSON,
-    and client mistakes are never logged as tracebacks."""
+    Limits, so that no client can hold the service:
+
+    - one loop reads every request (head and body) without a thread, so slow or silent clients
+      hold no handler thread; a request reaches a handler only once it is complete;
+    - the whole request (head and body) must arrive within ``timeout_s`` of the connect, however
+      it trickles in: past it, a silent or slow client is dropped (a partial body gets 408);
+      every reply write times out after ``timeout_s`` too;
+    - a head above ``max_head`` bytes in all (64 KiB) gets 431, a ``Content-Length`` that is not a
+      non-negative integer 400, a body above ``max_body`` bytes 413 (not read);
+    - a connection still sending its request ``slow_s`` (1 s) after it connected is slow (an
+      honest request is read within milliseconds): at most ``max_per_client`` slow connections
+      per client address, the oldest beyond are closed (a client pushes out only its own);
+    - at most ``max_connections`` connections in all; when they are open, a new one closes the
+      oldest slow connection, or waits in the listen backlog of ``backlog`` connections (with
+      128, a third of a burst of 200 connects waited for the kernel's 1 s SYN retry);
+    - at most ``max_threads`` handlers run at once; further complete requests wait for one (a
+      burst is served late rather than refused).
+
+    One request per connection (HTTP/1.0). Malformed request lines and headers get 400/431.
+    Every error is JSON, and client mistakes are never logged as tracebacks."""
 
     def __init__(self, host: str, port: int, routes: dict[tuple[str, str], Route],
                  registry: CollectorRegistry | None = None, *, backlog: int = 1024, timeout_s: float = 10.0,
-                 max_threads: int = 64, max_body: int = 1 << 20) -> None:
+                 max_threads: int = 64, max_body: int = 1 << 20, max_head: int = 64 << 10,
+                 max_connections: int = 512, max_per_client: int = 32, slow_s: float = 1.0) -> None:
         routes = dict(routes)
         if registry is not None:
             routes[("GET", "/metrics")] = lambda req: (200, CONTENT_TYPE_LATEST, generate_latest(registry))
         table = sorted(routes.items(), key=lambda item: -len(item[0][1]))
+        self.timeout_s, self.max_body, self.max_head = timeout_s, max_body, max_head
+        self.max_connections, self.max_per_client, self.slow_s = max_connections, max_per_client, slow_s
 
         def respond(path: str, method: str, request: Callable[[], Request]) -> tuple[int, str, bytes]:
             matched = [(m, fn) for (m, prefix), fn in table
@@ -139,7 +191,14 @@ class HttpServer:
                 return json_response({"error": f"{type(exc).__name__}: {exc}"}, 500)
 
         class Handler(BaseHTTPRequestHandler):
-            timeout = timeout_s  # every recv/send of the connection (StreamRequestHandler.setup)
+            """Parses and answers one request that the loop has read in full (``request`` is
+            ``(socket, bytes)``)."""
+
+            def setup(self) -> None:
+                self.connection, data = self.request
+                self.connection.settimeout(timeout_s)  # every reply write
+                self.rfile = io.BytesIO(data)
+                self.wfile = _SocketWriter(self.connection)
 
             def _reply(self, status: int, ctype: str, payload: bytes) -> None:
                 self.send_response(status)
@@ -162,10 +221,7 @@ class HttpServer:
                 length = int(raw)
                 if length > max_body:
                     return self._reply(*json_response({"error": f"body of {length} bytes, above {max_body}"}, 413))
-                try:
-                    body = self.rfile.read(length) if length else b""
-                except TimeoutError:  # a slow or silent client: answered (if it still listens) and dropped
-                    return self._reply(*json_response({"error": f"no body within {timeout_s:g} s"}, 408))
+                body = self.rfile.read(length) if length else b""
                 if len(body) < length:  # the client closed before sending its body
                     return self._reply(*json_response({"error": "body shorter than Content-Length"}, 400))
                 self._reply(*respond(path, method, lambda: Request(method, path, dict(self.headers), body)))
@@ -186,41 +242,199 @@ class HttpServer:
             def log_message(self, *args):  # quiet
                 pass
 
-        class Server(ThreadingHTTPServer):
-            request_queue_size = backlog
-            daemon_threads = True
-            slots = threading.BoundedSemaphore(max_threads)
-            closing = threading.Event()
-
-            def process_request(self, request, client_address):
-                while not self.slots.acquire(timeout=0.2):  # all threads busy: the backlog waits
-                    if self.closing.is_set():
-                        self.shutdown_request(request)
-                        return
-                try:
-                    super().process_request(request, client_address)
-                except BaseException:
-                    self.slots.release()
-                    raise
-
-            def process_request_thread(self, request, client_address):
-                try:
-                    self.finish_request(request, client_address)
-                except Exception as exc:  # a reset or timed-out client: one line, no traceback
-                    log.debug("HTTP connection from %s dropped: %r", client_address, exc)
-                finally:
-                    self.shutdown_request(request)
-                    self.slots.release()
-
-        self.server = Server((host, port), Handler)
-        self.port = self.server.server_address[1]
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self._handler = Handler
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        self._listener = socket.create_server((host, port), family=family, backlog=backlog)
+        self._listener.setblocking(False)
+        self.port = self._listener.getsockname()[1]
+        self._lock = threading.Lock()
+        self._open = 0  # connections open: reading, waiting for a handler or answered
+        self._complete: queue.SimpleQueue = queue.SimpleQueue()  # (socket, client, request bytes) or None
+        self._closing = threading.Event()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self.workers = [threading.Thread(target=self._work, daemon=True, name=f"http-{i}") for i in range(max_threads)]
+        for worker in self.workers:
+            worker.start()
+        self.thread = threading.Thread(target=self._loop, daemon=True, name="http-loop")
         self.thread.start()
 
+    # -- the loop: accept, read requests, enforce deadlines and caps --------------------------------
+    def _loop(self) -> None:
+        selector = selectors.DefaultSelector()
+        selector.register(self._wake_r, selectors.EVENT_READ)
+        selector.register(self._listener, selectors.EVENT_READ)
+        listening = True
+        incoming: dict[socket.socket, _Incoming] = {}  # insertion order: oldest first
+        try:
+            while not self._closing.is_set():
+                now = time.monotonic()
+                wait = min([c.deadline for c in incoming.values()], default=now + 1.0) - now
+                for key, _ in selector.select(max(0.0, min(wait, 1.0 if listening else 0.1))):
+                    if key.fileobj is self._wake_r:
+                        with contextlib.suppress(OSError):
+                            self._wake_r.recv(4096)
+                    elif key.fileobj is self._listener:
+                        self._accept(selector, incoming)
+                    else:
+                        self._read(selector, incoming, incoming.get(key.fileobj))
+                self._sweep(selector, incoming)
+                with self._lock:
+                    full = self._open >= self.max_connections
+                room = not full or self._oldest_slow(incoming) is not None
+                if listening and not room:
+                    selector.unregister(self._listener)  # the backlog holds new connections
+                elif room and not listening:
+                    selector.register(self._listener, selectors.EVENT_READ)
+                listening = room
+        finally:
+            for conn in list(incoming.values()):
+                self._drop(selector, incoming, conn, None, "")
+            selector.close()
+
+    def _oldest_slow(self, incoming: dict, client: str | None = None) -> _Incoming | None:
+        slow_since = time.monotonic() - self.slow_s
+        return next((c for c in incoming.values() if c.started <= slow_since and client in (None, c.client)), None)
+
+    def _sweep(self, selector, incoming: dict) -> None:
+        """Close the connections past their deadline, and each address's slow ones beyond its cap."""
+        now = time.monotonic()
+        for conn in [c for c in incoming.values() if c.deadline <= now]:
+            if conn.oversize:
+                self._drop(selector, incoming, conn, 431, f"request head above {self.max_head} bytes")
+            else:  # a partial body is answered (as a slow body always was); a head, silently dropped
+                self._drop(selector, incoming, conn, 408 if conn.head_end >= 0 else None,
+                           f"no complete request within {self.timeout_s:g} s")
+        slow: dict[str, list[_Incoming]] = {}
+        for conn in incoming.values():  # oldest first
+            if conn.started <= now - self.slow_s:
+                slow.setdefault(conn.client, []).append(conn)
+        for conns in slow.values():
+            for conn in conns[:max(0, len(conns) - self.max_per_client)]:
+                self._drop(selector, incoming, conn, None, "")
+
+    def _accept(self, selector, incoming: dict) -> None:
+        for _ in range(64):  # a burst: take what the backlog holds, then read the requests
+            with self._lock:
+                full = self._open >= self.max_connections
+            if full:
+                oldest = self._oldest_slow(incoming)
+                if oldest is None:
+                    return
+                self._drop(selector, incoming, oldest, None, "")
+            try:
+                sock, address = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # out of file descriptors, ...: the backlog keeps the rest
+                log.debug("HTTP accept failed: %r", exc)
+                return
+            sock.setblocking(False)
+            with self._lock:
+                self._open += 1
+            now = time.monotonic()
+            conn = _Incoming(sock, str(address[0]), now, now + self.timeout_s, bytearray())
+            incoming[sock] = conn
+            selector.register(sock, selectors.EVENT_READ)
+            self._read(selector, incoming, conn)  # most requests are there already
+
+    def _read(self, selector, incoming: dict, conn: _Incoming | None) -> None:
+        if conn is None:
+            return
+        try:
+            chunk = conn.sock.recv(65536)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            chunk = b""
+        if not chunk:  # the client closed: a complete head goes on (the handler says what is missing)
+            if conn.head_end >= 0:
+                self._dispatch(selector, incoming, conn)
+            else:
+                self._drop(selector, incoming, conn, None, "")
+            return
+        if conn.oversize:  # past the head budget: discard up to the blank line, then answer 431
+            tail = bytes(conn.data[-3:]) + chunk
+            if _HEAD_END.search(tail):
+                self._drop(selector, incoming, conn, 431, f"request head above {self.max_head} bytes")
+            else:
+                conn.data = bytearray(tail[-3:])
+            return
+        start = max(0, len(conn.data) - 3)
+        conn.data += chunk
+        if conn.head_end < 0:
+            end = _HEAD_END.search(conn.data, start)
+            if end is None or end.end() > self.max_head:
+                if end is not None:
+                    self._drop(selector, incoming, conn, 431, f"request head above {self.max_head} bytes")
+                elif len(conn.data) > self.max_head:
+                    conn.oversize, conn.data = True, conn.data[-3:]
+                return
+            conn.head_end = end.end()
+            lengths = {v.strip() for v in _CONTENT_LENGTH.findall(bytes(conn.data[:conn.head_end]))}
+            raw = lengths.pop() if len(lengths) == 1 else b""
+            length = int(raw) if raw.isdigit() and len(raw) < 20 else 0  # else the handler answers 400
+            conn.need = conn.head_end + (length if length <= self.max_body else 0)  # 413 without the body
+        if len(conn.data) >= conn.need:
+            self._dispatch(selector, incoming, conn)
+
+    def _dispatch(self, selector, incoming: dict, conn: _Incoming) -> None:
+        selector.unregister(conn.sock)
+        del incoming[conn.sock]
+        conn.sock.setblocking(True)
+        self._complete.put((conn.sock, conn.client, bytes(conn.data)))
+
+    def _drop(self, selector, incoming: dict, conn: _Incoming, status: int | None, why: str) -> None:
+        with contextlib.suppress(KeyError, ValueError):
+            selector.unregister(conn.sock)
+        incoming.pop(conn.sock, None)
+        if status is not None:
+            with contextlib.suppress(OSError):
+                conn.sock.send(_error_bytes(status, why))
+                conn.sock.shutdown(socket.SHUT_WR)
+        self._release(conn.sock, conn.client)
+
+    def _release(self, sock: socket.socket, client: str) -> None:
+        with contextlib.suppress(OSError):
+            sock.close()
+        with self._lock:
+            self._open -= 1
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"x")  # the loop may listen again
+
+    # -- handler threads -------------------------------------------------------------------------
+    def _work(self) -> None:
+        while (item := self._complete.get()) is not None:
+            sock, client, data = item
+            try:
+                if not self._closing.is_set():
+                    self._handler((sock, data), (client, 0), self)
+            except Exception as exc:  # a reset or timed-out client: one line, no traceback
+                log.debug("HTTP connection from %s dropped: %r", client, exc)
+            finally:
+                with contextlib.suppress(OSError):
+                    sock.shutdown(socket.SHUT_WR)  # the reply is sent (a close with unread input would reset it)
+                self._release(sock, client)
+
     def close(self) -> None:
-        self.server.closing.set()
-        self.server.shutdown()
-        self.server.server_close()
+        self._closing.set()
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"x")
+        self.thread.join(5)
+        self._listener.close()
+        for _ in self.workers:
+            self._complete.put(None)
+        for sock in (self._wake_r, self._wake_w):
+            sock.close()
+
+
+def _error_bytes(status: int, message: str) -> bytes:
+    """A whole HTTP/1.0 JSON error reply, for the loop to send without a handler."""
+    _, ctype, body = json_response({"error": message}, status)
+    reason = {408: "Request Timeout", 431: "Request Header Fields Too Large"}[status]
+    return (f"HTTP/1.0 {status} {reason}\r\nContent-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
+            f"Connection: close\r\n\r\n").encode() + body
 
 
 #: the signals that stop a service or a run, with the words a person reads
