@@ -16,12 +16,21 @@ import dataclasses
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus, TransitionBatch, Weights
+from curlnav.proto.messages import (
+    MAX_ACTOR_ID,
+    Assignment,
+    AssignmentRequest,
+    EpisodeReport,
+    ServiceStatus,
+    TransitionBatch,
+    Weights,
+)
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.builder import D4PGBuilder
@@ -43,6 +52,10 @@ class ActorServiceConfig:
     actor_count: int = 1  # actors in the run: each takes this share of the warm-up
     deployment: Deployment = Deployment(data_dir="")
     batch_steps: int = 32  # environment steps per transition batch on the bus
+
+    def __post_init__(self) -> None:
+        if not 0 < len(self.actor_id) <= MAX_ACTOR_ID or any(c in self.actor_id for c in "/*$?#"):
+            raise ConfigError(f"actor id {self.actor_id[:40]!r}: 1..{MAX_ACTOR_ID} characters, none of / * $ ? #")
 
 
 class ActorCore:
@@ -103,9 +116,10 @@ class ActorService:
         self._pending_weights: Weights | None = None
         self._credit = (1_000_000, 0.0)  # (transitions the replay accepts now, when heard)
         self.acked_seq = -1  # the highest of this actor's batch seqs the replay has accepted (logged)
-        self.m_unacked = Gauge("actor_batches_unacknowledged", "batches sent that the replay has not yet accepted",
-                               registry=self.registry)
-        self.m_unacked.set_function(lambda: max(0, self.core.seq - 1 - self.acked_seq) if self.acked_seq >= 0 else 0)
+        self.unacked: deque[int] = deque(maxlen=100_000)  # seqs sent and not yet acknowledged, oldest first
+        self.m_unacked = Gauge("actor_batches_unacknowledged", "batches sent that the replay has not yet accepted "
+                               "(batches refused as duplicates stay counted)", registry=self.registry)
+        self.m_unacked.set_function(lambda: len(self.unacked))
         self._lock = threading.Lock()
         self.stop = threading.Event()
 
@@ -120,15 +134,32 @@ class ActorService:
             if self._pending_weights is None or msg.version >= self._pending_weights.version:
                 self._pending_weights = msg
 
+    def sent(self, seq: int) -> None:
+        """Batch ``seq`` went out: unacknowledged until the replay's credit says otherwise."""
+        self.unacked.append(seq)
+
     def _on_credit(self, sample) -> None:
         try:
             msg = ServiceStatus.decode(sample.payload.to_bytes())
             self._credit = (int(msg.values.get("allowed", 0)), time.monotonic())
             acked = msg.values.get(f"ack/{self.cfg.actor_id}")
             if acked is not None:
-                self.acked_seq = max(self.acked_seq, int(acked))
+                self._on_ack(int(acked))
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
+
+    def _on_ack(self, acked: int) -> None:
+        """The replay's acknowledgement for this actor's id. One at or above the next seq was
+        never sent by this process (another batch on its id, or a predecessor whose numbers ran
+        ahead): the replay now drops this actor's batches as duplicates, so it numbers on above
+        it (counted as ``foreign_ack``) and keeps the refused ones unacknowledged."""
+        if acked >= self.core.seq:
+            self.m_rejected.labels("foreign_ack").inc()
+            self.core.seq = acked + 1
+            return
+        self.acked_seq = max(self.acked_seq, acked)
+        while self.unacked and self.unacked[0] <= acked:
+            self.unacked.popleft()
 
     def _wait_for_credit(self) -> None:
         """Pause (sleeping, not spinning) while the replay's limiter holds inserts back. A stale
@@ -185,6 +216,7 @@ class ActorService:
                 if reply.ok is not None:
                     self._on_weights(reply.ok)
             while not self.stop.is_set():
+                shell.recheck_agreement()  # a service of another config that joined after this actor
                 self._apply_weights()
                 assignment = self._assignment(session, topo.assign)
                 world = assignment.world if assignment else core.default_world
@@ -206,8 +238,10 @@ class ActorService:
                     self.m_steps.inc()
                     self.step_rate.add()
                     if end is not None or core.steps % cfg.batch_steps == 0:
+                        seq = core.seq
                         payload = core.batch()
                         if payload is not None:
+                            self.sent(seq)
                             transitions.put(payload)
                             allowed, heard = self._credit
                             self._credit = (allowed - cfg.batch_steps, heard)  # spend it until the next word

@@ -17,6 +17,14 @@ from .frames import FrameBatch
 VERSION = 1
 MAX_BEAMS = 4096
 MAX_ITEMS = 65_536  # frames or transitions in one batch
+MAX_ACTOR_ID = 128  # characters in an actor id (it is a key chunk and travels in every credit message)
+
+
+def check_actor_id(actor_id: str, kind: str) -> str:
+    """``actor_id`` if it is 1..``MAX_ACTOR_ID`` characters, else ``ProtoError``."""
+    if not 0 < len(actor_id) <= MAX_ACTOR_ID:
+        raise ProtoError("range", f"{kind}: actor_id must be 1..{MAX_ACTOR_ID} characters, not {len(actor_id)}")
+    return actor_id
 
 
 @dataclass
@@ -45,7 +53,7 @@ class TransitionBatch:
         obj = loads(data)
         kind = TransitionBatch.KIND
         check_header(obj, kind, VERSION)
-        actor_id = field(obj, "actor_id", str, kind)
+        actor_id = check_actor_id(field(obj, "actor_id", str, kind), kind)
         seq = field(obj, "seq", int, kind)
         version = field(obj, "weights_version", int, kind)
         f, t = _dim(obj, "local_id", 0), _dim(obj, "obs_id", 0)
@@ -254,7 +262,9 @@ class EpisodeReport:
 
     @staticmethod
     def decode(data: bytes) -> EpisodeReport:
-        return _decode_flat(EpisodeReport, data)
+        report = _decode_flat(EpisodeReport, data)
+        check_actor_id(report.actor_id, EpisodeReport.KIND)
+        return report
 
 
 @dataclass
@@ -271,10 +281,8 @@ class AssignmentRequest:
     def decode(data: bytes) -> AssignmentRequest:
         obj = loads(data)
         check_header(obj, AssignmentRequest.KIND, VERSION)
-        actor_id = field(obj, "actor_id", str, AssignmentRequest.KIND)
-        if not 0 < len(actor_id) <= 128:
-            raise ProtoError("range", "actor_id must be 1..128 characters")
-        return AssignmentRequest(actor_id)
+        return AssignmentRequest(check_actor_id(field(obj, "actor_id", str, AssignmentRequest.KIND),
+                                                AssignmentRequest.KIND))
 
 
 @dataclass

@@ -12,7 +12,16 @@ rate limiter for the learner (backpressure, not a retry: an accepted batch alway
 
 Every 20 ms the service publishes an insert credit (what the rate limiter accepts now, minus
 what waits) and, per actor, the highest sequence number accepted (the acknowledgement); actors
-pause while the credit is exhausted. Sampling is a queryable (``replay/sample``) answered from
+pause while the credit is exhausted.
+
+Nothing one actor sends can block another (issue 26): a batch must come on the key of the actor
+it names (``transitions/<actor_id>``, else ``key_mismatch``); a ``seq`` above the present in
+microseconds plus ``SEQ_FUTURE_MARGIN_S`` is refused (``seq_future``; actors number their batches
+from their start time in microseconds, one per batch, so they never get there), also when the log
+is read back at a restart. The acknowledgements are bounded (``MAX_TRACKED_ACTORS`` ids, those
+without a liveliness token leave first), an actor's entry goes when its liveliness token does, and
+the credit message names only actors holding a token (at most ``CREDIT_ACKS``; ids are at most
+128 characters): a few KB whatever is sent. Sampling is a queryable (``replay/sample``) answered from
 its own thread, never stalled by persistence (there is no snapshot to write: the log is the
 state; segments whose transitions have left the table are deleted). With a prioritized replay,
 the learner's ``PriorityUpdate`` messages set the sampled items' new priorities (priorities are
@@ -30,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import zenoh
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
 from prometheus_client import CollectorRegistry, Counter, Gauge
@@ -43,6 +53,16 @@ from .table import RateLimiterTimeout, ReplayInputError
 from .wal import SegmentLog
 
 log = logging.getLogger("curlnav.replay")
+
+SEQ_FUTURE_MARGIN_S = 600.0  # clock skew allowed between an actor's host and the replay's
+MAX_TRACKED_ACTORS = 1024  # actor ids whose acknowledgement and last seq are kept
+MAX_LIVE_ACTORS = 4096  # liveliness tokens of actors followed (beyond: counted and ignored)
+CREDIT_ACKS = 256  # acknowledgements in one credit message (the most recently accepted live actors)
+
+
+def seq_limit() -> int:
+    """The highest batch ``seq`` believed now: the present in microseconds plus the margin."""
+    return time.time_ns() // 1000 + int(SEQ_FUTURE_MARGIN_S * 1e6)
 
 
 @dataclass(frozen=True)
@@ -67,7 +87,9 @@ class ReplayService:
         self.log = SegmentLog(self.data_dir / "wal", fsync=cfg.fsync)
         self.accepted_total = 0  # transitions accepted in the run's lifetime (the log's index)
         self.in_table_total = 0  # of those, how many have gone into the table (the rest wait)
-        self.acked: dict[str, int] = {}  # actor id -> highest batch seq accepted
+        self.acked: dict[str, int] = {}  # actor id -> highest batch seq accepted (most recent last)
+        self.live: set[str] = set()  # actor ids holding a liveliness token
+        self._acks_lock = threading.Lock()  # acked, last_seq and live change on two threads
         self.registry = CollectorRegistry()
         self.m_in = Counter("replay_transitions_inserted", "transitions accepted", registry=self.registry)
         self.m_batches = Counter("replay_batches_received", "transition batches received", registry=self.registry)
@@ -77,7 +99,7 @@ class ReplayService:
         self.m_size.set_function(lambda: self.table.size)
         self.insert_rate = RateMeter()
         self.sample_rate = RateMeter()
-        self.backlog: deque[bytes] = deque()  # received batches, not yet accepted
+        self.backlog: deque[tuple[str | None, bytes]] = deque()  # (key's actor id, batch) received, not accepted
         self.accepted: deque[TransitionBatch] = deque()  # accepted (in the log), not yet in the table
         self.mean_batch = 32.0  # transitions per batch, running mean, to size the backlog
         self.last_seq: dict[str, int] = {}
@@ -89,13 +111,20 @@ class ReplayService:
     # -- pure handlers (tested without a network) --------------------------------------------
     def _restore(self) -> int:
         """Re-insert the log's batches (the accepted ones, in order); returns transitions restored."""
-        restored = 0
+        restored = future = 0
+        limit = seq_limit()
         for first, payload in self.log.records():
             msg = TransitionBatch.decode(payload, beams=self.layout.beams)
             restored += self.table.insert(msg.batch, stream=msg.actor_id, force=True)
             self.accepted_total = self.in_table_total = first + msg.batch.num_transitions
-            self.acked[msg.actor_id] = max(self.acked.get(msg.actor_id, -1), msg.seq)
+            if msg.seq > limit:  # logged before seqs were checked: the data stays, its number is not believed
+                future += 1
+                continue
+            self._remember(msg.actor_id, max(self.acked.get(msg.actor_id, -1), msg.seq))
             self.last_seq[msg.actor_id] = msg.seq
+        if future:
+            log.warning("the log holds %d batches numbered beyond now + %g s: restored, not acknowledged",
+                        future, SEQ_FUTURE_MARGIN_S)
         if restored:
             self.table.total_inserted = self.accepted_total
             self.table.rate_limiter.recentre(self.table.size)
@@ -106,16 +135,48 @@ class ReplayService:
                         self.data_dir / "replay.npz")
         return restored
 
-    def accept_batches(self, payloads: list[bytes]) -> list[TransitionBatch]:
-        """Decode and check ``payloads``; write the good ones to the log and commit (fsync):
-        from here on they are accepted. Refused ones are counted by reason."""
+    def _remember(self, actor: str, seq: int) -> None:
+        """Set ``actor``'s acknowledged seq (most recent last); beyond ``MAX_TRACKED_ACTORS`` ids
+        the oldest without a liveliness token goes (else the oldest)."""
+        with self._acks_lock:
+            self.acked.pop(actor, None)
+            self.acked[actor] = seq
+            while len(self.acked) > MAX_TRACKED_ACTORS:
+                gone = next((a for a in self.acked if a not in self.live), next(iter(self.acked)))
+                self.acked.pop(gone)
+                self.last_seq.pop(gone, None)
+
+    def actor_alive(self, actor: str, alive: bool) -> None:
+        """An actor's liveliness token came (``alive``) or went: a gone actor's entries go (a
+        restarted actor numbers its batches from its new start time anyway)."""
+        with self._acks_lock:
+            if not alive:
+                self.live.discard(actor)
+                self.acked.pop(actor, None)
+                self.last_seq.pop(actor, None)
+                return
+            if len(self.live) < MAX_LIVE_ACTORS:
+                self.live.add(actor)
+                return
+        self.m_rejected.labels("too_many_actors").inc()
+
+    def accept_batches(self, payloads: list[bytes | tuple[str | None, bytes]]) -> list[TransitionBatch]:
+        """Decode and check ``payloads`` (each a batch, or (the actor id of its key, batch));
+        write the good ones to the log and commit (fsync): from here on they are accepted.
+        Refused ones are counted by reason."""
         good = []
         total = self.accepted_total
         acked: dict[str, int] = {}
-        for payload in payloads:
+        limit = seq_limit()
+        for item in payloads:
+            sender, payload = item if isinstance(item, tuple) else (None, item)
             self.m_batches.inc()
             try:
                 msg = TransitionBatch.decode(payload, beams=self.layout.beams)
+                if sender is not None and msg.actor_id != sender:
+                    raise ReplayInputError("key_mismatch", "the batch names another actor than its key")
+                if msg.seq > limit:
+                    raise ReplayInputError("seq_future", f"seq {msg.seq} beyond now + {SEQ_FUTURE_MARGIN_S:g} s")
                 if msg.batch.num_transitions > self.max_batch:
                     raise ReplayInputError("too_large", f"{msg.batch.num_transitions} transitions in one batch, "
                                                         f"at most replay.insert_batch = {self.max_batch}")
@@ -134,8 +195,7 @@ class ReplayService:
             self.log.commit()  # from here on they are accepted: only now are they counted and acked
             self.accepted_total = total
             for actor, seq in acked.items():
-                self.acked.pop(actor, None)  # re-inserted: the dict's order is most recent last
-                self.acked[actor] = seq
+                self._remember(actor, seq)
         return good
 
     def insert_accepted(self, msg: TransitionBatch, timeout: float | None = None, force: bool = False) -> int:
@@ -146,15 +206,19 @@ class ReplayService:
         last = self.last_seq.get(msg.actor_id)
         if last is not None and msg.seq != last + 1:
             self.seq_gaps += 1
-        self.last_seq[msg.actor_id] = msg.seq
+        with self._acks_lock:
+            if msg.actor_id in self.acked:  # bounded with the acknowledgements
+                self.last_seq[msg.actor_id] = msg.seq
         self.m_in.inc(added)
         self.insert_rate.add(added)
         self.mean_batch = 0.9 * self.mean_batch + 0.1 * msg.batch.num_transitions
         return added
 
-    def handle_batch(self, payload: bytes, timeout: float | None = None, force: bool = False) -> int:
-        """Accept and insert one batch at once; returns transitions added (0 when refused)."""
-        return sum(self.insert_accepted(msg, timeout, force) for msg in self.accept_batches([payload]))
+    def handle_batch(self, payload: bytes, timeout: float | None = None, force: bool = False,
+                     sender: str | None = None) -> int:
+        """Accept and insert one batch at once (``sender``: the actor id of its key); returns
+        transitions added (0 when refused)."""
+        return sum(self.insert_accepted(msg, timeout, force) for msg in self.accept_batches([(sender, payload)]))
 
     def handle_sample(self, payload: bytes) -> bytes:
         try:
@@ -213,10 +277,12 @@ class ReplayService:
         return self.log.drop_before(self.in_table_total - self.table.max_size)
 
     def credit_message(self) -> bytes:
-        """The insert credit, the run's accepted count and each actor's acknowledged seq."""
-        acks = dict(list(self.acked.items())[-256:])  # bounded: the most recently seen actors
+        """The insert credit, the run's accepted count and the acknowledged seq of each actor
+        holding a liveliness token (the ``CREDIT_ACKS`` most recently accepted)."""
+        with self._acks_lock:
+            acks = [(a, seq) for a, seq in reversed(self.acked.items()) if a in self.live][:CREDIT_ACKS]
         return ServiceStatus("replay-credit", {"allowed": self.insert_credit(), "accepted": self.accepted_total,
-                                               **{f"ack/{actor}": seq for actor, seq in acks.items()}}).encode()
+                                               **{f"ack/{actor}": seq for actor, seq in acks}}).encode()
 
     # -- shell -----------------------------------------------------------------------------------
     def run(self) -> None:
@@ -232,8 +298,13 @@ class ReplayService:
             # The subscriber callback only appends to a deque: it never blocks Zenoh (a long
             # block makes Zenoh close the link and lose data). Actors pace themselves on the
             # insert credit published below, which counts this backlog, so the deque stays short.
-            subscriber = ingest.declare_subscriber(topo.transitions("*"),
-                                                   lambda s: self.backlog.append(s.payload.to_bytes()))
+            subscriber = ingest.declare_subscriber(
+                topo.transitions("*"), lambda s: self.backlog.append((str(s.key_expr).rsplit("/", 1)[-1],
+                                                                      s.payload.to_bytes())))
+            alive = session.liveliness().declare_subscriber(
+                topo.alive("actor", "*"), lambda s: self.actor_alive(str(s.key_expr).rsplit("/", 1)[-1],
+                                                                     s.kind == zenoh.SampleKind.PUT), history=True)
+            shell.on_close("actor liveliness subscriber", alive.undeclare)
             priorities = session.declare_subscriber(topo.priorities,
                                                     lambda s: self.handle_priorities(s.payload.to_bytes()))
             shell.on_close("priority subscriber", priorities.undeclare)

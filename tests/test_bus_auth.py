@@ -107,11 +107,12 @@ def test_the_table_names_only_topology_keys_and_the_acl_is_default_deny():
     assert who("declare_subscriber", topo.weights) == ["actor"]
     assert who("put", topo.weights, "egress") == ["actor"] and who("reply", topo.sample, "egress") == ["learner"]
     assert who("declare_queryable", topo.config("replay", "r")) == ["replay"]
+    assert who("declare_queryable", topo.config("actor", "a")) == []  # actors never answer for the run's config
     assert who("query", topo.config()) == list(ALLOWED)  # the config agreement: everyone asks
     assert all(who(m, topo.prefix + "/**") == [] for m in ("put", "delete", "declare_subscriber", "query"))
     for role in ALLOWED:  # liveliness tokens only under alive/<role>/
         assert perms[role]["ingress", "liveliness_token"] == [topo.alive(role)]
-    assert [r for r in ALLOWED if ("ingress", "declare_liveliness_subscriber") in perms[r]] == ["scheduler"]
+    assert [r for r in ALLOWED if ("ingress", "declare_liveliness_subscriber") in perms[r]] == ["replay", "scheduler"]
 
 
 def test_cli_writes_credentials(tmp_path):

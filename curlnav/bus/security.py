@@ -39,10 +39,11 @@ REPLY, TOKEN, WATCH = "reply", "liveliness_token", "declare_liveliness_subscribe
 MESSAGES = (PUT, "delete", SUBSCRIBE, QUERY, QUERYABLE, REPLY, TOKEN, WATCH, "liveliness_query")
 
 #: What each role may send or declare, as (message, key under ``curlnav/<run>/``); every key is one
-#: of ``proto/topology.py``. Nobody may delete, and nobody but the scheduler watches liveliness.
+#: of ``proto/topology.py``. Nobody may delete; the scheduler and the replay watch the actors'
+#: liveliness (the live actors, their acknowledgements), nobody watches the services'.
 ALLOWED: dict[str, tuple[tuple[str, str], ...]] = {
     "replay": ((SUBSCRIBE, "transitions/*"), (SUBSCRIBE, "replay/priorities"), (QUERYABLE, "replay/sample"),
-               (PUT, "replay/credit"), (PUT, "status/replay")),
+               (PUT, "replay/credit"), (PUT, "status/replay"), (WATCH, "alive/actor/*")),
     "learner": ((PUT, "weights"), (QUERYABLE, "weights/latest"), (QUERY, "replay/sample"),
                 (PUT, "replay/priorities"), (PUT, "status/learner"), (SUBSCRIBE, "status/replay")),
     "scheduler": ((QUERYABLE, "scheduler/assign"), (SUBSCRIBE, "episodes/*"), (SUBSCRIBE, "status/*"),
@@ -52,6 +53,9 @@ ALLOWED: dict[str, tuple[tuple[str, str], ...]] = {
 }
 SERVICE_ROLES = tuple(ALLOWED)
 ROLES = ("router", *SERVICE_ROLES)  # one bus user each
+#: the roles whose answers make the run's config (``ServiceShell``'s agreement): an actor joins
+#: a run on their config and never answers for it, so no actor can veto another service
+CONFIG_OWNERS = ("replay", "learner", "scheduler")
 
 
 class BusCredentialsError(ValueError):
@@ -76,9 +80,11 @@ class RouterAuth:
 
 
 def allowed(role: str) -> tuple[tuple[str, str], ...]:
-    """``ALLOWED[role]`` plus what every service does (``ServiceShell``): answer
-    ``config/<role>/<id>``, ask ``config/*/*`` (the config agreement), hold ``alive/<role>/<id>``."""
-    return ALLOWED[role] + ((QUERYABLE, f"config/{role}/*"), (QUERY, "config/*/*"), (TOKEN, f"alive/{role}/*"))
+    """``ALLOWED[role]`` plus what every service does (``ServiceShell``): ask ``config/*/*`` (the
+    config agreement), hold ``alive/<role>/<id>``, and, for ``CONFIG_OWNERS``, answer
+    ``config/<role>/<id>``."""
+    answer = ((QUERYABLE, f"config/{role}/*"),) if role in CONFIG_OWNERS else ()
+    return ALLOWED[role] + answer + ((QUERY, "config/*/*"), (TOKEN, f"alive/{role}/*"))
 
 
 def permissions(run: str) -> dict[str, dict[tuple[str, str], list[str]]]:

@@ -8,6 +8,12 @@ every service there; if any runs another config (every section but ``budget`` an
 ``evaluation``, which only the launcher reads), it refuses to join (``ConfigMismatch``: one line
 naming the service and the first fields that differ; ``curlnav serve`` exits 2). Services may
 start in any order, even at once: the later one, or both, notice.
+
+Only the services that own the run's config answer and are believed (``CONFIG_OWNERS``: replay,
+learner, scheduler), on their own key: an actor (which holds credentials any actor holds) can
+never make another service refuse to join. An actor checks the owners' configs when it joins
+and again every ``RECHECK_S`` while it runs (``recheck_agreement``), so an actor that started
+before a service of another config still notices and stops.
 """
 
 from __future__ import annotations
@@ -15,13 +21,14 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from prometheus_client import CollectorRegistry
 
-from curlnav.bus.security import load_user
+from curlnav.bus.security import CONFIG_OWNERS, load_user
 from curlnav.bus.transport import HttpServer, Route, json_response, open_session
 from curlnav.config import ExperimentConfig, config_differences, config_to_dict, service_config_hash
 from curlnav.proto.codec import ProtoError
@@ -31,6 +38,7 @@ from curlnav.proto.topology import Topology
 log = logging.getLogger("curlnav.bus.service")
 
 CONFIG_QUERY_TIMEOUT_S = 3.0  # how long a joining service listens for the run's configs
+RECHECK_S = 60.0  # how often a service that answers no config queries asks again
 
 
 class ConfigMismatch(RuntimeError):
@@ -58,7 +66,7 @@ def check_agreement(own: ExperimentConfig, replies: list[RunConfig]) -> None:
     ``service_config_hash``: the budget and evaluation sections are the launcher's own)."""
     own_hash = service_config_hash(own)
     for reply in replies:
-        if reply.config_hash == own_hash:
+        if reply.config_hash == own_hash or reply.role not in CONFIG_OWNERS:
             continue
         try:
             theirs = json.loads(reply.config_json)
@@ -107,13 +115,13 @@ class ServiceShell:
         try:
             self.session = session = self.new_session()
             # answer first, then ask: two services starting together see each other
-            reply = RunConfig(self.role, self.instance, self.config_hash,
-                              json.dumps(config_to_dict(self.experiment), sort_keys=True)).encode()
-            key = self.topology.config(self.role, self.instance)
-            queryable = session.declare_queryable(key, lambda q: q.reply(key, reply))
-            self.on_close("config queryable", queryable.undeclare)
-            check_agreement(self.experiment, [c for c in self.run_configs()
-                                              if (c.role, c.instance) != (self.role, self.instance)])
+            if self.role in CONFIG_OWNERS:
+                reply = RunConfig(self.role, self.instance, self.config_hash,
+                                  json.dumps(config_to_dict(self.experiment), sort_keys=True)).encode()
+                key = self.topology.config(self.role, self.instance)
+                queryable = session.declare_queryable(key, lambda q: q.reply(key, reply))
+                self.on_close("config queryable", queryable.undeclare)
+            self.recheck_agreement(force=True)
             token = session.liveliness().declare_token(self.topology.alive(self.role, self.instance))
             self.on_close("liveliness token", token.undeclare)
             all_routes = {("GET", "/healthz"): lambda r: json_response({"ok": True, **self.health()}),
@@ -140,16 +148,36 @@ class ServiceShell:
         self.on_close("Zenoh session", session.close)
         return session
 
+    _checked_at = float("-inf")
+
+    def recheck_agreement(self, force: bool = False) -> None:
+        """Ask the run's config owners again (at most every ``RECHECK_S`` unless ``force``);
+        ``ConfigMismatch`` if one runs another config."""
+        if not force and time.monotonic() - self._checked_at < RECHECK_S:
+            return
+        self._checked_at = time.monotonic()
+        check_agreement(self.experiment, [c for c in self.run_configs()
+                                          if (c.role, c.instance) != (self.role, self.instance)])
+
     def run_configs(self) -> list[RunConfig]:
-        """The configs of the services already in the run (malformed replies are skipped)."""
+        """The configs of the run's config owners (``CONFIG_OWNERS``), each believed only on its
+        own key ``config/<role>/<instance>``; malformed and other replies are skipped."""
         out = []
         for reply in self.session.get(self.topology.config("*", "*"), timeout=CONFIG_QUERY_TIMEOUT_S):
             if reply.ok is None:
                 continue
             try:
-                out.append(RunConfig.decode(reply.ok.payload.to_bytes()))
+                config = RunConfig.decode(reply.ok.payload.to_bytes())
             except ProtoError:
                 log.warning("%s: ignored a malformed run config reply", self.role)
+                continue
+            if config.role not in CONFIG_OWNERS or str(reply.ok.key_expr) != self.topology.config(config.role,
+                                                                                                config.instance):
+                log.warning("%s: ignored a run config answered on %s for %s %s (only %s answer, on their own key)",
+                            self.role, str(reply.ok.key_expr)[:200], config.role[:40], config.instance[:40],
+                            "/".join(CONFIG_OWNERS))
+                continue
+            out.append(config)
         return out
 
     def close(self) -> None:
