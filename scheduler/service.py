@@ -19,12 +19,12 @@ import logging
 import os
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
 
 from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
+from curlnav.proto.messages import MAX_ACTOR_ID, Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.bus.service import Deployment, ServiceShell
@@ -49,7 +49,9 @@ class SchedulerServiceConfig:
 
 
 #: bounds on what the scheduler keeps, whatever arrives
-MAX_ACTORS = 1024  # live actors tracked (liveliness tokens beyond it are counted and ignored)
+MAX_ACTORS = 1024  # live actors tracked (tokens beyond it wait for room: see SchedulerCore)
+MAX_WAITING = 4 * MAX_ACTORS  # liveliness tokens remembered while the table is full (oldest forgotten)
+IDLE_S = 120.0  # an actor that has neither asked for a world nor reported for this long may make room
 STATUS_ACTORS = 64  # actors detailed in /status (the rest are counted in live_actor_count)
 STATUS_ROLES = ("replay", "learner")  # services whose status the scheduler keeps
 
@@ -58,9 +60,16 @@ class SchedulerCore:
     """Everything the scheduler decides, without a network: assignments, reports, status.
 
     Its state is bounded: actors exist only through their liveliness token (at most
-    ``MAX_ACTORS``); a report from an id without one, or about a world or pair that is not in the
-    curriculum, is refused and counted; per-(world, pair) counts are keyed by the curriculum's own
-    worlds and pairs; only the replay's and learner's status values are kept.
+    ``MAX_ACTORS``); a report from an id without one (``unknown_actor``), from an id that never
+    asked for a world (``unassigned``: a bare token is not an actor at work), on another actor's
+    key (``key_mismatch``), or about a world or pair that is not in the curriculum, is refused and
+    counted; per-(world, pair) counts are keyed by the curriculum's own worlds and pairs; only the
+    replay's and learner's status values are kept.
+
+    Ghost tokens (held, never used) cannot lock real actors out: when the table is full, a new
+    token waits (``too_many_actors``; at most ``MAX_WAITING`` remembered) and takes the place of an
+    actor idle for ``IDLE_S``, or, as soon as it asks for a world, of one that never asked (else
+    of the one idle longest): an actor at work asks at every episode.
     """
 
     def __init__(self, curriculum: Curriculum, state: CurriculumState | None = None,
@@ -71,6 +80,8 @@ class SchedulerCore:
         self.known_pairs = {""} | {p for stage in curriculum.stages for p in stage.substeps}
         self.lock = threading.RLock()
         self.actors: dict[str, dict] = {}  # live actors: id -> {assignment, last_report, episodes, joined}
+        self.active: dict[str, float] = {}  # live actor id -> monotonic time it last asked or reported (or joined)
+        self.waiting: OrderedDict[str, None] = OrderedDict()  # tokens that came while the table was full
         self.services: dict[str, dict] = {}  # role -> last status values
         self.recent_episodes: deque = deque(maxlen=100)  # (return, base collisions) of the last 100 reports
         self.registry = CollectorRegistry()
@@ -89,14 +100,19 @@ class SchedulerCore:
             world, pair = self.state.assign()
             st = self.state
             assignment = Assignment(request.actor_id, world, pair, st.current.name, st.substep, st.epoch)
+            if request.actor_id in self.waiting:  # a token that waited for room, now at work
+                self._make_room(idle_only=False)
+                self._admit(request.actor_id)
             entry = self.actors.get(request.actor_id)  # an id without a liveliness token is not kept
             if entry is not None:
+                self.active[request.actor_id] = time.monotonic()
                 entry["assignment"] = {"world": world, "pair": pair, "stage": st.current.name, "substep": st.substep,
                                        "epoch": st.epoch}
         return assignment.encode()
 
-    def report(self, payload: bytes) -> bool:
-        """Count an episode report; returns True if the curriculum advanced."""
+    def report(self, payload: bytes, sender: str | None = None) -> bool:
+        """Count an episode report (``sender``: the actor id of its key); returns True if the
+        curriculum advanced."""
         try:
             r = EpisodeReport.decode(payload)
         except ProtoError as exc:
@@ -104,11 +120,14 @@ class SchedulerCore:
             return False
         with self.lock:
             entry = self.actors.get(r.actor_id)
-            reason = ("unknown_actor" if entry is None else "unknown_world" if r.world not in self.known_worlds
+            reason = ("key_mismatch" if sender is not None and sender != r.actor_id
+                      else "unknown_actor" if entry is None else "unassigned" if entry["assignment"] is None
+                      else "unknown_world" if r.world not in self.known_worlds
                       else "unknown_pair" if r.pair not in self.known_pairs else None)
             if reason:
                 self.m_rejected.labels(reason).inc()
                 return False
+            self.active[r.actor_id] = time.monotonic()
             self.m_episodes.labels(r.world, r.pair or "random", "success" if r.success else "failure").inc()
             entry["episodes"] += 1
             entry["last_report"] = {"world": r.world, "pair": r.pair, "success": r.success, "return": r.episode_return,
@@ -136,20 +155,57 @@ class SchedulerCore:
             self.services[s.role] = {**s.values, "time": time.time()}
 
     def actor_joined(self, actor_id: str) -> None:
+        if not 0 < len(actor_id) <= MAX_ACTOR_ID:
+            self.m_rejected.labels("range").inc()
+            return
         with self.lock:
-            if actor_id not in self.actors and len(self.actors) >= MAX_ACTORS:
-                self.m_rejected.labels("too_many_actors").inc()
+            if actor_id in self.actors:
                 return
-            self.actors.setdefault(actor_id, {"episodes": 0, "assignment": None, "last_report": None,
-                                              "joined": time.time()})
+            if len(self.actors) >= MAX_ACTORS and not self._make_room(idle_only=True):
+                self.m_rejected.labels("too_many_actors").inc()
+                self._wait(actor_id)
+                return
+            self._admit(actor_id)
+
+    def _admit(self, actor_id: str) -> None:
+        self.waiting.pop(actor_id, None)
+        self.actors[actor_id] = {"episodes": 0, "assignment": None, "last_report": None, "joined": time.time()}
+        self.active[actor_id] = time.monotonic()
+
+    def _wait(self, actor_id: str) -> None:
+        self.waiting.pop(actor_id, None)
+        self.waiting[actor_id] = None
+        while len(self.waiting) > MAX_WAITING:
+            self.waiting.popitem(last=False)
+
+    def _make_room(self, idle_only: bool) -> bool:
+        """Below ``MAX_ACTORS``, or move one actor to the waiting tokens: one idle for ``IDLE_S``
+        (the longest idle); unless ``idle_only``, else one that never asked for a world, else the
+        longest idle. Returns whether there is room now."""
+        if len(self.actors) < MAX_ACTORS:
+            return True
+        idlest = min(self.active, key=self.active.__getitem__)
+        if time.monotonic() - self.active[idlest] < IDLE_S:
+            if idle_only:
+                return False
+            idlest = next((a for a, e in self.actors.items() if e["assignment"] is None), idlest)
+        self.m_rejected.labels("evicted_idle").inc()
+        self._forget(idlest)
+        self._wait(idlest)
+        return True
+
+    def _forget(self, actor_id: str) -> None:
+        self.actors.pop(actor_id, None)
+        self.active.pop(actor_id, None)
+        try:
+            self.m_lag.remove(actor_id)
+        except KeyError:
+            pass
 
     def actor_left(self, actor_id: str) -> None:
         with self.lock:
-            self.actors.pop(actor_id, None)
-            try:
-                self.m_lag.remove(actor_id)
-            except KeyError:
-                pass
+            self.waiting.pop(actor_id, None)
+            self._forget(actor_id)
 
     def force_advance(self) -> bool:
         with self.lock:
@@ -293,7 +349,7 @@ class SchedulerService:
                     query.reply_err(str(exc).encode())
 
             def on_report(sample):
-                advanced = core.report(sample.payload.to_bytes())
+                advanced = core.report(sample.payload.to_bytes(), sender=str(sample.key_expr).rsplit("/", 1)[-1])
                 if core.state.episodes != self.saved_episodes:
                     self.save()  # every counted episode is on disk at once: a kill -9 loses none
                 if advanced:

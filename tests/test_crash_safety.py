@@ -202,7 +202,7 @@ def test_a_burst_of_reports_with_random_ids_keeps_status_small_and_memory_bounde
     import tracemalloc
     import uuid
 
-    from curlnav.proto.messages import EpisodeReport
+    from curlnav.proto.messages import AssignmentRequest, EpisodeReport
     from curlnav.scheduler.curriculum import load_curriculum
     from curlnav.scheduler.service import SchedulerCore
 
@@ -211,6 +211,7 @@ def test_a_burst_of_reports_with_random_ids_keeps_status_small_and_memory_bounde
     core = SchedulerCore(curriculum)
     core.actor_joined("actor-0")
     world = curriculum.stages[0].worlds[0]
+    core.assign(AssignmentRequest("actor-0").encode())  # an actor at work asks for a world first
     core.report(EpisodeReport("actor-0", world, "", True, 10.0, 0, 0, 50, 1, 0).encode())
 
     def burst(n: int) -> None:
