@@ -69,14 +69,21 @@ def open_session(router: str, connect_timeout_s: float | None = None, user: BusU
                                 f"{exc}") from None
 
 
-def run_router(listen: str, stop: threading.Event, connect: list[str] | None = None, credentials: str = "") -> None:
+def run_router(listen: str, stop: threading.Event, connect: list[str] | None = None, credentials: str = "",
+               audit: bool = True) -> None:
     """A Zenoh router (a Python session in router mode) until ``stop`` is set. ``credentials``:
     a run's bus credentials folder (or the router's own): the router then admits only the run's
-    users and applies the run's access control."""
+    users and applies the run's access control, and (``audit``) counts and logs every message
+    it refuses (``curlnav.bus.audit``: it takes over the process's stdout, so only in a router
+    process of its own)."""
+    from curlnav.bus.audit import DenialAudit
+
     guard = load_router(credentials) if credentials else None
+    denials = None
     if guard is not None:
         log.info("bus: user-password authentication (%d users), access control for run %r, default deny",
                  sum(1 for line in guard.users_file.read_text().splitlines() if line.strip()), guard.user.run)
+        denials = DenialAudit().start() if audit else None
     else:
         log.warning("bus: no credentials: anyone who reaches this router may publish and query (--bus-credentials)")
     session = zenoh.open(zenoh_config("router", connect=connect, listen=[listen], guard=guard))
@@ -84,6 +91,8 @@ def run_router(listen: str, stop: threading.Event, connect: list[str] | None = N
         stop.wait()
     finally:
         session.close()
+        if denials is not None:
+            denials.stop()
 
 
 def reliable_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
