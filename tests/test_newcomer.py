@@ -220,3 +220,35 @@ def test_every_world_argument_takes_family_seed_like_eval(tmp_path, capsys, monk
     assert "unknown world family 't-mase'" in err and "t-maze" in err
     with pytest.raises(WorldError, match="FAMILY:SEED"):
         get_world("atlantis")
+
+
+def test_a_resumed_distributed_run_goes_on_from_its_counts_not_from_zero(tmp_path):
+    import csv
+    import re
+
+    run = tmp_path / "run"
+    fast = ["--set", "replay.min_size=200", "--set", "d4pg.batch_size=128", "--set", "replay.samples_per_insert=8",
+            "--warmup-steps", "200", "--eval-every-s", "600", "--eval-episodes", "2", "--minutes", "6"]
+    base = [sys.executable, "-m", "curlnav.cli", "train", "--run-dir", str(run), "--actors", "1"]
+    first = subprocess.run(base + ["--max-env-steps", "300", *fast], capture_output=True, text=True, timeout=300,
+                           cwd=ROOT)
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-2000:]
+    rows = list(csv.DictReader((run / "metrics.csv").open()))
+    before = rows[-1]
+    assert int(before["env_steps"]) >= 300
+    resumed = subprocess.run(base + ["--resume", "--max-env-steps", str(int(before["env_steps"]) + 200)],
+                             capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-2000:]
+    new = list(csv.DictReader((run / "metrics.csv").open()))[len(rows):]
+    assert new, "the resumed session wrote no metrics.csv row"
+    def count(row: dict, key: str) -> float:
+        return float(row.get(key) or 0)  # empty: that service had not reported yet
+
+    keys = ("env_steps", "updates", "policy_version", "replay_size")
+    assert count(before, "env_steps") > 0
+    for key in keys:
+        assert count(new[0], key) >= count(before, key), (key, before, new[0])
+    progress = next(line for line in resumed.stdout.splitlines() if line.startswith("[") and "env steps" in line)
+    counts = re.search(r"env steps (\d+) .* updates (\d+) .* policy v(\d+) \| replay (\d+)", progress)
+    assert counts, progress
+    assert all(int(c) >= count(before, k) for c, k in zip(counts.groups(), keys)), (progress, before)

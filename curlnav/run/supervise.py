@@ -88,6 +88,19 @@ def wait_for_earlier_services(group: int | None, timeout_s: float = 60.0) -> Non
                         f"{timeout_s:.0f} s: stop them (kill -TERM -{group}) before resuming")
 
 
+def saved_counts(metrics_csv: Path) -> dict:
+    """The counts of a run's last metrics.csv row (env steps, updates, policy version, replay
+    size; those it has): where a resumed run's counts start."""
+    counts = {}
+    for row in read_csv(metrics_csv)[-1:]:
+        for key in ("env_steps", "updates", "policy_version", "replay_size"):
+            try:
+                counts[key] = int(float(row[key]))
+            except (KeyError, TypeError, ValueError):
+                pass
+    return counts
+
+
 def port_is_free(port: int | None) -> bool:
     if not port:
         return False
@@ -180,6 +193,7 @@ class DistributedRun:
         self.evals: list[dict] = []
         self.policy_version = -1
         self.last_status: dict | None = None
+        self.counts = saved_counts(self.run_dir / "metrics.csv")
 
     def _saved_run_json(self) -> dict:
         try:
@@ -247,18 +261,34 @@ class DistributedRun:
         except OSError:
             pass  # pruned by the learner while copying: the next one comes soon
 
+    def update_counts(self, status: dict) -> dict:
+        """The run's counts (env steps, updates, policy version, replay size) from ``status``,
+        each carried over from the last known value while its service has not reported yet (a
+        resumed run's services report a few seconds after start: its curve must not drop to 0).
+        Env steps, updates and the version only grow."""
+        learner, replay = status.get("learner") or {}, status.get("replay") or {}
+        reported = {"env_steps": replay.get("inserted") or learner.get("env_steps"), "updates": learner.get("updates"),
+                    "policy_version": learner.get("version"), "replay_size": replay.get("size")}
+        for key, value in reported.items():
+            if value is None:
+                continue
+            known = self.counts.get(key)
+            self.counts[key] = int(value) if known is None or key == "replay_size" else max(int(value), known)
+        return self.counts
+
     def record_progress(self, status: dict, rate: dict, metrics: CsvLog, board: TensorBoardLog) -> str | None:
         """One metrics.csv row, TensorBoard scalars, a progress line; a budget reason or None."""
         learner, replay = status.get("learner") or {}, status.get("replay") or {}
-        env_steps = int(replay.get("inserted") or learner.get("env_steps") or 0)
+        counts = self.update_counts(status)
+        env_steps = counts.get("env_steps") or 0
         wall = self.wall_s()
-        row = {"wall_s": wall, "env_steps": env_steps, "updates": learner.get("updates"),
+        row = {"wall_s": wall, "env_steps": env_steps, "updates": counts.get("updates"),
                "episodes": status.get("episodes"), "train_success_100": status.get("success_last_100"),
                "return_100": status.get("return_last_100"), "base_collisions_100": status.get("base_collisions_last_100"),
                "env_steps_per_s": replay.get("insert_rate"), "updates_per_s": learner.get("updates_per_s"),
                "losses/critic": learner.get("critic_loss"), "losses/actor": learner.get("actor_loss"),
-               "values/q_mean": learner.get("q_mean"), "replay_size": replay.get("size"),
-               "policy_version": learner.get("version"), "policy_lag": status.get("policy_lag"),
+               "values/q_mean": learner.get("q_mean"), "replay_size": counts.get("replay_size"),
+               "policy_version": counts.get("policy_version"), "policy_lag": status.get("policy_lag"),
                "stage_index": status.get("stage_index"), "stage": status.get("stage"), "substep": status.get("substep"),
                "live_actors": status.get("live_actor_count", len(status.get("live_actors") or {}))}
         metrics.write(row)
@@ -286,9 +316,9 @@ class DistributedRun:
         say(f"[{wall / 60:5.1f} min, {max(left_s, 0) / 60:4.1f} left] stage {status.get('stage')}"
             + (f" sub-step {status.get('substep')} ({pair})" if pair else "")
             + f" | episodes {status.get('episodes')} success {'-' if success is None else f'{success:.0%}'}"
-            + f" | env steps {env_steps} ({replay.get('insert_rate') or 0:.0f}/s) updates {learner.get('updates') or 0}"
-            + f" ({learner.get('updates_per_s') or 0:.1f}/s) | policy v{learner.get('version') or 0}"
-            + f" | replay {replay.get('size') or 0} | actors {row['live_actors']}")
+            + f" | env steps {env_steps} ({replay.get('insert_rate') or 0:.0f}/s) updates {row['updates'] or 0}"
+            + f" ({learner.get('updates_per_s') or 0:.1f}/s) | policy v{row['policy_version'] or 0}"
+            + f" | replay {row['replay_size'] or 0} | actors {row['live_actors']}")
         if budget.max_env_steps is not None and env_steps >= budget.max_env_steps:
             return f"env step budget ({env_steps} >= {budget.max_env_steps})"
         return None
@@ -429,8 +459,8 @@ class DistributedRun:
         status = self.last_status or {}
         session.update({"stopped": now_iso(), "stop_reason": stop_reason, "exit_code": exit_code,
                         "wall_s": time.monotonic() - self.started, "restarts": dict(self.restarts),
-                        "env_steps": int(((status.get("replay") or {}).get("inserted")) or 0),
-                        "updates": (status.get("learner") or {}).get("updates"),
+                        "env_steps": int(self.update_counts(status).get("env_steps") or 0),
+                        "updates": self.counts.get("updates"),
                         "policy_version": self.policy_version})
         summary = self.history.close_session(
             session, stop_reason=stop_reason, exit_code=exit_code, run_dir=str(self.run_dir),
