@@ -18,7 +18,7 @@ from curlnav.worlds.namo import NAMO_FAMILIES, door_crossings
 from curlnav.worlds.rank import path_points, world_paths
 
 T_MAZE = Path(__file__).resolve().parent.parent / "scheduler" / "curricula" / "worlds" / "t-maze-0.yaml"
-PLANNER = "planner (TARE-L stand-in)"
+PLANNER = "oracle"  # `planner` is the old name of the oracle, still accepted
 
 
 @pytest.fixture(scope="module")

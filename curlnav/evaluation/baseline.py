@@ -1,10 +1,11 @@
-"""A classical baseline in the same simulator: a stand-in for TARE's local planner (TARE-L).
+"""The classical upper bound in the same simulator: ``oracle``, A* on the true map, tracked on
+the true pose; and the global plan that a learned local planner can follow (``GlobalPlanAgent``).
 
-The paper compares its policy with TARE's local planner (CMU's local planner and path follower
-on ground-truth pose, with a prior map from which the doors were removed), made to ignore
-movable obstacles. That is a ROS/C++ stack; ``StaticMapPlanner`` is the honest stand-in, and
-every table and picture calls it that (``PLANNER_LABEL``). It drives the same robot through the
-same ``NamoEnv`` interface, with the same action limits and the same observation:
+``StaticMapPlanner`` (``curlnav eval oracle``; ``planner`` is the old name) was the stand-in for
+TARE's local planner until the map-less baselines (``curlnav.evaluation.local_planners``:
+``tare-l``, ``dwa``) were written; it knows the static map and its pose exactly, so it bounds what
+a local planner could do from above. It drives the same robot through the same ``NamoEnv``
+interface, with the same action limits and the same observation:
 
 - **Global planner** (``GridPlanner``): A* on the world's static occupancy grid, 8-connected. A cell is free
   when its centre lies more than the robot's half-width (plus
@@ -14,16 +15,24 @@ same ``NamoEnv`` interface, with the same action limits and the same observation
   middle of corridors and doorways. Balls, boxes and door panels are not in the grid (door gaps
   are free there): the planner does not know them and pushes them with its base.
 - **Local planner** (``StaticMapPlanner.act``): regulated pure pursuit of that path from the
-  ground-truth pose (``info["pose"]``, as TARE-L had): steer along the arc through the point
+  ground-truth pose (``info["pose"]``): steer along the arc through the point
   ``lookahead_m`` ahead on the path, turn in place when it lies more than ``turn_in_place_rad``
   off the heading, and cap the speed so that the footprint swept along the arc in
   ``horizon_s`` stops ``stop_margin_m`` short of every LiDAR hit on a *static* obstacle
-  (beams labelled 0 in the newest frame; beams whose first hit is movable are ignored). It
-  plans again from where it stands when pushed more than ``replan_deviation_m`` off the path.
-- The arm stays retracted (L = 0): TARE-L's robot has none.
+  (beams labelled 0 in the newest frame; beams whose first hit is movable are ignored). When
+  that arc is blocked (a wall right ahead), it takes the free arc nearest the path's direction,
+  and when every arc is blocked it turns in place toward the path (it used to stop there for
+  good: ``w = v * curvature`` is 0 when ``v`` is). It plans again from where it stands when
+  pushed more than ``replan_deviation_m`` off the path.
+- The arm stays retracted (L = 0).
 
 Use it like a policy: ``agent.reset(world, pair)`` at the start of an episode, then
 ``agent.act(observation, info) -> action`` each step (``curlnav.evaluation.protocol.evaluate`` does both).
+
+``GlobalPlanAgent`` puts a policy behind the same A* path, as a navigation stack deploys a learned
+local planner (TARE's global planner, Nav2's planner server): the policy's goal input is a
+waypoint ``WaypointConfig.distance_m`` ahead on the path, advanced as the robot goes
+(``GlobalPlan``, which needs only a map, a path and a pose, so a ROS node can use it too).
 """
 
 from __future__ import annotations
@@ -39,7 +48,8 @@ from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig, StartGoal, World
 from curlnav.sim.pairs import clearance_map
 
-PLANNER_LABEL = "planner (TARE-L stand-in)"
+ORACLE_LABEL = "oracle"
+PLANNER_LABEL = ORACLE_LABEL  # the old name
 SQRT2 = math.sqrt(2.0)
 _STEPS = ((0, 1, 1.0), (1, 0, 1.0), (0, -1, 1.0), (-1, 0, 1.0),
           (1, 1, SQRT2), (1, -1, SQRT2), (-1, 1, SQRT2), (-1, -1, SQRT2))
@@ -47,7 +57,7 @@ _STEPS = ((0, 1, 1.0), (1, 0, 1.0), (0, -1, 1.0), (-1, 0, 1.0),
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    """The stand-in's settings (m, s, rad; speeds as fractions of the robot's limits)."""
+    """The oracle's settings (m, s, rad; speeds as fractions of the robot's limits)."""
 
     clearance_margin_m: float = 0.0  # added to the half-width: cells closer to a wall are blocked
     inflation_m: float = 0.9  # from a wall's edge, within which a step costs more
@@ -58,6 +68,9 @@ class PlannerConfig:
     horizon_s: float = 1.0  # look this far ahead along the commanded arc for static hits
     stop_margin_m: float = 0.1  # stop this short of a static hit
     replan_deviation_m: float = 1.0  # plan again when this far from the path
+    min_speed: float = 0.05  # below this fraction of the max speed the pursuit arc counts as blocked
+    max_curvature: float = 2.0  # 1/m, the sharpest arc tried when the pursuit arc is blocked
+    min_free_m: float = 0.15  # an arc with less free length counts as blocked
 
 
 def astar(blocked: np.ndarray, start: tuple[int, int], goal: tuple[int, int],
@@ -190,10 +203,10 @@ class GridPlanner:
 
 
 class StaticMapPlanner:
-    """A stand-in for TARE's local planner (TARE-L): ``reset(world, pair)``, then
-    ``act(observation, info) -> action [v, w, L]`` (see the module docstring)."""
+    """The oracle: A* on the true static map, pure pursuit on the true pose. ``reset(world, pair)``,
+    then ``act(observation, info) -> action [v, w, L]`` (see the module docstring)."""
 
-    label = PLANNER_LABEL
+    label = ORACLE_LABEL
 
     def __init__(self, env_config: EnvConfig | None = None, config: PlannerConfig | None = None) -> None:
         self.env_config = env_config or EnvConfig()
@@ -209,6 +222,7 @@ class StaticMapPlanner:
         self.path: np.ndarray | None = None  # (n, 2) map points, the goal last
         self._along: np.ndarray | None = None  # (n,) arc length from the first point (m)
         self._index = 0
+        self._last_turn = 1.0  # the side of the last turn in place, kept while the path lies dead ahead
 
     def planner_for(self, world: World) -> GridPlanner:
         """The world's global planner (made once per world)."""
@@ -220,6 +234,7 @@ class StaticMapPlanner:
     def reset(self, world: World, pair: StartGoal) -> None:
         """Plan the episode's global path from the pair's start to its goal."""
         self.world, self.pair = world, pair
+        self._last_turn = 1.0
         self._set_path(self.planner_for(world).plan((pair.x, pair.y), (pair.gx, pair.gy)))
 
     def _set_path(self, path: np.ndarray | None) -> None:
@@ -251,9 +266,35 @@ class StaticMapPlanner:
             v = min(v, robot.max_angular_speed / abs(curvature))
         ranges, labels, _ = self.layout.newest_frame(np.asarray(observation))
         v = min(v, self._free_arc(ranges, labels, curvature) / cfg.horizon_s)
+        if v < cfg.min_speed * robot.max_linear_speed:
+            v, curvature = self._way_round(ranges, labels, alpha)
+            if v <= 0.0:  # every arc is blocked: turn in place toward the path (it froze here before)
+                turn = alpha if abs(alpha) > 1e-3 else self._last_turn
+                self._last_turn = math.copysign(1.0, turn)
+                return np.array([0.0, math.copysign(min(1.0, max(0.5, 1.5 * abs(alpha))), turn), 0.0],
+                                dtype=np.float32)
         w = v * curvature
         return np.array([v / robot.max_linear_speed, float(np.clip(w / robot.max_angular_speed, -1.0, 1.0)), 0.0],
                         dtype=np.float32)
+
+    def _way_round(self, ranges: np.ndarray, labels: np.ndarray, alpha: float) -> tuple[float, float]:
+        """When the pursuit arc is blocked: ``(v m/s, curvature 1/m)`` of the free arc whose
+        direction after a metre lies nearest the path's (``alpha``, rad, robot frame); ``v = 0``
+        when no arc is free for ``min_free_m``."""
+        cfg = self.config
+        robot = self.env_config.robot
+        best, best_off = (0.0, 0.0), math.inf
+        for curvature in np.linspace(-cfg.max_curvature, cfg.max_curvature, 13):
+            free = self._free_arc(ranges, labels, float(curvature))
+            if free < cfg.min_free_m:
+                continue
+            off = abs(math.atan2(math.sin(curvature - alpha), math.cos(curvature - alpha)))
+            if off < best_off:
+                v = min(cfg.speed * robot.max_linear_speed, free / cfg.horizon_s)
+                if abs(curvature) > 1e-9:
+                    v = min(v, robot.max_angular_speed / abs(curvature))
+                best, best_off = (v, float(curvature)), off
+        return best
 
     def _lookahead_point(self, x: float, y: float) -> np.ndarray:
         """Advance along the path to the point nearest the robot (within a window ahead, so a
@@ -308,3 +349,98 @@ class StaticMapPlanner:
     def _in_front_footprint(self, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:
         """Which points (robot frame, m) lie in the front half of the base's footprint."""
         return (qx >= 0.0) & (qx <= self._half_length) & (np.abs(qy) <= self._half_width)
+
+
+# -- a policy behind a global plan -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class WaypointConfig:
+    """How a global plan feeds a local policy (m)."""
+
+    distance_m: float = 3.0  # the waypoint lies this far ahead along the path (the final goal when nearer)
+    replan_deviation_m: float = 2.0  # plan again from the robot's place when it is this far off the path
+
+
+class GlobalPlan:
+    """An A* path on a static map and the waypoint ahead on it: ``waypoint(x, y) -> (wx, wy)``
+    (m, map frame), advanced as the robot goes; planned again from where the robot stands when
+    it strays more than ``replan_deviation_m`` (pushed round by a door, a detour round a ball)."""
+
+    def __init__(self, planner: GridPlanner, start: tuple[float, float], goal: tuple[float, float],
+                 config: WaypointConfig | None = None) -> None:
+        self.planner, self.goal = planner, (float(goal[0]), float(goal[1]))
+        self.config = config or WaypointConfig()
+        self._set(planner.plan(start, goal))
+
+    def _set(self, path: np.ndarray | None) -> None:
+        self.path = path  # (n, 2) m, the goal last; None: no path on the static map
+        self._index = 0
+        if path is not None:
+            self._along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+
+    def waypoint(self, x: float, y: float) -> tuple[float, float]:
+        """The point ``distance_m`` ahead along the path of the path point nearest ``(x, y)``
+        (searched among the next few metres, so the index only moves forward); the goal when the
+        map has no path."""
+        if self.path is None:
+            return self.goal
+        cfg = self.config
+        window = int(np.searchsorted(self._along, self._along[self._index] + cfg.distance_m + 2.0))
+        ahead = self.path[self._index:max(window, self._index + 1)]
+        d = np.hypot(ahead[:, 0] - x, ahead[:, 1] - y)
+        k = int(np.argmin(d))
+        if d[k] > cfg.replan_deviation_m:
+            path = self.planner.plan((x, y), self.goal)
+            if path is not None:
+                self._set(path)
+                return self.waypoint(x, y)
+        self._index += k
+        j = int(np.searchsorted(self._along, self._along[self._index] + cfg.distance_m))
+        return tuple(self.path[min(j, len(self.path) - 1)])
+
+
+class GlobalPlanAgent:
+    """A policy (``obs -> action``) behind a global plan: its observation's goal block (the last
+    ``goal_frames`` frames, as ``NamoEnv`` builds them) is rewritten each step to describe the
+    ``GlobalPlan`` waypoint instead of the final goal. The plan is the oracle's A* path on the
+    static map (the inflated ``GridPlanner``), made at ``reset``."""
+
+    def __init__(self, policy, env_config: EnvConfig | None = None, config: WaypointConfig | None = None,
+                 label: str = "policy") -> None:
+        self.policy = policy
+        self.env_config = env_config or EnvConfig()
+        self.config = config or WaypointConfig()
+        self.label = f"{label} + global plan"
+        self._planners: dict[int, GridPlanner] = {}
+        self.plan: GlobalPlan | None = None
+        self._goals: np.ndarray | None = None  # (goal_frames, 3)
+
+    def reset(self, world: World, pair: StartGoal) -> None:
+        key = id(world)
+        if key not in self._planners or self._planners[key].world is not world:
+            self._planners = {key: GridPlanner(world, self.env_config.robot.base_width / 2)}
+        self.plan = GlobalPlan(self._planners[key], (pair.x, pair.y), (pair.gx, pair.gy), self.config)
+        self._goals = None
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        raise TypeError("GlobalPlanAgent needs the pose: call act(observation, info) after reset(world, pair)")
+
+    def observation(self, observation: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
+        """``observation`` with its goal block describing the waypoint ahead of ``pose`` (the
+        frames before the first step all the same, as the environment fills them on reset)."""
+        x, y, yaw = pose
+        wx, wy = self.plan.waypoint(x, y)
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = c * (wx - x) + s * (wy - y), -s * (wx - x) + c * (wy - y)
+        frame = np.array([math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy),
+                          math.atan2(dy, dx)], dtype=np.float32)
+        frames = self.env_config.goal_frames
+        if self._goals is None:
+            self._goals = np.repeat(frame[None, :], frames, axis=0)
+        else:
+            self._goals = np.vstack([self._goals[1:], frame[None, :]])
+        out = np.array(observation, dtype=np.float32, copy=True)
+        out[-3 * frames:] = self._goals.ravel()
+        return out
+
+    def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        return self.policy(self.observation(observation, info["pose"]))

@@ -1,7 +1,9 @@
 """Compare agents on the same worlds, start/goal pairs and seeds: ``curlnav eval A B ...``.
 
-An agent is a policy (``obs -> action``: an artefact folder or a checkpoint) or the classical
-planner (``curlnav.evaluation.baseline.StaticMapPlanner``, a stand-in for TARE's local planner). Every
+An agent is a policy (``obs -> action``: an artefact folder or a checkpoint), alone or behind a
+global plan (``curlnav.evaluation.baseline.GlobalPlanAgent``), or a classical planner: the map-less
+``tare-l`` and ``dwa`` (``curlnav.evaluation.local_planners``) and the ``oracle`` with the true
+map and pose (``curlnav.evaluation.baseline.StaticMapPlanner``). Every
 agent runs the evaluation protocol (``curlnav.evaluation.protocol.evaluate``: the evaluation environment,
 collisions counted and the trial goes on, 60 s limit) on every world's pairs, once per seed
 (a seed places the balls of worlds that re-place them on reset; the same for every agent).
@@ -28,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from curlnav.evaluation.baseline import GridPlanner, StaticMapPlanner, polyline_length
+from curlnav.evaluation.baseline import GlobalPlanAgent, GridPlanner, StaticMapPlanner, polyline_length
+from curlnav.evaluation.local_planners import DynamicWindowPlanner, TareLocalPlanner
 from curlnav.evaluation.protocol import EVAL_SEED, evaluate, held_out_pairs
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
 from curlnav.sim.pairs import draws_random_pairs
@@ -314,10 +317,27 @@ def draw_trajectories(episodes: list[Episode], worlds: list[World], out: str | P
     return written
 
 
-def make_agent(spec: str, env_config: EnvConfig, load_policy: Callable[[str], object]) -> tuple[str, object]:
-    """``(label, agent)``: ``planner`` is the classical planner, anything else a policy
-    ``load_policy`` loads (its label: the path as given)."""
-    if spec == "planner":
-        agent = StaticMapPlanner(env_config)
+#: the classical agents by name: the map-less baselines (``tare-l``, ``dwa``: the policy's inputs only)
+#: and the upper bound (``oracle``: A* on the true map and pose; ``planner`` is its old name)
+CLASSICAL_AGENTS = ("tare-l", "dwa", "oracle")
+AGENT_ALIASES = {"planner": "oracle"}
+GLOBAL_PLAN_SUFFIX = "+global-plan"
+
+
+def make_agent(spec: str, env_config: EnvConfig, load_policy: Callable[[str], object],
+               global_plan: bool = False) -> tuple[str, object]:
+    """``(label, agent)``: ``tare-l``, ``dwa``, ``oracle`` (or ``planner``) are the classical
+    agents; anything else is a policy ``load_policy`` loads (its label: the path as given). A
+    policy named with the suffix ``+global-plan``, or any policy when ``global_plan`` is set,
+    follows waypoints on the oracle's A* path (``GlobalPlanAgent``; label ``PATH + global plan``)."""
+    name = AGENT_ALIASES.get(spec, spec)
+    if name in CLASSICAL_AGENTS:
+        agent = {"tare-l": TareLocalPlanner, "dwa": DynamicWindowPlanner, "oracle": StaticMapPlanner}[name](env_config)
         return agent.label, agent
-    return spec, load_policy(spec)
+    if spec.endswith(GLOBAL_PLAN_SUFFIX):
+        spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
+    policy = load_policy(spec)
+    if global_plan:
+        agent = GlobalPlanAgent(policy, env_config, label=spec)
+        return agent.label, agent
+    return spec, policy
