@@ -118,7 +118,7 @@ def _checkpoint_policy(p: Path):
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    """Evaluate one or more agents (policies, ``planner``) side by side (``curlnav.evaluation.compare``)."""
+    """Evaluate one or more agents (policies, ``tare-l``, ``dwa``, ``oracle``) side by side (``curlnav.evaluation.compare``)."""
     from curlnav.config import ExperimentConfig
     from curlnav.evaluation.compare import (
         OVERALL,
@@ -138,7 +138,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     worlds = [_world_from_spec(spec) for spec in args.world or ["open-room"]]
     for world in worlds:
         check_pairs_possible(world)
-    agents = dict(make_agent(spec, env_config, _load_policy) for spec in args.agents)
+    agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
     comparison = Comparison(agents, worlds, lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes),
@@ -468,11 +468,17 @@ def _add_training_commands(sub) -> None:
     p.set_defaults(func=_cmd_config_show)
 
     p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs; several agents side by side",
-                       epilog="e.g. curlnav eval planner runs/x/policy-best --world namo-office:0 --world "
+                       epilog="e.g. curlnav eval tare-l dwa oracle runs/x/policy-best --world namo-office:0 --world "
                               "namo-indoor:0 --pairs 10 --seeds 2 --out results/")
     p.add_argument("agents", nargs="+", metavar="AGENT",
-                   help="policy artefact folder, checkpoint .safetensors, or `planner` (the classical planner on "
-                        "the static map, a stand-in for TARE's local planner)")
+                   help="policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
+                        "a global plan), or a classical planner: `tare-l` (map-less, after TARE's local planner), "
+                        "`dwa` (map-less dynamic window approach), `oracle` (A* on the true map and pose; "
+                        "`planner` is its old name)")
+    p.add_argument("--global-plan", action="store_true",
+                   help="every policy's goal input is a waypoint 3 m ahead on the oracle's A* path of the static "
+                        "map, advanced as it goes, instead of the final goal (a learned local planner in a "
+                        "navigation stack)")
     p.add_argument("--world", action="append",
                    help="built-in world name, world YAML path or FAMILY:SEED; repeat for several (default: open-room)")
     p.add_argument("--pair", action="append", help="start/goal pair name or index; repeat for several "
