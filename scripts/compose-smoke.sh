@@ -6,7 +6,8 @@
 #   -> stop one actor container, it leaves /status -> restart the learner, its version goes on
 #   above -> kill -9 replay, learner, scheduler (Docker SDK): nothing accepted lost -> pull the latest policy and run it -> bad configuration exits with one line
 #   -> the bus refuses a service without credentials -> down -v -> the same services on a
-#   single-node swarm (docker stack deploy, bus credentials as Docker secrets) -> clean up.
+#   single-node swarm (docker stack deploy, bus credentials as Docker secrets) -> stack rm and its
+#   volumes -> clean up (the trap removes the stack's volumes too when a step fails).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export COMPOSE_PROJECT_NAME=${COMPOSE_PROJECT_NAME:-curlnavsmoke}
@@ -38,9 +39,11 @@ EOF
     sleep 2
   done
 }
+# remove_stack: docker stack rm, wait for its containers, then remove its volumes (which stack rm keeps)
+source scripts/stack-cleanup.sh
 cleanup() {
   "${DC[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
-  docker stack rm curlnav >/dev/null 2>&1 || true
+  remove_stack curlnav || true  # also on failure: a later swarm run must not pick up this one's state
   docker swarm leave --force >/dev/null 2>&1 || true
   [ -z "${bus_tmp:-}" ] || rm -rf "$bus_tmp"
 }
@@ -117,7 +120,10 @@ export CURLNAV_BUS=$bus_tmp/bus  # the stack's secrets are read from here
 CURLNAV_CURRICULA=$PWD/scheduler/curricula docker stack deploy -c docker-stack.yml curlnav
 wait_for "swarm: 2 live actors with episodes, learner version >= 1" 420 \
   'len(actors) == 2 and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'
-docker stack rm curlnav
+step "docker stack rm, then its volumes (stack rm keeps them)"
+remove_stack curlnav
+left=$(docker volume ls -q | grep -E '^curlnav_(learner|replay|scheduler)$' || true)
+if [ -n "$left" ]; then echo "volumes left behind: $left"; exit 1; fi
 docker swarm leave --force >/dev/null
 
 step "smoke test passed"

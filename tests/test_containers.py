@@ -38,3 +38,5 @@ def test_compose_smoke_train_scale_status_restart_pull_and_swarm():
                  "down -v", "single-node swarm", "smoke test passed"):
         assert step in out, step
     assert "reached the goal" in out or "did not reach" in out or "timed out" in out or "stopped" in out
+    volumes = subprocess.run(["docker", "volume", "ls", "-q"], capture_output=True, text=True, timeout=60).stdout.split()
+    assert not {"curlnav_learner", "curlnav_replay", "curlnav_scheduler"} & set(volumes), volumes  # stack rm keeps them

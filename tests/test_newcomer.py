@@ -252,3 +252,49 @@ def test_a_resumed_distributed_run_goes_on_from_its_counts_not_from_zero(tmp_pat
     counts = re.search(r"env steps (\d+) .* updates (\d+) .* policy v(\d+) \| replay (\d+)", progress)
     assert counts, progress
     assert all(int(c) >= count(before, k) for c, k in zip(counts.groups(), keys)), (progress, before)
+
+
+FAKE_DOCKER = """#!/bin/bash
+echo "$*" >> "$FAKE_LOG"
+case "$1 $2" in
+  "ps -aq") left=$(cat "$FAKE_STATE")
+           if [ "$left" != 0 ]; then echo c0ffee; [ "$left" = always ] || echo $((left - 1)) > "$FAKE_STATE"; fi ;;
+  "volume ls") printf 'curlnav_replay\\ncurlnav_old\\n' ;;
+  "volume inspect") [ "$3" != curlnav_scheduler ] ;;
+esac
+"""
+
+
+def _remove_stack(tmp_path: Path, containers: str, limit: int) -> tuple[subprocess.CompletedProcess, list[str]]:
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    (bin_dir / "docker").write_text(FAKE_DOCKER)
+    (bin_dir / "docker").chmod(0o755)
+    (tmp_path / "state").write_text(containers)
+    log = tmp_path / "docker.log"
+    log.write_text("")
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "FAKE_LOG": str(log),
+           "FAKE_STATE": str(tmp_path / "state")}
+    command = f"set -euo pipefail; source scripts/stack-cleanup.sh; remove_stack curlnav {limit}"
+    result = subprocess.run(["bash", "-c", command], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    return result, log.read_text().splitlines()
+
+
+def test_the_smoke_test_removes_the_stack_volumes_after_its_containers_are_gone(tmp_path):
+    result, calls = _remove_stack(tmp_path, "1", 60)  # one look still finds a container
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert calls[0] == "stack rm curlnav"
+    removed = [c.split()[-1] for c in calls if c.startswith("volume rm")]
+    assert sorted(removed) == ["curlnav_learner", "curlnav_old", "curlnav_replay"]  # scheduler: not there
+    last_look = max(i for i, c in enumerate(calls) if c.startswith("ps -aq"))
+    assert calls.index(next(c for c in calls if c.startswith("volume rm"))) > last_look
+    assert sum(c.startswith("ps -aq") for c in calls) == 2  # waited for the container to go
+    # containers that never go: the volumes stay (in use), and it says so with a failure
+    result, calls = _remove_stack(tmp_path, "always", 1)
+    assert result.returncode == 1 and "still there" in result.stdout
+    assert not any(c.startswith("volume rm") for c in calls)
+    # the smoke script removes them on its way (and on failure, in its EXIT trap)
+    script = (ROOT / "scripts" / "compose-smoke.sh").read_text()
+    trap = script[script.index("cleanup() {"):script.index("trap cleanup EXIT")]
+    assert "remove_stack curlnav" in trap
+    assert "docker stack rm curlnav\n" not in script.split("trap cleanup EXIT")[1]
