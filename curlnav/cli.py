@@ -631,6 +631,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (WorldError, KeyError, ArtefactError, MetricsError, ValueError, RouterUnreachable, ConfigMismatch) as exc:
         message = " ".join(str(exc.args[0] if exc.args else exc).split())  # one line, whatever the library said
+        if len(message) > 1000:  # a user value that no loader cut short (issue 26)
+            message = message[:1000] + " ..."
         print(f"curlnav: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

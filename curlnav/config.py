@@ -31,6 +31,7 @@ from typing import Any
 
 import yaml
 
+from curlnav.files import FileRefused, loads_yaml, read_yaml, shown
 from curlnav.sim.config import ConfigError, EnvConfig
 
 __all__ = ["ConfigError", "D4PGConfig", "ReplayConfig", "ExplorationConfig", "CurriculumConfig", "EvaluationConfig",
@@ -279,40 +280,40 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
         return _coerce(value, inner[0], path)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
-            raise ConfigError(f"{path} must be a mapping, got {value!r}")
+            raise ConfigError(f"{path} must be a mapping, got {shown(value)}")
         return config_from_dict(tp, value, path)
     if origin is tuple:
         if isinstance(value, str):
             value = [v for v in value.replace("[", "").replace("]", "").split(",") if v.strip()]
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path} must be a list, got {value!r}")
+            raise ConfigError(f"{path} must be a list, got {shown(value)}")
         return tuple(_coerce(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
     if tp is bool:
         if isinstance(value, bool):
             return value
         if isinstance(value, str) and value.lower() in ("true", "yes", "1", "on", "false", "no", "0", "off"):
             return value.lower() in ("true", "yes", "1", "on")
-        raise ConfigError(f"{path} must be true or false, got {value!r}")
+        raise ConfigError(f"{path} must be true or false, got {shown(value)}")
     if tp is int:
         if isinstance(value, bool):
-            raise ConfigError(f"{path} must be an integer, got {value!r}")
+            raise ConfigError(f"{path} must be an integer, got {shown(value)}")
         try:
             number = float(value) if isinstance(value, str) else value
             if isinstance(number, float) and (not math.isfinite(number) or number != int(number)):
                 raise ValueError
             return int(number)
         except (TypeError, ValueError):
-            raise ConfigError(f"{path} must be an integer, got {value!r}") from None
+            raise ConfigError(f"{path} must be an integer, got {shown(value)}") from None
     if tp is float:
         if isinstance(value, bool):
-            raise ConfigError(f"{path} must be a number, got {value!r}")
+            raise ConfigError(f"{path} must be a number, got {shown(value)}")
         try:
             return float(value)
         except (TypeError, ValueError):
-            raise ConfigError(f"{path} must be a number, got {value!r}") from None
+            raise ConfigError(f"{path} must be a number, got {shown(value)}") from None
     if tp is str:
         if not isinstance(value, (str, int, float)) or isinstance(value, bool):
-            raise ConfigError(f"{path} must be a string, got {value!r}")
+            raise ConfigError(f"{path} must be a string, got {shown(value)}")
         return str(value)
     return value
 
@@ -361,11 +362,11 @@ def load_config(path: str | os.PathLike, base: ExperimentConfig | None = None) -
     """Read a YAML (or JSON) experiment file: any subset of the fields, optionally ``preset:``."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = read_yaml(path, what="config file") or {}
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the config file: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
+    except FileRefused as exc:
+        raise ConfigError(str(exc)) from None
     try:
         return experiment_from_dict(data, base)
     except ConfigError as exc:
@@ -388,7 +389,10 @@ def apply_overrides(cfg: ExperimentConfig, overrides: list[str]) -> ExperimentCo
             node = node[part]
         if parts[-1] not in node or isinstance(node[parts[-1]], dict):
             raise ConfigError(f"unknown config key {key}")
-        node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else raw
+        try:
+            node[parts[-1]] = loads_yaml(raw, f"--set {key}") if raw.strip() else raw
+        except FileRefused as exc:
+            raise ConfigError(str(exc)) from None
     return config_from_dict(ExperimentConfig, data)
 
 

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import hashlib
-import json
+import re
 from pathlib import Path
 
 import numpy as np
+
+from curlnav.files import FileRefused, is_plain_file_name, read_json, shown
 
 
 class ArtefactError(ValueError):
@@ -20,20 +22,29 @@ class PolicyArtefact:
         self.folder = Path(folder)
         self.metadata = self._read_metadata()
         files = self.metadata.get("files", {})
+        meta_path = self.folder / "metadata.json"
         if not isinstance(files, dict):
-            raise ArtefactError(f"{self.folder / 'metadata.json'}: 'files' must map file names to sha256 digests")
-        for name, expected in files.items():
+            raise ArtefactError(f"{meta_path}: 'files' must map file names to sha256 digests")
+        for name, expected in files.items():  # only files of this folder: never a checksum of another
+            if not is_plain_file_name(name):
+                raise ArtefactError(f"{meta_path}: lists {shown(name)}, not a plain file name in the artefact folder")
+            if not (isinstance(expected, str) and re.fullmatch(r"[0-9a-f]{64}", expected)):
+                raise ArtefactError(f"{meta_path}: the sha256 of {name} is {shown(expected)}, not 64 hex digits")
             path = self.folder / name
-            if not path.is_file():
-                raise ArtefactError(f"{self.folder}: missing {name}")
+            if path.is_symlink() or not path.is_file():
+                raise ArtefactError(f"{self.folder}: missing {name}" + (" (a symlink)" if path.is_symlink() else ""))
             if verify:
-                actual = hashlib.sha256(path.read_bytes()).hexdigest()
+                actual = sha256_of(path)
                 if actual != expected:
                     raise ArtefactError(f"{path}: sha256 {actual} does not match metadata ({expected})")
-        try:
-            self.observation_size = int(self.metadata["observation"]["size"])
-        except (KeyError, TypeError, ValueError):
-            raise ArtefactError(f"{self.folder / 'metadata.json'}: no integer observation.size") from None
+        observation = self.metadata.get("observation")
+        size = observation.get("size") if isinstance(observation, dict) else None
+        if isinstance(size, bool) or not isinstance(size, int) or not 0 < size < 1 << 24:
+            raise ArtefactError(f"{meta_path}: observation.size must be a positive integer, got {shown(size)}")
+        self.observation_size = size
+        version = self.metadata.get("policy_version", 0)
+        if isinstance(version, bool) or not isinstance(version, int) or version < 0:
+            raise ArtefactError(f"{meta_path}: policy_version must be a whole number, got {shown(version)}")
         self.session = _onnx_session(self.folder / "actor.onnx")
 
     def _read_metadata(self) -> dict:
@@ -44,16 +55,16 @@ class PolicyArtefact:
             raise ArtefactError(f"{self.folder}: a file, not a folder; {expected}")
         meta_path = self.folder / "metadata.json"
         try:
-            metadata = json.loads(meta_path.read_text())
+            metadata = read_json(meta_path, what="metadata.json")
         except FileNotFoundError:
             raise ArtefactError(f"{self.folder}: no metadata.json; not a policy artefact folder") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ArtefactError(f"{meta_path}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
-        except json.JSONDecodeError as exc:
-            raise ArtefactError(f"{meta_path}: not valid JSON: {exc}") from None
+        except OSError as exc:
+            raise ArtefactError(f"{meta_path}: cannot read: {exc.strerror or exc}") from None
+        except FileRefused as exc:
+            raise ArtefactError(str(exc)) from None
         if not isinstance(metadata, dict) or metadata.get("format") != "curlnav-policy":
             found = metadata.get("format") if isinstance(metadata, dict) else type(metadata).__name__
-            raise ArtefactError(f"{meta_path}: format is {found!r}, expected 'curlnav-policy'")
+            raise ArtefactError(f"{meta_path}: format is {shown(found)}, expected 'curlnav-policy'")
         return metadata
 
     @property
@@ -67,6 +78,15 @@ class PolicyArtefact:
             raise ValueError(f"observation has {x.shape[-1]} values, the policy expects {self.observation_size}")
         out = self.session.run(["action"], {"observation": x[None] if single else x})[0]
         return out[0] if single else out
+
+
+def sha256_of(path: Path) -> str:
+    """The sha256 of a file, read 1 MiB at a time."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
 
 
 def _onnx_session(path: Path):

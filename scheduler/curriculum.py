@@ -23,6 +23,13 @@ stages:
 ``worlds: {ranking: ranking.json, category: easy}`` takes the worlds, in order, from the file
 written by ``curlnav worlds rank``.
 
+A world entry may be a distribution of generated worlds instead of one world (issue 28):
+``{family: barn-3x3, seeds: [0, 99], params: {fill_pct: [0.1, 0.3]}, every: 4}`` or
+``t-maze-doors:0-99``. Actors draw a world of it per episode (``curlnav.worlds.distribution``);
+the curriculum counts it as one task under its key. Seeds of 100 and above are held out
+(``curlnav.worlds.heldout``): a stage or ``evaluate`` target that names one is refused at load.
+``check_curriculum`` checks a distribution's first world (its sub-step pairs, if any).
+
 Options beyond the paper (each one off unless the file sets it):
 
 - ``replay_earlier: 0.2`` (per stage): that share of assignments goes back to a task of an
@@ -45,13 +52,12 @@ Options beyond the paper (each one off unless the file sets it):
 
 from __future__ import annotations
 
-import json
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
+from curlnav.files import FileRefused, read_json, read_yaml, shown
 
 
 class CurriculumError(ValueError):
@@ -139,29 +145,28 @@ def _criterion(path: Path, where: str, raw: Any) -> Criterion | None:
         raise CurriculumError(f"{path}: {where}: success_rate in [0, 1], window >= 1, compare '>=' or '>'")
     source = raw.get("source", "training")
     if source not in ("training", "evaluation"):
-        raise CurriculumError(f"{path}: {where}.source must be 'training' or 'evaluation', got {source!r}")
+        raise CurriculumError(f"{path}: {where}.source must be 'training' or 'evaluation', got {shown(source)}")
     budget = raw.get("max_env_steps", 0)
     if isinstance(budget, bool) or not isinstance(budget, int) or budget < 0:
         raise CurriculumError(f"{path}: {where}.max_env_steps must be a whole number of environment steps >= 0 "
-                              f"(0: no limit), got {budget!r}")
+                              f"(0: no limit), got {shown(budget)}")
     return Criterion(rate, window, compare, source, budget)
 
 
 def load_curriculum(path: str | Path) -> Curriculum:
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = read_yaml(path, what="curriculum")
     except OSError as exc:
         raise CurriculumError(f"{path}: cannot read curriculum: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise CurriculumError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', None) or exc}") from None
+    except FileRefused as exc:
+        raise CurriculumError(str(exc)) from None
     if not isinstance(raw, dict) or not isinstance(raw.get("stages"), list) or not raw["stages"]:
         raise CurriculumError(f"{path}: a curriculum is a mapping with a non-empty 'stages' list")
     unknown = set(raw) - {"name", "stages", "evaluate"}
     if unknown:
-        raise CurriculumError(f"{path}: unknown keys {sorted(unknown)} (a curriculum has 'name', 'stages', 'evaluate')")
+        raise CurriculumError(f"{path}: unknown keys {shown(sorted(map(str, unknown)))} (a curriculum has 'name', "
+                              "'stages', 'evaluate')")
     stages = []
     for i, s in enumerate(raw["stages"]):
         where = f"stages[{i}]"
@@ -169,24 +174,25 @@ def load_curriculum(path: str | Path) -> Curriculum:
             raise CurriculumError(f"{path}: {where} must be a mapping")
         unknown = set(s) - {"name", "worlds", "advance", "substeps", "substep_advance", "replay_earlier", "sampler"}
         if unknown:
-            raise CurriculumError(f"{path}: {where} has unknown keys {sorted(unknown)}")
+            raise CurriculumError(f"{path}: {where} has unknown keys {shown(sorted(map(str, unknown)))}")
         worlds = s.get("worlds")
         if isinstance(worlds, dict):
             worlds = _worlds_from_ranking(path, where, worlds)
-        if not isinstance(worlds, list) or not worlds or not all(isinstance(w, str) for w in worlds):
-            raise CurriculumError(f"{path}: {where}.worlds must be a non-empty list of world names or files")
-        worlds = [_world_path(path, w) for w in worlds]
+        if not isinstance(worlds, list) or not worlds or not all(isinstance(w, (str, dict)) for w in worlds):
+            raise CurriculumError(f"{path}: {where}.worlds must be a non-empty list of world names, files or "
+                                  f"distributions ({{family, seeds: [lo, hi], params}})")
+        worlds = [_stage_world(path, f"{where}.worlds[{j}]", w) for j, w in enumerate(worlds)]
         substeps = s.get("substeps") or []
         if not isinstance(substeps, list) or not all(isinstance(p, str) for p in substeps):
             raise CurriculumError(f"{path}: {where}.substeps must be a list of pair names")
         replay = s.get("replay_earlier", 0.0)
         if isinstance(replay, bool) or not isinstance(replay, (int, float)) or not 0 <= replay < 1:
-            raise CurriculumError(f"{path}: {where}.replay_earlier must be a share in [0, 1), got {replay!r}")
+            raise CurriculumError(f"{path}: {where}.replay_earlier must be a share in [0, 1), got {shown(replay)}")
         if replay and i == 0 and len(substeps) < 2:
             raise CurriculumError(f"{path}: {where}.replay_earlier: the first stage has nothing earlier to replay")
         sampler = s.get("sampler", "sequential")
         if sampler not in SAMPLERS:
-            raise CurriculumError(f"{path}: {where}.sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
+            raise CurriculumError(f"{path}: {where}.sampler must be one of {', '.join(SAMPLERS)}, got {shown(sampler)}")
         if sampler == "learning-progress" and len(substeps) * len(worlds) < 2:
             raise CurriculumError(f"{path}: {where}.sampler learning-progress needs at least two tasks "
                                   f"(worlds x substeps)")
@@ -195,6 +201,27 @@ def load_curriculum(path: str | Path) -> Curriculum:
                             tuple(substeps), _criterion(path, f"{where}.substep_advance", s.get("substep_advance")),
                             float(replay), sampler))
     return Curriculum(str(raw.get("name", path.stem)), tuple(stages), _evaluate_targets(path, raw.get("evaluate")))
+
+
+def _stage_world(path: Path, where: str, world: str | dict) -> str:
+    """A stage's world entry as the name actors are assigned: a world file relative to the
+    curriculum, a built-in name, ``FAMILY:SEED``, or a distribution's canonical key. Held-out
+    seeds (``curlnav.worlds.heldout``) are refused: nobody trains or tunes on them."""
+    from curlnav.worlds.distribution import DistributionError, WorldDistribution, is_distribution
+    from curlnav.worlds.heldout import is_held_out
+
+    try:
+        if isinstance(world, dict):
+            return WorldDistribution.from_spec(world).key
+        if is_distribution(world):
+            return WorldDistribution.parse(world).key
+    except DistributionError as exc:
+        raise CurriculumError(f"{path}: {where}: {exc}") from None
+    family, sep, seed = world.rpartition(":")
+    if sep and seed.isdigit() and is_held_out(family, int(seed)):
+        raise CurriculumError(f"{path}: {where}: {world[:60]} is a held-out world (seeds >= 100 of every family are "
+                              f"kept for unseen-world evaluation); use a seed below 100")
+    return _world_path(path, world)
 
 
 def _world_path(path: Path, world: str) -> str:
@@ -212,7 +239,7 @@ def _evaluate_targets(path: Path, raw: Any) -> tuple[tuple[str, str], ...]:
         if (not isinstance(item, dict) or set(item) - {"world", "pairs"} or not isinstance(item.get("world"), str)
                 or not isinstance(item.get("pairs", []), list) or not all(isinstance(p, str) for p in item.get("pairs", []))):
             raise CurriculumError(f"{path}: evaluate[{i}] must be {{world: NAME, pairs: [names]}} (pairs optional)")
-        world = _world_path(path, item["world"])
+        world = _stage_world(path, f"evaluate[{i}].world", item["world"])
         out.extend((world, p) for p in (item.get("pairs") or [""]))
     return tuple(out)
 
@@ -245,8 +272,8 @@ def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
 def _worlds_from_ranking(path: Path, where: str, spec: dict) -> list[str]:
     ranking_path = path.parent / str(spec.get("ranking", ""))
     try:
-        ranking = json.loads(ranking_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+        ranking = read_json(ranking_path, what="ranking")
+    except (OSError, ValueError) as exc:
         raise CurriculumError(f"{path}: {where}.worlds: cannot read ranking {ranking_path}: {exc}") from None
     category = spec.get("category")
     names = ranking["order"] if category is None else ranking.get(category, [])

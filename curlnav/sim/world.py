@@ -45,12 +45,16 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
+
+from curlnav.files import FileRefused, read_yaml, shown
 
 
 class WorldError(ValueError):
@@ -287,6 +291,8 @@ from .geometry import merge_cells_into_rectangles  # noqa: E402,F401  (re-export
 
 # -- file format ---------------------------------------------------------------------------
 MAP_MODES = ("trinary", "scale", "raw")
+MAX_MAP_PIXELS = 25_000_000  # pixels of a map image (5000 x 5000); Pillow's own bomb limit is 179 M
+MAX_MAP_BYTES = 256 << 20  # bytes of a map image file (a 16-bit 5000 x 5000 PGM is 50 MB)
 
 
 def map_server_values(img, mode: str = "trinary", negate: bool = False, occupied_thresh: float = 0.65,
@@ -342,10 +348,10 @@ def _build_items(path: Path, key: str, raw: Any, cls: type) -> tuple:
     items = []
     for i, entry in enumerate(raw):
         if not isinstance(entry, dict):
-            raise _fail(path, f"{key}[{i}] must be a mapping, got {entry!r}")
+            raise _fail(path, f"{key}[{i}] must be a mapping, got {shown(entry)}")
         unknown = set(entry) - fields
         if unknown:
-            raise _fail(path, f"{key}[{i}] has unknown keys {sorted(unknown)}; allowed: {sorted(fields)}")
+            raise _fail(path, f"{key}[{i}] has unknown keys {shown(sorted(map(str, unknown)))}; allowed: {sorted(fields)}")
         try:
             values = {k: v for k, v in entry.items()}
             for name, value in values.items():
@@ -361,7 +367,7 @@ def _build_items(path: Path, key: str, raw: Any, cls: type) -> tuple:
                 values["name"] = f"p{i + 1}"
             items.append(cls(**values))
         except (TypeError, ValueError) as exc:
-            raise _fail(path, f"{key}[{i}] is invalid: {exc}") from None
+            raise _fail(path, f"{key}[{i}] is invalid: {shown(str(exc), 160)[1:-1]}") from None
     return tuple(items)
 
 
@@ -377,11 +383,11 @@ def load_world(path: str | os.PathLike) -> World:
 
 def _read_yaml_mapping(path: Path) -> dict:
     try:
-        meta = yaml.safe_load(path.read_text())
+        meta = read_yaml(path, what="world file")
     except OSError as exc:
         raise _fail(path, f"cannot read world file: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise _fail(path, f"not valid YAML: {exc}") from None
+    except FileRefused as exc:
+        raise WorldError(str(exc)) from None
     if not isinstance(meta, dict):
         raise _fail(path, "a world file must be a YAML mapping")
     return meta
@@ -394,28 +400,55 @@ def _read_map_server(path: Path, meta: dict) -> tuple[np.ndarray, float, list[fl
     for key in ("image", "resolution", "origin"):
         if key not in meta:
             raise _fail(path, f"missing required key '{key}' (ROS map_server format)")
-    try:
-        resolution = float(meta["resolution"])
-        origin = [float(v) for v in meta["origin"]]
-        negate = int(meta.get("negate", 0))
-        occupied_thresh = float(meta.get("occupied_thresh", 0.65))
-        free_thresh = float(meta.get("free_thresh", 0.196))
-    except (TypeError, ValueError) as exc:
-        raise _fail(path, f"bad map_server field: {exc}") from None
+    def field(key: str, kind: type, default: Any = None):
+        try:
+            return kind(meta.get(key, default))
+        except (TypeError, ValueError, OverflowError):
+            raise _fail(path, f"bad map_server field {key}: {shown(meta.get(key))}") from None
+
+    resolution = field("resolution", float)
+    origin = field("origin", lambda raw: [float(v) for v in raw])
+    negate = field("negate", int, 0)
+    occupied_thresh = field("occupied_thresh", float, 0.65)
+    free_thresh = field("free_thresh", float, 0.196)
     if len(origin) not in (2, 3) or not all(math.isfinite(v) for v in origin):
-        raise _fail(path, f"origin must be [x, y, yaw] (m, m, rad), got {meta['origin']!r}")
+        raise _fail(path, f"origin must be [x, y, yaw] (m, m, rad), got {shown(meta['origin'])}")
     mode = meta.get("mode", "trinary")
     if not isinstance(mode, str) or mode.strip().lower() not in MAP_MODES:
-        raise _fail(path, f"mode must be one of {', '.join(MAP_MODES)} (ROS map_server), got {mode!r}")
+        raise _fail(path, f"mode must be one of {', '.join(MAP_MODES)} (ROS map_server), got {shown(mode)}")
     image_path = (path.parent / str(meta["image"])).resolve()
     try:
-        with Image.open(image_path) as img:
-            values = map_server_values(img, mode.strip().lower(), bool(negate), occupied_thresh, free_thresh)
+        if image_path.is_file() and image_path.stat().st_size > MAX_MAP_BYTES:
+            raise _fail(path, f"map image {image_path} is above {MAX_MAP_BYTES >> 20} MiB; refused")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(image_path) as img:  # reads the header only
+                width, height = img.size
+                if width * height > MAX_MAP_PIXELS:
+                    raise _fail(path, f"map image {image_path} has {width} x {height} pixels, above "
+                                      f"{MAX_MAP_PIXELS} (a 5000 x 5000 map at 5 cm is 250 m square)")
+                values = map_server_values(img, mode.strip().lower(), bool(negate), occupied_thresh, free_thresh)
     except FileNotFoundError:
         raise _fail(path, f"map image {image_path} does not exist") from None
-    except (UnidentifiedImageError, OSError) as exc:
-        raise _fail(path, f"map image {image_path} is unreadable: {exc}") from None
+    except Image.DecompressionBombError:
+        raise _fail(path, f"map image {image_path} has {_header_size(image_path)} pixels, above "
+                          f"{MAX_MAP_PIXELS}") from None
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        if isinstance(exc, WorldError):
+            raise
+        raise _fail(path, f"map image {image_path} is unreadable: {shown(str(exc), 160)[1:-1]}") from None
     return np.flipud(values != 0), resolution, origin
+
+
+def _header_size(image_path: Path) -> str:
+    """"W x H" of a PGM/PPM whose header Pillow refuses (a decompression bomb); else "too many"."""
+    try:
+        with open(image_path, "rb") as f:
+            head = f.read(64)
+    except OSError:
+        return "too many"
+    numbers = re.findall(rb"\d+", head)
+    return f"{int(numbers[1])} x {int(numbers[2])}" if head[:1] == b"P" and len(numbers) >= 3 else "too many"
 
 
 def _read_curlnav_keys(path: Path, meta: dict) -> dict:
@@ -429,15 +462,15 @@ def _read_curlnav_keys(path: Path, meta: dict) -> dict:
         try:
             random_pairs = RandomPairs(**{k: float(v) for k, v in raw.items()})
         except (TypeError, ValueError) as exc:
-            raise _fail(path, f"random_pairs is invalid: {exc}") from None
+            raise _fail(path, f"random_pairs is invalid: {shown(str(exc), 160)[1:-1]}") from None
     regions = []
     for i, raw in enumerate(meta.get("ball_regions") or []):
         try:
             x_min, y_min, x_max, y_max = (float(v) for v in raw)
         except (TypeError, ValueError):
-            raise _fail(path, f"ball_regions[{i}] must be [x_min, y_min, x_max, y_max], got {raw!r}") from None
+            raise _fail(path, f"ball_regions[{i}] must be [x_min, y_min, x_max, y_max], got {shown(raw)}") from None
         if not (x_min < x_max and y_min < y_max):
-            raise _fail(path, f"ball_regions[{i}] is empty: {raw!r}")
+            raise _fail(path, f"ball_regions[{i}] is empty: {shown(raw)}")
         regions.append(Region(x_min, y_min, x_max, y_max))
     try:
         wall_height = float(meta.get("wall_height", 1.0))
