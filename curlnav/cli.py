@@ -122,20 +122,31 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from curlnav.config import ExperimentConfig
     from curlnav.evaluation.compare import (
         OVERALL,
+        SUITES,
         Comparison,
         draw_trajectories,
         episode_pairs,
         make_agent,
         summarise,
         table,
+        table_ii,
         write_csv,
     )
     from curlnav.sim.pairs import check_pairs_possible
 
+    suite = SUITES[args.suite] if args.suite else None
+    if suite is not None:
+        given = [flag for flag, value in (("--world", args.world), ("--pair", args.pair), ("--pairs", args.pairs),
+                                          ("--episodes", args.episodes), ("--seeds", args.seeds)) if value is not None]
+        if given:
+            raise ValueError(f"--suite {suite.name} fixes the worlds, pairs and ball placements; drop {', '.join(given)}")
+        args.pairs, args.seeds = suite.pairs, suite.ball_placements
+        print(f"suite {suite.name}: {suite.about}")
+    args.seeds = 1 if args.seeds is None else args.seeds
     if args.seeds < 1:
         raise ValueError(f"--seeds must be at least 1, got {args.seeds}")
     env_config = ExperimentConfig().eval_env
-    worlds = [_world_from_spec(spec) for spec in args.world or ["open-room"]]
+    worlds = [_world_from_spec(spec) for spec in (suite.worlds if suite else args.world or ["open-room"])]
     for world in worlds:
         check_pairs_possible(world)
     agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
@@ -151,10 +162,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     for s in summaries:
         if s.world != OVERALL or len(worlds) > 1:
             print(s.line())
-    if len(agents) > 1 or len(worlds) > 1:
+    if suite is not None:
+        print(table_ii(summaries))
+    elif len(agents) > 1 or len(worlds) > 1:
         print(table(summaries))
     if args.out:
         files = write_csv(episodes, summaries, args.out)
+        if suite is not None:
+            (Path(args.out) / "table2.md").write_text(f"Suite {suite.name}: {suite.about}.\n\n{table_ii(summaries)}\n")
         pictures = draw_trajectories(episodes, worlds, Path(args.out) / "trajectories", env_config.robot.base_width / 2)
         print(f"wrote {files['episodes']}, {files['summary']} and {len(pictures)} trajectory pictures in "
               f"{Path(args.out) / 'trajectories'}")
@@ -487,8 +502,14 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--episodes", type=int, default=None,
                    help="episodes per world and seed: held-out pairs (default: 50), or the --pair pairs in turn "
                         "(default: one each)")
-    p.add_argument("--seeds", type=int, default=1,
-                   help="runs of every pair, each with its own ball places (worlds that re-place balls on reset)")
+    p.add_argument("--seeds", type=int, default=None,
+                   help="runs of every pair, each with its own ball places (worlds that re-place balls on reset; "
+                        "default 1)")
+    p.add_argument("--suite", choices=["unseen"], default=None,
+                   help="a fixed set of worlds nobody trains on (unseen: NAMO office, indoor and auditorium at seeds "
+                        "300 and 301, barn-3x3 and slam-office at seed 300; 4 pairs x 2 ball placements each); prints "
+                        "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
+                        "writes table2.md beside the CSV files and pictures")
     p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")
     p.set_defaults(func=_cmd_eval)
 

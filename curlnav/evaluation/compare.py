@@ -341,3 +341,65 @@ def make_agent(spec: str, env_config: EnvConfig, load_policy: Callable[[str], ob
         agent = GlobalPlanAgent(policy, env_config, label=spec)
         return agent.label, agent
     return spec, policy
+
+
+# -- the unseen-world suite: Table II --------------------------------------------------------------------
+@dataclass(frozen=True)
+class Suite:
+    """A fixed set of worlds nobody trains on, with how many of each world's pairs run and how
+    many ball placements (seeds) each pair gets."""
+
+    name: str
+    worlds: tuple[str, ...]  # FAMILY:SEED specs
+    pairs: int  # the first held-out pairs of each world (its own pairs, or random draws)
+    ball_placements: int  # runs of every pair, each with its own ball places (``--seeds``)
+    about: str
+
+
+#: ``curlnav eval AGENT... --suite unseen``: every family's seeds from 100 up are held out from
+#: training (the shipped policies trained on barn-3x3 seed 0 and t-maze seed 0); 8 worlds x
+#: 4 pairs x 2 ball placements = 64 trials per agent, about a minute per agent on one core.
+UNSEEN = Suite(
+    "unseen",
+    ("namo-office:300", "namo-office:301", "namo-indoor:300", "namo-indoor:301", "namo-auditorium:300",
+     "namo-auditorium:301", "barn-3x3:300", "slam-office:300"),
+    pairs=4, ball_placements=2,
+    about="NAMO office, indoor and auditorium at seeds 300 and 301 (every pair through a door), barn-3x3 at seed "
+          "300 (clutter, balls), slam-office at seed 300 (a 92 m x 72 m SLAM-like floor, pairs 10-20 m apart); "
+          "the first 4 pairs of each world, 2 ball placements each")
+SUITES = {UNSEEN.name: UNSEEN}
+
+
+def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of a success rate (95 % for ``z = 1.96``): ``(low, high)``."""
+    if trials <= 0:
+        return (float("nan"), float("nan"))
+    p = successes / trials
+    centre = (p + z * z / (2 * trials)) / (1 + z * z / trials)
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / (1 + z * z / trials)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def table_ii(summaries: list[Summary]) -> str:
+    """The paper's Table II layout as a Markdown table: a row per world (and one over all), a
+    column per agent; each cell: success with its 95 % interval, base contact events per trial,
+    time to goal (s, successful trials) and SPL."""
+    agents = list(dict.fromkeys(s.agent for s in summaries))
+    worlds = list(dict.fromkeys(s.world for s in summaries))
+    by = {(s.agent, s.world): s for s in summaries}
+
+    def cell(s: Summary | None) -> str:
+        if s is None:
+            return "-"
+        low, high = wilson_interval(round(s.success_rate * s.episodes), s.episodes)
+        return (f"{s.success_rate:.0%} ({low:.0%}-{high:.0%}) · {s.base_collision_events_per_trial:.2f} · "
+                f"{_number(s.time_to_goal_s, '{:.0f} s')} · {s.spl:.2f}")
+
+    lines = ["| world | " + " | ".join(agents) + " |", "|---|" + "---|" * len(agents)]
+    for world in worlds:
+        count = max((by[(a, world)].episodes for a in agents if (a, world) in by), default=0)
+        name = f"**{world}**" if world == OVERALL else world
+        lines.append(f"| {name} ({count}) | " + " | ".join(cell(by.get((a, world))) for a in agents) + " |")
+    lines += ["", "Each cell: success (95 % Wilson interval) · base contact events per trial · time to goal "
+              "(successful trials) · SPL. In brackets after the world: trials per agent."]
+    return "\n".join(lines)

@@ -9,9 +9,11 @@ It produces ``<out>/report.md`` with its figures and tables:
   world) against training from scratch, on the hardest worlds, at equal steps. Finding 2.
 - **Fig. 5**: the curriculum ablation (``curlnav.evaluation.ablation``): S1+S2, S1 only, S2 only, no
   curriculum, held-out success on T-Maze p1..p4. Finding 3: S1+S2 is the most sample-efficient.
-- **Table II**: the S1+S2 policy (and the no-curriculum one) against the classical planner (a
-  stand-in for TARE's local planner, movable objects ignored) on unseen NAMO worlds with doors
-  and balls, never used in training (``curlnav.evaluation.compare``).
+- **Table II**: the S1+S2 policy (alone and behind a global plan) and the no-curriculum one
+  against the map-less classical planners (``tare-l``, after TARE's local planner, and ``dwa``;
+  movable objects ignored, as the paper forced TARE-L) and the ``oracle`` (A* on the true map)
+  on the unseen-world suite (``curlnav eval --suite unseen``: NAMO worlds with doors and balls,
+  barn-3x3 and slam-office, all at held-out seeds; ``curlnav.evaluation.compare``).
 
 Every run is a serial run (one core each, ``--parallel`` at once) in its own folder; the command
 skips what is done and resumes what was cut short, so Ctrl-C and running it again loses only
@@ -48,6 +50,7 @@ TABLE1_FAMILIES = ("barn-3x3", "forest", "cave", "garage", "indoor", "office", "
 #: unseen NAMO worlds for Table II (seed 100 of each: never generated for training)
 UNSEEN_FAMILIES = ("namo-office", "namo-indoor", "namo-auditorium")
 UNSEEN_SEED = 100
+TABLE2_CLASSICAL = ("tare-l", "dwa", "oracle")  # the classical agents of Table II
 CONVERGED = 0.5  # held-out success that counts as "trains from scratch" in Table I
 
 
@@ -184,10 +187,17 @@ def table2_agents(out: Path) -> dict[str, Path]:
 
 
 def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | None:
-    """The comparison on unseen worlds (cached in ``table2/``)."""
+    """The comparison on the unseen-world suite (cached in ``table2/``): every trained policy
+    (S1+S2 also behind a global plan), ``tare-l``, ``dwa`` and the ``oracle``. The suite's pairs
+    and ball placements, fewer when the budget allows fewer (``unseen`` is no longer used: the
+    suite names its worlds)."""
+    from curlnav.evaluation.compare import UNSEEN
+
     folder = out / "table2"
     policies = table2_agents(out)
+    pairs, seeds = min(budget.table2_pairs, UNSEEN.pairs), min(budget.table2_seeds, UNSEEN.ball_placements)
     key = {label: {"path": str(path), "selected": _mtime(path / "selected.json")} for label, path in policies.items()}
+    key["suite"] = {"worlds": list(UNSEEN.worlds), "pairs": pairs, "seeds": seeds, "classical": list(TABLE2_CLASSICAL)}
     try:
         cached = json.loads((folder / "agents.json").read_text())
     except (OSError, ValueError):
@@ -195,6 +205,7 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
     if (folder / "summary.csv").exists() and cached == key:
         return folder  # the same policies were compared already
     from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.baseline import GlobalPlanAgent
     from curlnav.evaluation.compare import (
         Comparison,
         draw_trajectories,
@@ -202,18 +213,25 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
         make_agent,
         summarise,
         table,
+        table_ii,
         write_csv,
     )
     from curlnav.policy import PolicyArtefact
     from curlnav.sim import get_world
 
     env_config = ExperimentConfig().eval_env
-    agents = {label: PolicyArtefact(path) for label, path in policies.items()}
-    label, planner = make_agent("planner", env_config, PolicyArtefact)
-    agents[label] = planner
-    worlds = [get_world(str(w)) for w in unseen]
-    comparison = Comparison(agents, worlds, lambda w: episode_pairs(w, pairs=budget.table2_pairs), env_config)
-    total = comparison.episode_count(budget.table2_seeds)
+    agents: dict[str, object] = {}
+    for label, path in policies.items():
+        agents[label] = PolicyArtefact(path)
+        if label == "s1+s2":
+            planned = GlobalPlanAgent(agents[label], env_config, label=label)
+            agents[planned.label] = planned
+    for name in TABLE2_CLASSICAL:
+        label, agent = make_agent(name, env_config, PolicyArtefact)
+        agents[label] = agent
+    worlds = [get_world(spec) for spec in UNSEEN.worlds]
+    comparison = Comparison(agents, worlds, lambda w: episode_pairs(w, pairs=pairs), env_config)
+    total = comparison.episode_count(seeds)
     done = [0]
 
     def progress(_episode) -> None:
@@ -221,12 +239,13 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
         if done[0] % 10 == 0 or done[0] == total:
             log(f"[experiment] table II: {done[0]}/{total} episodes")
 
-    episodes = comparison.run(budget.table2_seeds, on_episode=progress)
+    episodes = comparison.run(seeds, on_episode=progress)
     summaries = summarise(episodes)
     folder.mkdir(parents=True, exist_ok=True)
     write_csv(episodes, summaries, folder)
     draw_trajectories(episodes, worlds, folder / "trajectories", env_config.robot.base_width / 2)
     (folder / "table.txt").write_text(table(summaries) + "\n")
+    (folder / "table2.md").write_text(table_ii(summaries) + "\n")
     (folder / "agents.json").write_text(json.dumps(key, indent=2))
     return folder
 
@@ -380,27 +399,33 @@ def write_experiment_report(out: Path, budget: Budget) -> Path:
         findings.append(("3. S1+S2 is the most sample-efficient curriculum (Fig. 5)", False, "no runs"))
 
     # Table II
-    lines += ["## Table II: the trained policies against the classical planner on unseen NAMO worlds", "",
-              "The planner is a stand-in for TARE's local planner (TARE-L), not TARE itself: A* on the static map "
-              "with doors and balls ignored, as the paper forced TARE-L to, tracked by a local planner on the same "
-              "robot, actions and sensors. Worlds generated with seed "
-              f"{UNSEEN_SEED} ({', '.join(UNSEEN_FAMILIES)}), never used in training.", ""]
+    from curlnav.evaluation.compare import UNSEEN
+
+    lines += ["## Table II: the trained policies against the classical planners on unseen worlds", "",
+              "`tare-l` is a map-less local planner after TARE's (the paper's TARE-L): a library of path primitives "
+              "blocked by the static beams of the current scan, scored by the goal's direction and clearance, on the "
+              "policy's own inputs; `dwa` is the dynamic window approach on the same scan; both ignore movable "
+              "objects, as the paper forced TARE-L to. `oracle` is A* on the true static map tracked on the true "
+              "pose: an upper bound, not a baseline. `+ global plan`: the policy's goal is a waypoint 3 m ahead on "
+              f"the oracle's A* path. Suite `{UNSEEN.name}`: {UNSEEN.about}; never used in training.", ""]
     summary = read_csv(out / "table2" / "summary.csv")
     if summary:
-        lines += ["```", (out / "table2" / "table.txt").read_text().rstrip(), "```", "",
-                  "Trajectories: `table2/trajectories/`.", ""]
+        shown = out / "table2" / "table2.md"
+        old = "```\n" + (out / "table2" / "table.txt").read_text().rstrip() + "\n```"  # before the suite
+        lines += [shown.read_text().rstrip() if shown.exists() else old, "", "Trajectories: `table2/trajectories/`.", ""]
         overall = {r["agent"]: r for r in summary if r.get("world") == "all"}
         policy = overall.get("s1+s2")
-        planner = next((r for a, r in overall.items() if a not in ("s1+s2", "no-curriculum")), None)
-        if policy and planner:
-            ps, qs = float(policy["success_rate"]), float(planner["success_rate"])
+        baseline = overall.get("tare-l") or next(
+            (r for a, r in overall.items() if a in ("oracle", "planner (TARE-L stand-in)")), None)
+        if policy and baseline:
+            ps, qs = float(policy["success_rate"]), float(baseline["success_rate"])
             column = ("base_collision_events_per_trial" if policy.get("base_collision_events_per_trial") not in (None, "")
                       else "base_collisions_per_trial")  # collisions as the paper counts them, when recorded
-            pc, qc = float(policy[column]), float(planner[column])
-            findings.append(("4. The curriculum policy succeeds at least as often as the planner, with fewer base "
-                             "collisions, on unseen NAMO worlds (Table II)", ps >= qs and pc < qc,
-                             f"policy {_pct(ps)}, {pc:.2f} base collisions/trial; planner {_pct(qs)}, {qc:.2f}"
-                             + (" (contact events)" if column.endswith("events_per_trial") else " (contact steps)")))
+            pc, qc = float(policy[column]), float(baseline[column])
+            findings.append(("4. The curriculum policy succeeds at least as often as TARE-L, with fewer base "
+                             "collisions, on unseen worlds (Table II)", ps >= qs and pc < qc,
+                             f"policy {_pct(ps)}, {pc:.2f} base collisions/trial; {baseline['agent']} {_pct(qs)}, "
+                             f"{qc:.2f}" + (" (contact events)" if column.endswith("events_per_trial") else " (contact steps)")))
     else:
         lines += ["No comparison yet.", ""]
 
