@@ -21,15 +21,8 @@ class PolicyArtefact:
     def __init__(self, folder: str | Path, verify: bool = True) -> None:
         self.folder = Path(folder)
         self.metadata = self._read_metadata()
-        files = self.metadata.get("files", {})
         meta_path = self.folder / "metadata.json"
-        if not isinstance(files, dict):
-            raise ArtefactError(f"{meta_path}: 'files' must map file names to sha256 digests")
-        for name, expected in files.items():  # only files of this folder: never a checksum of another
-            if not is_plain_file_name(name):
-                raise ArtefactError(f"{meta_path}: lists {shown(name)}, not a plain file name in the artefact folder")
-            if not (isinstance(expected, str) and re.fullmatch(r"[0-9a-f]{64}", expected)):
-                raise ArtefactError(f"{meta_path}: the sha256 of {name} is {shown(expected)}, not 64 hex digits")
+        for name, expected in self._files(self.metadata, meta_path).items():
             path = self.folder / name
             if path.is_symlink() or not path.is_file():
                 raise ArtefactError(f"{self.folder}: missing {name}" + (" (a symlink)" if path.is_symlink() else ""))
@@ -46,6 +39,26 @@ class PolicyArtefact:
         if isinstance(version, bool) or not isinstance(version, int) or version < 0:
             raise ArtefactError(f"{meta_path}: policy_version must be a whole number, got {shown(version)}")
         self.session = _onnx_session(self.folder / "actor.onnx")
+
+    @classmethod
+    def listed_files(cls, folder: str | Path) -> dict[str, str]:
+        """``{file name: sha256}`` that ``folder/metadata.json`` lists, checked (plain names of the
+        folder, 64 hex digits) without reading the files."""
+        artefact = cls.__new__(cls)
+        artefact.folder = Path(folder)
+        return cls._files(artefact._read_metadata(), artefact.folder / "metadata.json")
+
+    @staticmethod
+    def _files(metadata: dict, meta_path: Path) -> dict[str, str]:
+        files = metadata.get("files", {})
+        if not isinstance(files, dict):
+            raise ArtefactError(f"{meta_path}: 'files' must map file names to sha256 digests")
+        for name, expected in files.items():  # only files of this folder: never a checksum of another
+            if not is_plain_file_name(name) or name == "metadata.json":
+                raise ArtefactError(f"{meta_path}: lists {shown(name)}, not a plain file name in the artefact folder")
+            if not (isinstance(expected, str) and re.fullmatch(r"[0-9a-f]{64}", expected)):
+                raise ArtefactError(f"{meta_path}: the sha256 of {name} is {shown(expected)}, not 64 hex digits")
+        return files
 
     def _read_metadata(self) -> dict:
         expected = "expected a policy artefact folder (with metadata.json and actor.onnx)"

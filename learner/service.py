@@ -9,6 +9,7 @@ sha256), ``GET /policy/<version>/<file>``, ``/healthz``, ``/metrics``.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -211,7 +212,8 @@ class LearnerService:
             return json_response({"error": f"policy version {version} is unreadable"}, 404)
         if len(parts) == 2:
             files = {name: {"sha256": sha, "url": f"/policy/{version}/{name}"} for name, sha in meta["files"].items()}
-            files["metadata.json"] = {"url": f"/policy/{version}/metadata.json"}
+            files["metadata.json"] = {"sha256": hashlib.sha256((folder / "metadata.json").read_bytes()).hexdigest(),
+                                      "url": f"/policy/{version}/metadata.json"}  # pull requires one for every file
             return json_response({"version": version, "files": files, "metadata": meta})
         name = parts[2]
         if len(parts) != 3 or name not in listed or name in ("", ".", "..") or not inside(folder / name, folder=False):

@@ -1,25 +1,78 @@
-"""``curlnav pull``: download a policy artefact from a learner's HTTP server, checking sha256."""
+"""``curlnav pull``: download a policy artefact from a learner's HTTP server, checking sha256.
+
+The learner is not trusted with the local disk (issue 26 H5): only plain file names that the
+artefact's own ``metadata.json`` lists (plus ``metadata.json``), each with a sha256; downloads
+streamed to disk with a size cap; no redirect to another origin; the artefact built and checked
+(checksums, ONNX model) in a temporary folder beside ``--out``, which is replaced only then, and
+only if it is a policy artefact folder itself (or empty)."""
 
 from __future__ import annotations
 
 import hashlib
-import json
+import re
 import shutil
 import tempfile
 import urllib.error
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
+from curlnav.files import FileRefused, is_plain_file_name, loads_json, shown
 
-def http_get(url: str, timeout: float = 30.0) -> bytes:
-    """The body of ``GET url``. Raises ``ValueError`` on an HTTP error status (with the server's
-    reply), ``OSError`` when the server cannot be reached (see ``unreachable_reason``)."""
+MAX_FILE_BYTES = 256 << 20  # one artefact file (an actor of 1024 x 1024 layers is a few MB)
+MAX_LISTING_BYTES = 4 << 20  # the JSON listing of a version
+_CHUNK = 1 << 20
+
+
+def _origin(url: str) -> tuple[str, str, int | None]:
+    parts = urllib.parse.urlsplit(url)
+    return parts.scheme, (parts.hostname or "").lower(), parts.port or {"http": 80, "https": 443}.get(parts.scheme)
+
+
+class _SameOriginRedirects(urllib.request.HTTPRedirectHandler):
+    """Follows redirects on the learner's own origin only."""
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):
+        if _origin(newurl) != _origin(req.full_url):
+            raise ValueError(f"{req.full_url}: HTTP {code} redirect to another origin ({shown(newurl, 80)[1:-1]}); "
+                             "refused")
+        return super().redirect_request(req, fp, code, msg, headers, newurl)
+
+
+_opener = urllib.request.build_opener(_SameOriginRedirects)
+
+
+def _download(url: str, max_bytes: int, sink, timeout: float) -> int:
+    """Stream ``GET url`` into ``sink(chunk)``, refusing more than ``max_bytes``; returns the size.
+    Raises ``ValueError`` on an HTTP error status or the cap, ``OSError`` when unreachable."""
     try:
-        with urllib.request.urlopen(url, timeout=timeout) as response:
-            return response.read()
+        with _opener.open(url, timeout=timeout) as response:
+            declared = response.headers.get("Content-Length", "")
+            if declared.strip().isdigit() and int(declared) > max_bytes:
+                raise ValueError(f"{url}: {int(declared)} bytes, above the {max_bytes >> 20} MiB cap; refused")
+            size = 0
+            while chunk := response.read(_CHUNK):
+                size += len(chunk)
+                if size > max_bytes:
+                    raise ValueError(f"{url}: above the {max_bytes >> 20} MiB cap; refused")
+                sink(chunk)
+            return size
     except urllib.error.HTTPError as exc:
-        detail = exc.read().decode(errors="replace").strip()
-        raise ValueError(f"{url}: HTTP {exc.code} {detail}") from None
+        detail = exc.read(2000).decode(errors="replace").strip()
+        raise ValueError(f"{url}: HTTP {exc.code} {shown(detail, 200)[1:-1]}") from None
+    except urllib.error.URLError as exc:
+        if isinstance(exc.reason, ValueError):  # a refused redirect
+            raise exc.reason from None
+        raise
+
+
+def http_get(url: str, timeout: float = 30.0, max_bytes: int = MAX_LISTING_BYTES) -> bytes:
+    """The body of ``GET url`` (at most ``max_bytes``). Raises ``ValueError`` on an HTTP error
+    status (with the server's reply), a cross-origin redirect or a body above the cap, ``OSError``
+    when the server cannot be reached (see ``unreachable_reason``)."""
+    parts: list[bytes] = []
+    _download(url, max_bytes, parts.append, timeout)
+    return b"".join(parts)
 
 
 def unreachable_reason(exc: OSError) -> str:
@@ -30,25 +83,94 @@ def unreachable_reason(exc: OSError) -> str:
     return str(reason) or type(reason).__name__
 
 
-def pull_policy(base_url: str, out_dir: str | Path, version: str = "latest") -> Path:
-    """Write the artefact of ``version`` ("latest" or a number) to ``out_dir``; returns it.
-    Raises ``ValueError`` on a checksum mismatch or an HTTP error, ``OSError`` when unreachable."""
-    base = base_url.rstrip("/")
-    listing = json.loads(http_get(f"{base}/policy/{version}"))
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=out_dir.name + ".", dir=out_dir.parent))
+def _checked_listing(raw: bytes, where: str) -> dict[str, tuple[str, str]]:
+    """``{name: (sha256, url path)}`` from a learner's listing, or ``ValueError`` in one line."""
     try:
-        for name, info in listing["files"].items():
-            data = http_get(base + info["url"])
-            expected = info.get("sha256")
-            if expected and hashlib.sha256(data).hexdigest() != expected:
-                raise ValueError(f"{name}: sha256 mismatch (download corrupted)")
-            (tmp / name).write_bytes(data)
+        listing = loads_json(raw, where)
+    except FileRefused as exc:
+        raise ValueError(f"listing {exc}") from None
+    files = listing.get("files") if isinstance(listing, dict) else None
+    if not isinstance(files, dict) or not files:
+        raise ValueError(f"listing {where}: no 'files' mapping; is it a curlnav learner?")
+    out = {}
+    for name, info in files.items():
+        if not is_plain_file_name(name):
+            raise ValueError(f"listing {where}: names {shown(name)}, not a plain file name; refused")
+        sha, url = (info.get("sha256"), info.get("url")) if isinstance(info, dict) else (None, None)
+        if not (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha)):
+            raise ValueError(f"listing {where}: {name} has no sha256 (got {shown(sha)}); refused")
+        if not (isinstance(url, str) and url.startswith("/") and not url.startswith("//")):
+            raise ValueError(f"listing {where}: {name} has url {shown(url)}, not a path on the learner")
+        out[name] = (sha, url)
+    if "metadata.json" not in out:
+        raise ValueError(f"listing {where}: no metadata.json")
+    return out
+
+
+def _fetch_file(base: str, name: str, sha: str, url: str, folder: Path, timeout: float) -> None:
+    digest = hashlib.sha256()
+    with open(folder / name, "xb") as f:
+        def sink(chunk: bytes) -> None:
+            digest.update(chunk)
+            f.write(chunk)
+
+        try:
+            _download(base + url, MAX_FILE_BYTES, sink, timeout)
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
+    if digest.hexdigest() != sha:
+        raise ValueError(f"{name}: sha256 mismatch (download corrupted)")
+
+
+def _replaceable(out_dir: Path) -> bool:
+    """``out_dir`` may be replaced: absent, an empty folder, or a policy artefact folder."""
+    if not out_dir.exists() and not out_dir.is_symlink():
+        return True
+    if out_dir.is_symlink() or not out_dir.is_dir():
+        return False
+    return not any(out_dir.iterdir()) or (out_dir / "metadata.json").is_file()
+
+
+def pull_policy(base_url: str, out_dir: str | Path, version: str = "latest", timeout: float = 30.0) -> Path:
+    """Write the artefact of ``version`` ("latest" or a number) to ``out_dir``; returns it.
+    Raises ``ValueError`` on a hostile or malformed listing, a checksum mismatch, an artefact that
+    does not load, an HTTP error or an ``out_dir`` that is not an artefact folder; ``OSError`` when
+    unreachable."""
+    from curlnav.policy import PolicyArtefact
+
+    base = base_url.rstrip("/")
+    out_dir = Path(out_dir)
+    if not _replaceable(out_dir):
+        raise ValueError(f"--out {out_dir} exists and is not a policy artefact folder; pull into a new folder")
+    where = f"{base}/policy/{version}"
+    files = _checked_listing(http_get(where, timeout), where)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    old = None
+    try:
+        _fetch_file(base, "metadata.json", *files["metadata.json"], tmp, timeout)
+        listed = PolicyArtefact.listed_files(tmp)  # the artefact's own list (plain names, checked)
+        unlisted = sorted(set(files) - set(listed) - {"metadata.json"})
+        if unlisted:
+            raise ValueError(f"listing {where}: {shown(unlisted)} not in the artefact's metadata.json; refused")
+        for name, expected in listed.items():
+            if name not in files:
+                raise ValueError(f"listing {where}: {name} (in metadata.json) is not listed")
+            if files[name][0] != expected:
+                raise ValueError(f"listing {where}: {name}: the listing's sha256 differs from metadata.json's")
+            _fetch_file(base, name, *files[name], tmp, timeout)
+        PolicyArtefact(tmp)  # checksums and the ONNX model, before --out is touched
         if out_dir.exists():
-            shutil.rmtree(out_dir)
+            old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old.", dir=out_dir.parent))
+            out_dir.rename(old / "artefact")
         tmp.rename(out_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not out_dir.exists():
+            (old / "artefact").rename(out_dir)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
         raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
     return out_dir
