@@ -2,7 +2,8 @@
 
 The serial trainer and the actor service both drive an ``EpisodeLoop``; they differ only in
 where the written frames go (straight into the replay table, or onto the bus in batches) and in
-who assigns the next world and pair.
+who assigns the next world and pair. An assigned world distribution (``curlnav.worlds.distribution``)
+is drawn here, so both modes draw worlds the same way.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 from curlnav.replay import FrameBatch, NStepWriter
 
 from curlnav.sim import NamoEnv
+from curlnav.worlds.distribution import WorldDraws
 
 
 @dataclass(frozen=True)
@@ -34,17 +36,26 @@ class EpisodeLoop:
     """``begin`` an episode, then ``step`` until it returns an ``EpisodeEnd``; ``flush``
     whenever the written transitions should go out (the writer keeps the n-step tail)."""
 
-    def __init__(self, env: NamoEnv, policy: Callable[[np.ndarray], np.ndarray], writer: NStepWriter) -> None:
+    def __init__(self, env: NamoEnv, policy: Callable[[np.ndarray], np.ndarray], writer: NStepWriter,
+                 worlds: WorldDraws | None = None) -> None:
         self.env = env
         self.policy = policy
         self.writer = writer
+        self.worlds = worlds if worlds is not None else WorldDraws()  # draws for distribution assignments
         self.obs: np.ndarray | None = None
         self.episode_return = 0.0
         self.steps = 0  # environment steps, all episodes
         self.episodes = 0  # episodes ended
 
     def begin(self, seed: int, options: dict | None = None) -> np.ndarray:
-        """Reset the environment (``options``: world and pair) and start a new trajectory."""
+        """Reset the environment (``options``: world and pair) and start a new trajectory. A
+        world distribution's key as the world draws this episode's world (``WorldDraws``: never a
+        held-out seed); its scenes stay built in the environment's scene cache."""
+        if options and options.get("world") is not None:
+            world = self.worlds.resolve(options["world"])
+            if world is not options["world"]:
+                options = {**options, "world": world}
+                self.env.scene_cache = max(self.env.scene_cache, self.worlds.cache)
         self.obs, _ = self.env.reset(seed=seed, options=options)
         self.writer.first(self.obs)
         self.episode_return = 0.0

@@ -66,7 +66,8 @@ class ActorCore:
         builder = D4PGBuilder(experiment)
         self.layout = builder.layout
         self.policy = builder.make_behaviour_policy(cfg.actor_index, cfg.actor_count)
-        self.loop = EpisodeLoop(builder.make_env(), self.policy, builder.make_nstep_writer())
+        self.loop = EpisodeLoop(builder.make_env(), self.policy, builder.make_nstep_writer(),
+                                builder.make_world_draws(cfg.actor_index))
         self.env = self.loop.env
         self.default_world = experiment.curriculum.world
         self.rng = np.random.default_rng([experiment.seed, cfg.actor_index, 1])

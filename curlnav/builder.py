@@ -66,6 +66,13 @@ class D4PGBuilder:
                                warmup_steps=exploration.warmup_share(actor_count),
                                rng=np.random.default_rng([self.config.seed, actor_index, stream]))
 
+    def make_world_draws(self, actor_index: int = 0, stream: int = 0):
+        """Actor ``actor_index``'s draws of worlds from distributions (``stream``: another
+        sequence, as for the behaviour policy)."""
+        from curlnav.worlds.distribution import WorldDraws
+
+        return WorldDraws(seed=[self.config.seed, actor_index, stream, 28])
+
     def make_env(self, world=None, excluded_pairs: set | None = None) -> NamoEnv:
         """The training environment (episodes end at a base collision). On the experiment's own
         world, the evaluation protocol's held-out pairs are never drawn for training

@@ -324,6 +324,14 @@ def _cmd_bench_transport(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_draws(args: argparse.Namespace) -> int:
+    from curlnav.bench.draws import run_draw_bench
+
+    every = tuple(int(k) for k in args.every.split(","))
+    run_draw_bench(args.distribution, steps=args.steps, episode_steps=args.episode_steps, every=every)
+    return 0
+
+
 def _cmd_bench_faults(args: argparse.Namespace) -> int:
     from curlnav.bench.faults import run_fault_bench
 
@@ -630,6 +638,12 @@ def _add_bench_commands(sub) -> None:
     p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
     p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
     p.set_defaults(func=_cmd_bench_metrics)
+    p = bench_sub.add_parser("draws", help="episode-loop steps/s drawing a new world per episode (or every K) vs one world")
+    p.add_argument("distribution", nargs="?", default="barn-3x3:0-99", help="a world distribution, FAMILY:LO-HI(...)")
+    p.add_argument("--steps", type=int, default=3000, help="timed environment steps per row")
+    p.add_argument("--episode-steps", type=int, default=150, help="steps per episode")
+    p.add_argument("--every", default="1,4", help="comma-separated episodes per fresh world, one row each")
+    p.set_defaults(func=_cmd_bench_draws)
     p = bench_sub.add_parser("faults", help="kill -9 replay, learner and scheduler of a local run: what was lost")
     p.add_argument("--actors", type=int, default=2)
     p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")

@@ -116,7 +116,13 @@ def headline_key(curriculum) -> tuple[str, str] | None:
     if curriculum is None:
         return None
     world, pair = curriculum.evaluation_targets()[-1]
-    return Path(world).stem, pair or HELD_OUT
+    return world_label(world), pair or HELD_OUT
+
+
+def world_label(world: str) -> str:
+    """A world as eval.csv names it: a world file's stem; a built-in, ``FAMILY:SEED`` or a
+    distribution's key as it is (a key's dots are not a file suffix)."""
+    return Path(world).stem if world.endswith((".yaml", ".yml")) else world
 
 
 #: how ``policy-best`` ranks evaluations, as ``selected.json`` says it
@@ -202,7 +208,7 @@ class BesideEvaluator:
                 result = evaluate(policy, world, [pair] * per_target, self.experiment.eval_env, env=env,
                                   on_episode=check_stop)
             rows.append({"stage_index": t.stage_index, "stage": t.stage, "substep": t.substep,
-                         "world": Path(t.world).stem, "pair": t.pair, **dataclasses.asdict(result)})
+                         "world": world_label(t.world), "pair": t.pair, **dataclasses.asdict(result)})
         return rows
 
     def record(self, rows: list[dict], *, wall_s: float, version: int, env_steps: int, updates: int,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -100,12 +101,15 @@ BUILTIN_WORLDS: dict[str, Callable[[], World]] = {
 }
 
 _CACHE: dict[str, World] = {}
+_DISTRIBUTION = re.compile(r"^[a-z0-9][a-z0-9-]*:\d+-\d+(\(.*\))?$")
 
 
 def get_world(spec: str | os.PathLike | World) -> World:
     """The one resolver of a world argument (every command, service and curriculum file): a
     built-in name, a path to a world YAML, ``FAMILY:SEED`` for a generated world
-    (``t-maze:0``, ``barn-3x3:12``: ``curlnav.worlds.generators``), or a ``World`` (returned as is).
+    (``t-maze:0``, ``barn-3x3:12``: ``curlnav.worlds.generators``), a world distribution's key
+    (``barn-3x3:0-99(fill_pct=0.1~0.3)``: its first world, ``curlnav.worlds.distribution``), or a
+    ``World`` (returned as is).
 
     Raises ``WorldError`` naming the forms and the known built-ins when ``spec`` is none of them.
     """
@@ -119,6 +123,16 @@ def get_world(spec: str | os.PathLike | World) -> World:
     path = Path(key)
     if path.suffix in (".yaml", ".yml") or path.exists():
         return load_world(path)
+    if _DISTRIBUTION.match(key):  # FAMILY:LO-HI(...): a world distribution names its first world
+        from curlnav.worlds.distribution import WorldDistribution
+
+        if key not in _CACHE:
+            try:
+                distribution = WorldDistribution.parse(key)
+            except ValueError as exc:
+                raise WorldError(str(exc)) from None
+            _CACHE[key] = distribution.world(distribution.lo)
+        return _CACHE[key]
     family, sep, seed = key.rpartition(":")
     if sep and seed.isdigit():
         from curlnav.worlds.generators import FAMILIES, generate  # the families build on this module's World

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections import OrderedDict
 from typing import Any
 
 import gymnasium as gym
@@ -85,6 +86,10 @@ class NamoEnv(gym.Env):
         # Random pairs never drawn (held out for evaluation): (x, y, gx, gy) rounded to 1 mm.
         self.excluded_pairs: set[tuple[float, float, float, float]] = set()
         self._steps = 0
+        # Built scenes kept across world switches (1: only the current one). World draws raise it.
+        self.scene_cache = 1
+        self.scene_builds = 0  # scenes built for worlds switched to while the cache is on (misses)
+        self._scenes: OrderedDict[int, tuple[World, PairSampler | None, Scene]] = OrderedDict()
 
     # -- public helpers --------------------------------------------------------------------
     @property
@@ -99,19 +104,40 @@ class NamoEnv(gym.Env):
 
     def set_world(self, world: str | os.PathLike | World) -> None:
         """Switch worlds; the PyBullet scene is rebuilt on the next reset. The same world file
-        named again (unchanged on disk) keeps the current world and scene."""
+        named again (unchanged on disk) keeps the current world and scene. With ``scene_cache``
+        above 1, the scenes of the last worlds stay built (each in its own PyBullet client) and a
+        switch back to one of those ``World`` objects costs no building."""
         key = _file_key(world)
         if key is not None and key == self._world_key:
             return
         new = get_world(world)
-        if new is not self.world:
-            sampler = check_pairs_possible(new, self._footprint())
-            self.world = new
-            self._sampler = sampler
-            self._world_key = key
-            if self._scene is not None:
-                self._scene.close()
-                self._scene = None
+        if new is self.world:
+            return
+        if self.scene_cache > 1:
+            self._switch_cached(new, key)
+            return
+        sampler = check_pairs_possible(new, self._footprint())
+        self.world = new
+        self._sampler = sampler
+        self._world_key = key
+        if self._scene is not None:
+            self._scene.close()
+            self._scene = None
+
+    def _switch_cached(self, new: World, key: tuple | None) -> None:
+        """``set_world`` with a scene cache: keep the current scene, take ``new``'s if kept."""
+        kept = self._scenes.pop(id(new), None)
+        if kept is not None and kept[0] is not new:  # an id reused by another object: stale
+            kept[2].close()
+            kept = None
+        sampler = kept[1] if kept is not None else check_pairs_possible(new, self._footprint())
+        if self._scene is not None:
+            self._scenes[id(self.world)] = (self.world, self._sampler, self._scene)
+        while len(self._scenes) > self.scene_cache - 1:
+            self._scenes.popitem(last=False)[1][2].close()
+        self.world, self._sampler, self._world_key = new, sampler, key
+        self._scene = kept[2] if kept is not None else None
+        self.scene_builds += kept is None
 
     # -- gymnasium API ---------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -132,9 +158,12 @@ class NamoEnv(gym.Env):
             self.set_world(options["world"])
         world = self.world
         if self._scene is None:
-            if self._client is None:
-                self._client = connect(self.config)  # kept across world switches, closed by close()
-            self._scene = Scene(world, self.config, client=self._client)
+            if self.scene_cache > 1:  # each kept scene has its own client (a build resets its client)
+                self._scene = Scene(world, self.config)
+            else:
+                if self._client is None:
+                    self._client = connect(self.config)  # kept across world switches, closed by close()
+                self._scene = Scene(world, self.config, client=self._client)
         pair = options.get("pair")
         if isinstance(pair, StartGoal):
             self.pair = pair
@@ -222,6 +251,8 @@ class NamoEnv(gym.Env):
         return render_topdown_array(self)
 
     def close(self) -> None:
+        while self._scenes:
+            self._scenes.popitem()[1][2].close()
         if self._scene is not None:
             self._scene.close()
             self._scene = None

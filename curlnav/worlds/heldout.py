@@ -1,0 +1,53 @@
+"""Held-out seeds: the one place that says which generated worlds no training run may use.
+
+Every family's seeds from ``HELD_OUT_FROM`` (100) upward are held out: nobody trains or tunes on
+them (issue 28). Curricula are refused at load when a stage or an ``evaluate`` target names one
+(``FAMILY:SEED``, ``FAMILY:LO-HI`` or ``{family, seeds: [LO, HI]}``), and the world draws of
+both training modes refuse one at draw time (``check_training_seed``). The unseen-world suite of
+``curlnav eval`` evaluates on these seeds only (``held_out_seeds``); the NAMO figures of the
+issue use seed 300.
+"""
+
+from __future__ import annotations
+
+HELD_OUT_FROM = 100  # the first held-out seed of every family
+MAX_SEED = 2 ** 32 - 1  # numpy's largest seed for one integer
+
+#: per family, the first held-out seed; families not listed hold out from ``HELD_OUT_FROM`` too
+HELD_OUT_BY_FAMILY: dict[str, int] = {
+    "barn": HELD_OUT_FROM, "barn-3x3": HELD_OUT_FROM, "t-maze": HELD_OUT_FROM, "t-maze-doors": HELD_OUT_FROM,
+    "cave": HELD_OUT_FROM, "forest": HELD_OUT_FROM, "garage": HELD_OUT_FROM, "indoor": HELD_OUT_FROM,
+    "office": HELD_OUT_FROM, "campus": HELD_OUT_FROM, "auditorium": HELD_OUT_FROM, "slam-office": HELD_OUT_FROM,
+    "namo-office": HELD_OUT_FROM, "namo-indoor": HELD_OUT_FROM, "namo-auditorium": HELD_OUT_FROM,
+}
+
+
+class HeldOutSeedError(ValueError):
+    """A training path asked for a held-out seed."""
+
+
+def held_out_from(family: str) -> int:
+    """The first held-out seed of ``family``."""
+    return HELD_OUT_BY_FAMILY.get(family, HELD_OUT_FROM)
+
+
+def training_seeds(family: str) -> range:
+    """The seeds of ``family`` that training may draw: ``range(0, held_out_from(family))``."""
+    return range(0, held_out_from(family))
+
+
+def held_out_seeds(family: str) -> range:
+    """The seeds of ``family`` reserved for evaluation on unseen worlds."""
+    return range(held_out_from(family), MAX_SEED + 1)
+
+
+def is_held_out(family: str, seed: int) -> bool:
+    return seed >= held_out_from(family)
+
+
+def check_training_seed(family: str, seed: int) -> int:
+    """``seed`` if training may use it, else ``HeldOutSeedError`` (one line)."""
+    if is_held_out(family, seed):
+        raise HeldOutSeedError(f"{family} seed {seed} is held out for evaluation (seeds >= {held_out_from(family)}); "
+                               f"train on seeds 0..{held_out_from(family) - 1}")
+    return seed
