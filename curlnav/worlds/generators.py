@@ -6,7 +6,8 @@ open). Same family, parameters and seed: same world, bit for bit.
 
 Families: ``barn`` (the BARN benchmark's cellular automaton), ``barn-3x3`` (3 x 3 BARN blocks
 scaled to 36 m, 8 balls re-placed every reset), ``t-maze`` (five rooms in a T joined by hinged
-doors and narrow gates, one ball per room, curriculum pairs p1..p4), and worlds with the
+doors and narrow gates, one ball per room, curriculum pairs p1..p4), ``t-maze-doors`` (T-Mazes
+that vary, whose pairs must push doors open: ``curlnav.worlds.tmaze``), and worlds with the
 character of the paper's others: ``cave``, ``forest``, ``garage``, ``indoor``, ``office``,
 ``campus``, ``auditorium``; and ``slam-office``, a large office floor as a SLAM stack maps it
 (0.05 m cells, ragged walls, furniture, noise: thousands of rectangles).
@@ -25,6 +26,7 @@ from curlnav.sim.world import Ball, Door, RandomPairs, Region, StartGoal, World
 from .metrics import GridGraph, inflate
 from .namo import NAMO_FAMILIES
 from .slam_like import slam_office
+from .tmaze import t_maze_doors
 
 RESOLUTION = 0.15  # m per cell: BARN's, fine enough for doors and gates
 CSPACE_RADIUS_M = 0.3  # m; BARN's 2 cells at 0.15 m
@@ -379,7 +381,7 @@ def _finish(family: str, seed: int, grid: np.ndarray, pairs: int, min_distance: 
 FAMILIES: dict[str, Callable[..., World]] = {
     "barn": barn, "barn-3x3": barn_3x3, "t-maze": t_maze, "cave": cave, "forest": forest, "garage": garage,
     "indoor": indoor, "office": office, "campus": campus, "auditorium": auditorium,
-    "slam-office": slam_office, **NAMO_FAMILIES,
+    "slam-office": slam_office, "t-maze-doors": t_maze_doors, **NAMO_FAMILIES,
 }
 
 

@@ -74,6 +74,34 @@ def door_crossings(world: World, points: np.ndarray) -> list[tuple[int, bool]]:
     return [(i, forward) for _, i, forward in sorted(hits)]
 
 
+def closed_door_grid(world: World) -> np.ndarray:
+    """The static occupancy grid with every door panel drawn closed (each cell the closed panel's
+    line from hinge to tip passes through is an obstacle): the map a robot that never pushes a
+    door would see."""
+    grid = world.occupancy.copy()
+    rows, cols = grid.shape
+    for door in world.doors:
+        hinge, tip = door_segment(door)
+        for t in np.linspace(0.0, 1.0, int(math.ceil(door.width / world.resolution * 4)) + 2):
+            iy, ix = world.cell_of(*(hinge + t * (tip - hinge)))
+            if 0 <= iy < rows and 0 <= ix < cols:
+                grid[iy, ix] = True
+    return grid
+
+
+def reachable(world: World, pair: StartGoal, doors_closed: bool = False,
+              radius_m: float = CSPACE_RADIUS_M) -> bool:
+    """Whether ``pair``'s goal can be reached from its start on the C-space grid (the map
+    inflated by ``radius_m``), with the doors open (the static map: door gaps are free) or
+    closed (``closed_door_grid``)."""
+    grid = closed_door_grid(world) if doors_closed else world.occupancy
+    cs = inflate(grid, int(round(radius_m / world.resolution)))
+    s, g = world.cell_of(pair.x, pair.y), world.cell_of(pair.gx, pair.gy)
+    if cs[s] or cs[g]:
+        return False
+    return GridGraph(cs).shortest_paths([s], [g])[0] is not None
+
+
 class _Floor:
     """A floor plan being drawn on a walled grid: walls, door gaps with their doors, furniture."""
 
