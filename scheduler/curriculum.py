@@ -42,12 +42,14 @@ Options beyond the paper (each one off unless the file sets it):
 - ``evaluate: [{world: t-maze-0.yaml, pairs: [p1, p2, p3, p4]}]`` (top level): the fixed
   targets every held-out evaluation covers besides the current stage, so that conditions of an
   ablation are measured on the same tasks. Default: the last stage's worlds and sub-steps.
-- ``sampler: learning-progress`` (per stage with sub-steps): instead of one sub-step after the
-  other, every (world, sub-step pair) of the stage is a task and each assignment draws one by
-  absolute learning progress (Portelas et al. 2020, Kanitscheider et al. 2021): the gap between
-  a fast (rate 0.1) and a slow (rate 0.02) moving average of the task's success, with a share
-  of 0.2 drawn uniformly so that no task is starved. The stage's ``advance`` criterion then
-  watches the last sub-step (the hardest pair) alone.
+- ``sampler: learning-progress`` (per stage with two tasks or more: worlds x sub-steps; a stage
+  without sub-steps has one task per world, e.g. per distribution): instead of one sub-step after
+  the other (or the worlds in turn), every (world, sub-step pair) of the stage is a task and each
+  assignment draws one by absolute learning progress (Portelas et al. 2020, Kanitscheider et al.
+  2021): the gap between a fast (rate 0.1) and a slow (rate 0.02) moving average of the task's
+  success, with a share of 0.2 drawn uniformly so that no task is starved. The stage's
+  ``advance`` criterion then watches the last sub-step (the hardest pair) alone, or, without
+  sub-steps, every world of the stage.
 """
 
 from __future__ import annotations
@@ -193,7 +195,7 @@ def load_curriculum(path: str | Path) -> Curriculum:
         sampler = s.get("sampler", "sequential")
         if sampler not in SAMPLERS:
             raise CurriculumError(f"{path}: {where}.sampler must be one of {', '.join(SAMPLERS)}, got {shown(sampler)}")
-        if sampler == "learning-progress" and len(substeps) * len(worlds) < 2:
+        if sampler == "learning-progress" and max(len(substeps), 1) * len(worlds) < 2:
             raise CurriculumError(f"{path}: {where}.sampler learning-progress needs at least two tasks "
                                   f"(worlds x substeps)")
         stages.append(Stage(str(s.get("name", f"S{i + 1}")), tuple(worlds),

@@ -191,3 +191,23 @@ def test_bench_drawing_worlds_prints_steps_per_second():
 
     rows = run_draw_bench("barn-3x3:0-99(fill_pct=0.1~0.3)", steps=3000, every=(1, 4))
     assert rows[1].worlds_generated > rows[2].worlds_generated > rows[0].worlds_generated == 0
+
+
+def test_the_general_curriculum_trains_on_distributions_at_training_seeds_and_validates_below_the_held_out_ones():
+    from pathlib import Path
+
+    from curlnav.scheduler.curriculum import CurriculumState
+
+    path = Path(__file__).resolve().parents[1] / "scheduler" / "curricula" / "general.yaml"
+    c = load_curriculum(path)
+    s1, s2 = c.stages
+    assert [WorldDistribution.parse(k).family for k in s1.worlds] == ["barn-3x3"]
+    assert [WorldDistribution.parse(k).family for k in s2.worlds] == ["t-maze-doors", "namo-office", "namo-indoor",
+                                                                      "namo-auditorium"]
+    trained = {s for stage in c.stages for k in stage.worlds for s in WorldDistribution.parse(k).seeds}
+    validated = {int(w.rsplit(":", 1)[1]) for w, _ in c.evaluation_targets() if ":" in w}
+    assert max(trained) < min(validated) <= max(validated) < HELD_OUT_FROM, "validation seeds: never trained on"
+    assert s2.sampler == "learning-progress" and s2.replay_earlier == 0.2
+    state = CurriculumState(c)
+    state.advance()
+    assert {state.assign()[0] for _ in range(100)} == set(s1.worlds) | set(s2.worlds)
