@@ -140,7 +140,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
                                           ("--episodes", args.episodes), ("--seeds", args.seeds)) if value is not None]
         if given:
             raise ValueError(f"--suite {suite.name} fixes the worlds, pairs and ball placements; drop {', '.join(given)}")
-        args.pairs, args.seeds = suite.pairs, suite.ball_placements
+        args.seeds = 1  # the suite's pairs list a pair once per ball placement
         print(f"suite {suite.name}: {suite.about}")
     args.seeds = 1 if args.seeds is None else args.seeds
     if args.seeds < 1:
@@ -152,8 +152,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
-    comparison = Comparison(agents, worlds, lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes),
-                            env_config)
+    pairs_of = suite.pairs_of if suite else lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes)
+    comparison = Comparison(agents, worlds, pairs_of, env_config)
     from tqdm import tqdm
 
     with tqdm(total=comparison.episode_count(args.seeds), unit="episode", desc="eval", disable=None) as bar:
@@ -515,7 +515,7 @@ def _add_training_commands(sub) -> None:
                         "default 1)")
     p.add_argument("--suite", choices=["unseen"], default=None,
                    help="a fixed set of worlds nobody trains on (unseen: NAMO office, indoor and auditorium at seeds "
-                        "300 and 301, barn-3x3 and slam-office at seed 300; 4 pairs x 2 ball placements each); prints "
+                        "300 and 301, barn-3x3 and slam-office at seed 300; 8 trials each: pairs x ball placements); prints "
                         "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
                         "writes table2.md beside the CSV files and pictures")
     p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")

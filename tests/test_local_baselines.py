@@ -141,11 +141,12 @@ def test_on_slam_office_a_policy_behind_a_global_plan_crosses_rooms_it_cannot_cr
 
 def test_the_unseen_suite_prints_table_ii_and_writes_it_with_the_csv_files(tmp_path, capsys, monkeypatch):
     """The suite's layout: a row per world and one over all, a column per agent, success with
-    its 95 % interval; the worlds, pairs and placements are the suite's (a tiny one here)."""
+    its 95 % interval; the worlds and trials are the suite's (a tiny one here): a world that
+    re-places its balls runs a pair once per placement, one whose balls stay put distinct pairs."""
     from curlnav.cli import main
     from curlnav.evaluation import compare
 
-    tiny = compare.Suite("unseen", ("open-room", "namo-office:300"), pairs=1, ball_placements=2, about="tiny")
+    tiny = compare.Suite("unseen", ("open-room", "namo-office:300"), trials=2, ball_placements=2, about="tiny")
     monkeypatch.setitem(compare.SUITES, "unseen", tiny)
     assert main(["eval", "tare-l", "--suite", "unseen", "--world", "open-room"]) != 0
     assert "drop --world" in capsys.readouterr().err
@@ -158,7 +159,14 @@ def test_the_unseen_suite_prints_table_ii_and_writes_it_with_the_csv_files(tmp_p
     oracle_all = next(line for line in printed.splitlines() if line.startswith("| **all**")).split("|")[3]
     assert oracle_all.strip().startswith("100% (51%-100%) · 0.00 ·")  # 4 of 4: Wilson's interval
     assert (out / "table2.md").read_text().count("| **all** (4) |") == 1
-    assert (out / "episodes.csv").exists() and len(list((out / "trajectories").glob("*.png"))) == 2
+    import csv
+
+    with open(out / "episodes.csv", newline="") as f:
+        trials = [(r["world"], r["pair"], r["seed"]) for r in csv.DictReader(f) if r["agent"] == "oracle"]
+    room = [t for t in trials if t[0] == "open-room"]
+    assert len({p for _, p, _ in room}) == 1 and len({s for _, _, s in room}) == 2  # one pair, two placements
+    assert len({p for w, p, _ in trials if w == "namo-office-300"}) == 2  # fixed balls: two pairs
+    assert len(list((out / "trajectories").glob("*.png"))) == 3
 
 
 def test_the_wilson_interval_matches_its_textbook_values():

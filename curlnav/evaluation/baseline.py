@@ -358,6 +358,7 @@ class WaypointConfig:
 
     distance_m: float = 3.0  # the waypoint lies this far ahead along the path (the final goal when nearer)
     replan_deviation_m: float = 2.0  # plan again from the robot's place when it is this far off the path
+    line_of_sight: bool = True  # pull the waypoint back until the straight line to it keeps off walls (no corner cutting)
 
 
 class GlobalPlan:
@@ -379,8 +380,10 @@ class GlobalPlan:
 
     def waypoint(self, x: float, y: float) -> tuple[float, float]:
         """The point ``distance_m`` ahead along the path of the path point nearest ``(x, y)``
-        (searched among the next few metres, so the index only moves forward); the goal when the
-        map has no path."""
+        (searched among the next few metres, so the index only moves forward), pulled back
+        along the path until the straight line from ``(x, y)`` to it crosses no blocked cell of
+        the planner's grid (the robot's half-width from every wall); the goal when the map has
+        no path."""
         if self.path is None:
             return self.goal
         cfg = self.config
@@ -394,8 +397,12 @@ class GlobalPlan:
                 self._set(path)
                 return self.waypoint(x, y)
         self._index += k
-        j = int(np.searchsorted(self._along, self._along[self._index] + cfg.distance_m))
-        return tuple(self.path[min(j, len(self.path) - 1)])
+        j = min(int(np.searchsorted(self._along, self._along[self._index] + cfg.distance_m)), len(self.path) - 1)
+        if cfg.line_of_sight:
+            here = np.array([x, y])
+            while j > self._index + 1 and not self.planner._line_free(here, self.path[j]):
+                j -= 1
+        return tuple(self.path[j])
 
 
 class GlobalPlanAgent:

@@ -346,27 +346,36 @@ def make_agent(spec: str, env_config: EnvConfig, load_policy: Callable[[str], ob
 # -- the unseen-world suite: Table II --------------------------------------------------------------------
 @dataclass(frozen=True)
 class Suite:
-    """A fixed set of worlds nobody trains on, with how many of each world's pairs run and how
-    many ball placements (seeds) each pair gets."""
+    """A fixed set of worlds nobody trains on, and which trials each world gets: ``trials``
+    per world, as ``trials / ball_placements`` pairs with ``ball_placements`` placements each on
+    worlds that re-place their balls on reset, else ``trials`` distinct pairs (a second placement
+    of balls that never move would repeat the same trial and narrow the interval for nothing)."""
 
     name: str
     worlds: tuple[str, ...]  # FAMILY:SEED specs
-    pairs: int  # the first held-out pairs of each world (its own pairs, or random draws)
-    ball_placements: int  # runs of every pair, each with its own ball places (``--seeds``)
+    trials: int  # per world and agent
+    ball_placements: int
     about: str
+
+    def pairs_of(self, world: World) -> list[StartGoal]:
+        """The world's trials in order (trial ``i`` places its balls from seed ``EVAL_SEED + i``)."""
+        if any(ball.region is not None for ball in world.balls):
+            pairs = episode_pairs(world, pairs=max(1, self.trials // self.ball_placements))
+            return [p for _ in range(self.ball_placements) for p in pairs]
+        return episode_pairs(world, pairs=self.trials)
 
 
 #: ``curlnav eval AGENT... --suite unseen``: every family's seeds from 100 up are held out from
 #: training (the shipped policies trained on barn-3x3 seed 0 and t-maze seed 0); 8 worlds x
-#: 4 pairs x 2 ball placements = 64 trials per agent, about a minute per agent on one core.
+#: 8 trials = 64 trials per agent, about a minute per agent on one core.
 UNSEEN = Suite(
     "unseen",
     ("namo-office:300", "namo-office:301", "namo-indoor:300", "namo-indoor:301", "namo-auditorium:300",
      "namo-auditorium:301", "barn-3x3:300", "slam-office:300"),
-    pairs=4, ball_placements=2,
-    about="NAMO office, indoor and auditorium at seeds 300 and 301 (every pair through a door), barn-3x3 at seed "
-          "300 (clutter, balls), slam-office at seed 300 (a 92 m x 72 m SLAM-like floor, pairs 10-20 m apart); "
-          "the first 4 pairs of each world, 2 ball placements each")
+    trials=8, ball_placements=2,
+    about="NAMO office, indoor and auditorium at seeds 300 and 301 (8 of each world's own pairs, every one through "
+          "a door; their balls stay put), barn-3x3 at seed 300 (4 held-out pairs x 2 placements of its 8 balls), "
+          "slam-office at seed 300 (a 92 m x 72 m SLAM-like floor without balls, 8 held-out pairs 10-20 m apart)")
 SUITES = {UNSEEN.name: UNSEEN}
 
 

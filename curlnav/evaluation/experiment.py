@@ -26,6 +26,7 @@ raise ``--parallel`` to its cores).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -188,16 +189,16 @@ def table2_agents(out: Path) -> dict[str, Path]:
 
 def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | None:
     """The comparison on the unseen-world suite (cached in ``table2/``): every trained policy
-    (S1+S2 also behind a global plan), ``tare-l``, ``dwa`` and the ``oracle``. The suite's pairs
-    and ball placements, fewer when the budget allows fewer (``unseen`` is no longer used: the
+    (S1+S2 also behind a global plan), ``tare-l``, ``dwa`` and the ``oracle``. The suite's
+    trials, fewer when the budget's pairs x seeds are fewer (``unseen`` is no longer used: the
     suite names its worlds)."""
     from curlnav.evaluation.compare import UNSEEN
 
     folder = out / "table2"
     policies = table2_agents(out)
-    pairs, seeds = min(budget.table2_pairs, UNSEEN.pairs), min(budget.table2_seeds, UNSEEN.ball_placements)
+    trials = min(budget.table2_pairs * budget.table2_seeds, UNSEEN.trials)  # the smoke budget runs fewer
     key = {label: {"path": str(path), "selected": _mtime(path / "selected.json")} for label, path in policies.items()}
-    key["suite"] = {"worlds": list(UNSEEN.worlds), "pairs": pairs, "seeds": seeds, "classical": list(TABLE2_CLASSICAL)}
+    key["suite"] = {"worlds": list(UNSEEN.worlds), "trials": trials, "classical": list(TABLE2_CLASSICAL)}
     try:
         cached = json.loads((folder / "agents.json").read_text())
     except (OSError, ValueError):
@@ -209,7 +210,6 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
     from curlnav.evaluation.compare import (
         Comparison,
         draw_trajectories,
-        episode_pairs,
         make_agent,
         summarise,
         table,
@@ -230,8 +230,9 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
         label, agent = make_agent(name, env_config, PolicyArtefact)
         agents[label] = agent
     worlds = [get_world(spec) for spec in UNSEEN.worlds]
-    comparison = Comparison(agents, worlds, lambda w: episode_pairs(w, pairs=pairs), env_config)
-    total = comparison.episode_count(seeds)
+    suite = dataclasses.replace(UNSEEN, trials=trials, ball_placements=min(UNSEEN.ball_placements, trials))
+    comparison = Comparison(agents, worlds, suite.pairs_of, env_config)
+    total = comparison.episode_count(1)
     done = [0]
 
     def progress(_episode) -> None:
@@ -239,7 +240,7 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
         if done[0] % 10 == 0 or done[0] == total:
             log(f"[experiment] table II: {done[0]}/{total} episodes")
 
-    episodes = comparison.run(seeds, on_episode=progress)
+    episodes = comparison.run(1, on_episode=progress)
     summaries = summarise(episodes)
     folder.mkdir(parents=True, exist_ok=True)
     write_csv(episodes, summaries, folder)
