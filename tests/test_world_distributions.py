@@ -211,3 +211,19 @@ def test_the_general_curriculum_trains_on_distributions_at_training_seeds_and_va
     state = CurriculumState(c)
     state.advance()
     assert {state.assign()[0] for _ in range(100)} == set(s1.worlds) | set(s2.worlds)
+
+
+def test_training_on_a_held_out_world_is_refused_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    from curlnav.builder import D4PGBuilder
+
+    with pytest.raises(HeldOutSeedError, match="namo-office seed 300 is held out"):
+        D4PGBuilder(ExperimentConfig(curriculum=CurriculumConfig(world="namo-office:300"))).make_env()
+    with pytest.raises(HeldOutSeedError):
+        WorldDraws().resolve("t-maze:100")  # an assignment naming one, in either mode
+    result = subprocess.run([sys.executable, "-m", "curlnav.cli", "train", "--serial", "--world", "barn-3x3:150",
+                             "--run-dir", str(tmp_path / "run"), "--minutes", "1"], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode != 0 and "barn-3x3 seed 150 is held out" in result.stderr

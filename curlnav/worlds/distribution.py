@@ -35,7 +35,7 @@ import numpy as np
 
 from curlnav.sim.world import World
 
-from .heldout import check_training_seed, held_out_from
+from .heldout import check_training_seed, check_training_world, held_out_from
 
 DEFAULT_EVERY = 1  # episodes per fresh world
 DEFAULT_POOL = 4  # fresh worlds the episodes between fresh draws are spread over
@@ -268,6 +268,7 @@ class WorldDraws:
 
     def resolve(self, spec: Any) -> Any:
         if not is_distribution(spec):
+            check_training_world(spec)  # FAMILY:SEED assigned for training: never a held-out seed
             return spec
         dist = self._parsed.get(spec)
         if dist is None:

@@ -2,8 +2,9 @@
 
 Every family's seeds from ``HELD_OUT_FROM`` (100) upward are held out: nobody trains or tunes on
 them (issue 28). Curricula are refused at load when a stage or an ``evaluate`` target names one
-(``FAMILY:SEED``, ``FAMILY:LO-HI`` or ``{family, seeds: [LO, HI]}``), and the world draws of
-both training modes refuse one at draw time (``check_training_seed``). The unseen-world suite of
+(``FAMILY:SEED``, ``FAMILY:LO-HI`` or ``{family, seeds: [LO, HI]}``); the world draws of both
+training modes refuse one at draw time (``check_training_seed``), and so does the training
+environment for its first world (``check_training_world``: ``curlnav train --world namo-office:300``). The unseen-world suite of
 ``curlnav eval`` evaluates on these seeds only (``held_out_seeds``); the NAMO figures of the
 issue use seed 300.
 """
@@ -51,3 +52,13 @@ def check_training_seed(family: str, seed: int) -> int:
         raise HeldOutSeedError(f"{family} seed {seed} is held out for evaluation (seeds >= {held_out_from(family)}); "
                                f"train on seeds 0..{held_out_from(family) - 1}")
     return seed
+
+
+def check_training_world(spec) -> None:
+    """Refuse a world spec ``FAMILY:SEED`` whose seed is held out (``HeldOutSeedError``); any
+    other spec (a file, a built-in, a ``World``, a distribution's key) passes."""
+    if not isinstance(spec, str):
+        return
+    family, sep, seed = spec.rpartition(":")
+    if sep and family and seed.isdigit():
+        check_training_seed(family, int(seed))
