@@ -328,7 +328,8 @@ def _cmd_bench_draws(args: argparse.Namespace) -> int:
     from curlnav.bench.draws import run_draw_bench
 
     every = tuple(int(k) for k in args.every.split(","))
-    run_draw_bench(args.distribution, steps=args.steps, episode_steps=args.episode_steps, every=every)
+    run_draw_bench(args.distribution, steps=args.steps, episode_steps=args.episode_steps, every=every,
+                   repeats=args.repeats)
     return 0
 
 
@@ -646,6 +647,7 @@ def _add_bench_commands(sub) -> None:
     p.set_defaults(func=_cmd_bench_draws)
     p = bench_sub.add_parser("faults", help="kill -9 replay, learner and scheduler of a local run: what was lost")
     p.add_argument("--actors", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=1, help="runs per row, taken in turn; the fastest is shown")
     p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")
     p.add_argument("--run-dir", default="runs/bench-faults")
     p.set_defaults(func=_cmd_bench_faults)
