@@ -391,6 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bench_commands(sub)
     _add_ablation_commands(sub)
     _add_experiment_command(sub)
+    from curlnav.ros2.commands import add_ros2_commands
+
+    add_ros2_commands(sub)
     return parser
 
 

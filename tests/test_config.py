@@ -201,6 +201,7 @@ LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.evaluation.compare": 2, "curlnav.evaluation.ablation": 2, "curlnav.evaluation.experiment": 2,
     "curlnav.bench.transport": 2, "curlnav.bench.faults": 2, "curlnav.bench.draws": 2,
     "curlnav.learner.bench": 2, "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2,
+    "curlnav.ros2": 2,
 }
 FOLDERS = {"curlnav": "curlnav", "proto": "curlnav.proto", "replay": "curlnav.replay", "learner": "curlnav.learner",
            "actor": "curlnav.actor", "scheduler": "curlnav.scheduler"}

@@ -1,0 +1,104 @@
+"""``curlnav ros2 run`` and ``curlnav ros2 sim``: the parsers and their handlers."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+
+
+def add_ros2_commands(sub) -> None:
+    """The ``ros2`` command group of ``curlnav``."""
+    ros2 = sub.add_parser("ros2", help="the policy as a ROS 2 node and the simulator as a ROS 2 robot, over DDS "
+                                       "(ROS 2 type names, rt/ topics, ROS_DOMAIN_ID; no ROS install needed)")
+    ros2_sub = ros2.add_subparsers(dest="ros2_command", required=True)
+    p = ros2_sub.add_parser("run", help="POLICY as a node: /scan, /odom, /goal_pose (/plan) in; /cmd_vel, /arm_cmd, "
+                                        "/goal_state out")
+    p.add_argument("policy", help="policy artefact folder (metadata.json + actor.onnx)")
+    p.add_argument("--global-plan", action="store_true", help="follow /plan (nav_msgs/Path) waypoint by waypoint")
+    p.add_argument("--rate-hz", type=float, default=None, help="control rate (default: the policy's, 5 Hz)")
+    p.add_argument("--silence-s", type=float, default=0.5, help="stop when /scan or /odom is older than this (s)")
+    p.add_argument("--scan-frame", default="base_link", help="the frame_id /scan must carry")
+    p.add_argument("--odom-frame", default="odom", help="the frame_id of /odom, /goal_pose and /plan")
+    p.add_argument("--goal-tolerance", type=float, default=0.8, help="goal reached within this distance (m)")
+    p.add_argument("--stats-every-s", type=float, default=10.0, help="log counts and loop latency this often (s)")
+    _common(p)
+    p.set_defaults(func=_cmd_run)
+    p = ros2_sub.add_parser("sim", help="the simulator as a ROS 2 robot: /scan, /odom, /tf, /map out; /cmd_vel, "
+                                        "/arm_cmd in; real time")
+    p.add_argument("world", help="built-in name, world YAML or FAMILY:SEED")
+    p.add_argument("--pair", default=None, help="start/goal pair (index or name; default: drawn with --seed)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the pair draw and the ball places")
+    _common(p)
+    p.set_defaults(func=_cmd_sim)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--loopback", action="store_true", help="keep DDS on this machine (loopback, no multicast)")
+    p.add_argument("--remap", action="append", default=[], metavar="KEY:=/TOPIC",
+                   help="rename a topic, ROS style (scan:=/front/scan); repeatable")
+    p.add_argument("--duration-s", type=float, default=None, help="stop after this many seconds (default: run on)")
+
+
+def _stopper(duration_s: float | None):
+    """A ``stop()`` that turns true on SIGINT, SIGTERM or after ``duration_s``."""
+    stopped = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stopped.append(True))
+    end = time.monotonic() + duration_s if duration_s is not None else float("inf")
+    return lambda: bool(stopped) or time.monotonic() >= end
+
+
+def _bus(args):
+    from .topics import Bus, domain_id_from_env
+
+    domain = args.domain_id if args.domain_id is not None else domain_id_from_env()
+    if not 0 <= domain <= 232:
+        raise ValueError(f"--domain-id must be 0-232, got {domain}")
+    return Bus(domain, loopback=args.loopback), domain
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from curlnav.policy import PolicyArtefact
+
+    from .node import NodeConfig, PolicyNode, ScanLayout, run_node
+    from .topics import NODE_TOPICS, remap
+
+    policy = PolicyArtefact(args.policy)
+    layout = ScanLayout.of(policy.metadata)
+    if layout.observation_size != policy.observation_size:
+        raise ValueError(f"{args.policy}: the metadata's layout gives {layout.observation_size} values, the policy "
+                         f"takes {policy.observation_size}")
+    config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
+                        scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance)
+    topics = remap(NODE_TOPICS, args.remap)
+    node = PolicyNode(policy, layout, config, follow_plan=args.global_plan)
+    bus, domain = _bus(args)
+    print(f"curlnav ros2 run: {args.policy} on domain {domain}, {config.rate_hz:g} Hz; "
+          + ", ".join(f"{k} {t.name}" for k, t in topics.items() if k != "plan" or args.global_plan),
+          file=sys.stderr, flush=True)
+    latency = run_node(node, bus, topics, stop=_stopper(args.duration_s), stats_every_s=args.stats_every_s)
+    print(f"curlnav ros2 run: {dict(node.counts)}; {latency.summary()}", file=sys.stderr, flush=True)
+    return 0
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from .sim import SimRobot, run_sim
+    from .topics import SIM_TOPICS, remap
+
+    topics = remap(SIM_TOPICS, args.remap)
+    robot = SimRobot(args.world, args.pair, seed=args.seed)
+    try:
+        bus, domain = _bus(args)
+        x, y, yaw = robot.pose
+        pair = robot.env.pair
+        print(f"curlnav ros2 sim: {robot.env.world.name} on domain {domain}, start ({x:.2f}, {y:.2f}), "
+              f"pair {pair.name} goal ({pair.gx:.2f}, {pair.gy:.2f}); " + ", ".join(t.name for t in topics.values()),
+              file=sys.stderr, flush=True)
+        steps = run_sim(robot, bus, topics, stop=_stopper(args.duration_s))
+        print(f"curlnav ros2 sim: {steps} steps", file=sys.stderr, flush=True)
+    finally:
+        robot.close()
+    return 0

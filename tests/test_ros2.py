@@ -1,0 +1,553 @@
+"""The policy as a ROS 2 node and the simulator as a ROS 2 robot, over DDS: a ROS 2 client that
+shares no code with curlnav (its types written here from the .msg definitions) sees the right
+topic and type names and fields, a goal it sends is reached in closed loop, the node stops the
+robot when /scan falls silent, and it refuses malformed scans.
+
+Every test runs on its own random DDS domain, on the loopback interface only, and ends every
+process it started."""
+
+import math
+import os
+import random
+import re
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+cyclonedds = pytest.importorskip("cyclonedds")
+from cyclonedds.core import Policy, Qos  # noqa: E402
+from cyclonedds.domain import Domain, DomainParticipant  # noqa: E402
+from cyclonedds.idl import IdlStruct  # noqa: E402
+from cyclonedds.idl.types import array, float32, float64, int8, int32, sequence, uint32  # noqa: E402
+from cyclonedds.internal import InvalidSample  # noqa: E402
+from cyclonedds.pub import DataWriter  # noqa: E402
+from cyclonedds.sub import DataReader  # noqa: E402
+from cyclonedds.topic import Topic  # noqa: E402
+from cyclonedds.util import duration  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+POLICY = ROOT / "policies" / "namo-s1-barn"
+LOOPBACK = """<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterface name="lo" multicast="false"/>
+</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>
+<MaxAutoParticipantIndex>20</MaxAutoParticipantIndex><Peers><Peer address="127.0.0.1"/></Peers></Discovery>
+</Domain></CycloneDDS>"""
+
+
+# -- ROS 2 types, from common_interfaces' .msg files (Humble), written here on purpose -------------------
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: int32 = 0
+    nanosec: uint32 = 0
+
+
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+
+
+@dataclass
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+
+
+@dataclass
+class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+
+
+@dataclass
+class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
+    x: float64 = 0.0
+    y: float64 = 0.0
+    z: float64 = 0.0
+    w: float64 = 1.0
+
+
+@dataclass
+class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
+    position: Point
+    orientation: Quaternion
+
+
+@dataclass
+class PoseStamped(IdlStruct, typename="geometry_msgs::msg::dds_::PoseStamped_"):
+    header: Header
+    pose: Pose
+
+
+@dataclass
+class PoseWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::PoseWithCovariance_"):
+    pose: Pose
+    covariance: array[float64, 36]
+
+
+@dataclass
+class Twist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
+    linear: Vector3
+    angular: Vector3
+
+
+@dataclass
+class TwistWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::TwistWithCovariance_"):
+    twist: Twist
+    covariance: array[float64, 36]
+
+
+@dataclass
+class Odometry(IdlStruct, typename="nav_msgs::msg::dds_::Odometry_"):
+    header: Header
+    child_frame_id: str
+    pose: PoseWithCovariance
+    twist: TwistWithCovariance
+
+
+@dataclass
+class LaserScan(IdlStruct, typename="sensor_msgs::msg::dds_::LaserScan_"):
+    header: Header
+    angle_min: float32
+    angle_max: float32
+    angle_increment: float32
+    time_increment: float32
+    scan_time: float32
+    range_min: float32
+    range_max: float32
+    ranges: sequence[float32]
+    intensities: sequence[float32]
+
+
+@dataclass
+class WronglyNamedScan(IdlStruct, typename="sensor_msgs::msg::LaserScan"):  # the ROS 1 style name
+    header: Header
+    angle_min: float32
+    angle_max: float32
+    angle_increment: float32
+    time_increment: float32
+    scan_time: float32
+    range_min: float32
+    range_max: float32
+    ranges: sequence[float32]
+    intensities: sequence[float32]
+
+
+@dataclass
+class Float64(IdlStruct, typename="std_msgs::msg::dds_::Float64_"):
+    data: float64
+
+
+@dataclass
+class String(IdlStruct, typename="std_msgs::msg::dds_::String_"):
+    data: str
+
+
+@dataclass
+class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
+    translation: Vector3
+    rotation: Quaternion
+
+
+@dataclass
+class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformStamped_"):
+    header: Header
+    child_frame_id: str
+    transform: Transform
+
+
+@dataclass
+class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
+    transforms: sequence[TransformStamped]
+
+
+@dataclass
+class MapMetaData(IdlStruct, typename="nav_msgs::msg::dds_::MapMetaData_"):
+    map_load_time: Time
+    resolution: float32
+    width: uint32
+    height: uint32
+    origin: Pose
+
+
+@dataclass
+class OccupancyGrid(IdlStruct, typename="nav_msgs::msg::dds_::OccupancyGrid_"):
+    header: Header
+    info: MapMetaData
+    data: sequence[int8]
+
+
+SENSOR = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(5))
+RELIABLE = Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(10))
+LATCHED = Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(1),
+              Policy.Durability.TransientLocal)
+
+
+class Client:
+    """A ROS 2 participant of the test's own: ``read(topic)``, ``write(topic, message)``."""
+
+    TYPES = {"/scan": (LaserScan, SENSOR), "/odom": (Odometry, SENSOR), "/tf": (TFMessage, RELIABLE),
+             "/map": (OccupancyGrid, LATCHED), "/cmd_vel": (Twist, RELIABLE), "/arm_cmd": (Float64, RELIABLE),
+             "/goal_pose": (PoseStamped, RELIABLE), "/goal_state": (String, LATCHED), "/tf_static": (TFMessage, LATCHED)}
+
+    def __init__(self, domain_id: int, trace: Path | None = None) -> None:
+        config = LOOPBACK if trace is None else LOOPBACK.replace(
+            "</Domain>", f"<Tracing><Category>discovery</Category><OutputFile>{trace}</OutputFile></Tracing></Domain>")
+        self.domain = Domain(domain_id, config)
+        self.participant = DomainParticipant(domain_id)
+        self.topics, self.readers, self.writers = {}, {}, {}
+
+    def _topic(self, name):
+        if name not in self.topics:
+            self.topics[name] = Topic(self.participant, "rt" + name, self.TYPES[name][0])
+        return self.topics[name]
+
+    def reader(self, name):
+        if name not in self.readers:
+            self.readers[name] = DataReader(self.participant, self._topic(name), qos=self.TYPES[name][1])
+        return self.readers[name]
+
+    def take(self, name) -> list:
+        return [s for s in self.reader(name).take(N=256) if not isinstance(s, InvalidSample)]
+
+    def write(self, name, message) -> None:
+        if name not in self.writers:
+            self.writers[name] = DataWriter(self.participant, self._topic(name), qos=self.TYPES[name][1])
+        self.writers[name].write(message)
+
+
+def header(frame: str) -> Header:
+    t = time.time()
+    return Header(Time(int(t), int((t % 1) * 1e9)), frame)
+
+
+def goal_message(x: float, y: float, frame: str = "odom") -> PoseStamped:
+    return PoseStamped(header(frame), Pose(Point(x, y, 0.0), Quaternion()))
+
+
+def wait_for(what: str, check, deadline_s: float, procs=()):
+    """Poll ``check()`` until it returns a truthy value (returned) or the deadline passes."""
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        value = check()
+        if value:
+            return value
+        for p in procs:
+            if p.poll() is not None:
+                pytest.fail(f"{what}: a curlnav process exited with {p.returncode}: {p.stderr.read()[-2000:]}")
+        time.sleep(0.05)
+    pytest.fail(f"{what}: not within {deadline_s} s")
+
+
+@pytest.fixture
+def domain_id():
+    return random.Random(os.getpid() * 1000 + time.time_ns()).randrange(100, 230)
+
+
+@pytest.fixture
+def curlnav(tmp_path):
+    """``curlnav(*args)`` starts ``curlnav ARGS`` (stderr to a file, read back on failure); all
+    are ended (SIGTERM, then SIGKILL) when the test ends."""
+    procs = []
+
+    def start(*args: str) -> subprocess.Popen:
+        log = open(tmp_path / f"proc{len(procs)}.log", "w+")
+        proc = subprocess.Popen([sys.executable, "-m", "curlnav.cli", *args], cwd=ROOT, stdout=log,
+                                stderr=subprocess.STDOUT, text=True)
+        proc.log = log
+        proc.stderr = log
+        procs.append(proc)
+        return proc
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+        proc.log.close()
+
+
+def output_of(proc: subprocess.Popen) -> str:
+    proc.log.flush()
+    proc.log.seek(0)
+    return proc.log.read()
+
+
+def stop(proc: subprocess.Popen) -> str:
+    proc.terminate()
+    proc.wait(15)
+    return output_of(proc)
+
+
+# -- the independent reader ----------------------------------------------------------------------------------
+def test_a_ros2_client_with_its_own_types_reads_the_simulator(curlnav, domain_id, tmp_path):
+    sim = curlnav("ros2", "sim", "open-room", "--pair", "diagonal", "--domain-id", str(domain_id), "--loopback")
+    trace = tmp_path / "cyclonedds-discovery.log"
+    client = Client(domain_id, trace)
+    for name in ("/scan", "/odom", "/tf", "/map", "/tf_static"):
+        client.reader(name)
+    got: dict[str, list] = {name: [] for name in ("/scan", "/odom", "/tf", "/map", "/tf_static")}
+
+    def enough():
+        for name in got:
+            got[name] += client.take(name)
+        return len(got["/scan"]) >= 3 and got["/odom"] and got["/tf"] and got["/map"] and got["/tf_static"]
+
+    wait_for("scan, odom, tf and the latched map", enough, 40, [sim])
+    scan = got["/scan"][-1]
+    assert scan.header.frame_id == "base_link"
+    assert len(scan.ranges) == 241 and len(scan.intensities) == 241
+    assert math.isclose(scan.angle_min, -math.radians(120), abs_tol=1e-5)
+    assert math.isclose(scan.angle_increment, math.radians(1), abs_tol=1e-6)
+    assert set(np.unique(scan.intensities)) <= {0.0, 1.0} and 0 < min(scan.ranges) <= max(scan.ranges) <= 10.0
+    odom = got["/odom"][-1]
+    assert (odom.header.frame_id, odom.child_frame_id) == ("odom", "base_link")
+    assert math.isclose(odom.pose.pose.position.x, 1.2, abs_tol=0.05)  # the diagonal pair's start, standing
+    assert math.isclose(2 * math.atan2(odom.pose.pose.orientation.z, odom.pose.pose.orientation.w), math.pi / 4,
+                        abs_tol=0.02)
+    tf = got["/tf"][-1].transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("odom", "base_link")
+    grid = got["/map"][-1]
+    assert (grid.header.frame_id, grid.info.width, grid.info.height) == ("map", 100, 100)
+    assert math.isclose(grid.info.resolution, 0.1, rel_tol=1e-6)
+    cells = np.asarray(grid.data).reshape(100, 100)
+    assert cells[0].tolist() == [100] * 100 and cells[50, 50] == 0  # a wall along the bottom row, free inside
+    assert got["/tf_static"][-1].transforms[0].child_frame_id == "odom"
+
+    # the names and QoS on the wire, from Cyclone's own discovery trace of the simulator's writers (SEDP)
+    writers = {}
+
+    def discovered():
+        for topic, kind, qos in re.findall(r'SEDP ST0 \S+ \S+ \S+ writer .*?QOS=\{.*?topic_name="([^"]+)",type_name="([^"]+)"'
+                                           r'(.*?)\}', trace.read_text()):
+            writers[topic] = (kind, dict(re.findall(r",(durability|reliability|history)=([0-9:]+)", qos)))
+        return {"rt/scan", "rt/odom", "rt/tf", "rt/tf_static", "rt/map"} <= set(writers)
+
+    wait_for("the simulator's writers in the discovery trace", discovered, 10)
+    best_effort, reliable, volatile, transient_local = "0", "1", "0", "1"
+    assert writers["rt/scan"] == ("sensor_msgs::msg::dds_::LaserScan_",
+                                  {"durability": volatile, "reliability": best_effort + ":0", "history": "0:5"})
+    assert writers["rt/odom"][0] == "nav_msgs::msg::dds_::Odometry_"
+    assert writers["rt/tf"][0] == writers["rt/tf_static"][0] == "tf2_msgs::msg::dds_::TFMessage_"
+    assert writers["rt/map"][0] == "nav_msgs::msg::dds_::OccupancyGrid_"
+    assert writers["rt/map"][1]["durability"] == transient_local
+    assert writers["rt/map"][1]["reliability"].startswith(reliable + ":")
+
+    # /cmd_vel drives it: a forward twist at 0.5 m/s moves it along its heading (45 degrees)
+    start = got["/odom"][-1].pose.pose.position
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        client.write("/cmd_vel", Twist(Vector3(0.5, 0.0, 0.0), Vector3()))
+        time.sleep(0.1)
+    moved = wait_for("odometry after driving", lambda: client.take("/odom"), 5, [sim])[-1].pose.pose.position
+    assert 0.4 < math.hypot(moved.x - start.x, moved.y - start.y) < 1.3
+    assert math.isclose(math.atan2(moved.y - start.y, moved.x - start.x), math.pi / 4, abs_tol=0.15)
+    stop(sim)
+
+
+# -- closed loop ------------------------------------------------------------------------------------------
+def test_a_goal_sent_over_dds_is_reached_in_closed_loop(curlnav, domain_id):
+    sim = curlnav("ros2", "sim", "open-room", "--pair", "diagonal", "--domain-id", str(domain_id), "--loopback")
+    node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
+    client = Client(domain_id)
+    client.reader("/odom"), client.reader("/goal_state"), client.reader("/cmd_vel")
+    wait_for("odometry", lambda: client.take("/odom"), 40, [sim, node])
+    wait_for("the node", lambda: "on domain" in output_of(node), 40, [sim, node])
+    goal = (8.8, 8.8)
+    states = []
+    end = time.monotonic() + 45
+    while not states and time.monotonic() < end:
+        client.write("/goal_pose", goal_message(*goal))
+        states.extend(s.data for s in client.take("/goal_state"))
+        time.sleep(0.2)
+    assert "active" in states, states
+    wait_for("the goal within 0.8 m", lambda: any(
+        math.dist((o.pose.pose.position.x, o.pose.pose.position.y), goal) <= 0.8 for o in client.take("/odom")),
+        max(end - time.monotonic(), 5), [sim, node])
+    wait_for("goal_state reached", lambda: states.extend(s.data for s in client.take("/goal_state"))
+             or "reached" in states, 5, [node])
+    out = stop(node)
+    assert "loop latency over" in out and "'scans_refused'" not in out
+    stop(sim)
+
+
+# -- safety ------------------------------------------------------------------------------------------------
+def good_scan(frame: str = "base_link", n: int = 241, fov: float = math.radians(240)) -> LaserScan:
+    return LaserScan(header(frame), -fov / 2, fov / 2, fov / (n - 1), 0.0, 0.2, 0.0, 10.0, [6.0] * n, [0.0] * n)
+
+
+def odometry(x: float = 1.0, y: float = 1.0) -> Odometry:
+    return Odometry(header("odom"), "base_link",
+                    PoseWithCovariance(Pose(Point(x, y, 0.0), Quaternion()), [0.0] * 36),
+                    TwistWithCovariance(Twist(Vector3(), Vector3()), [0.0] * 36))
+
+
+def test_the_node_stops_when_scan_falls_silent_and_refuses_malformed_scans(curlnav, domain_id):
+    node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
+    client = Client(domain_id)
+    client.reader("/cmd_vel"), client.reader("/goal_state")
+    states: list[tuple[float, str]] = []
+    commands: list[tuple[float, float, float]] = []
+
+    def pump(scan=None, odom=True):
+        if scan is not None:
+            client.write("/scan", scan)
+        if odom:
+            client.write("/odom", odometry())
+        now = time.monotonic()
+        states.extend((now, s.data) for s in client.take("/goal_state"))
+        commands.extend((now, c.linear.x, c.angular.z) for c in client.take("/cmd_vel"))
+
+    def robot_for(seconds: float, scan=good_scan, odom=True) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            pump(scan() if scan else None, odom)
+            time.sleep(0.2 - (time.monotonic() % 0.2) if scan else 0.02)
+
+    def active():
+        pump(good_scan())
+        client.write("/goal_pose", goal_message(6.0, 1.0))
+        time.sleep(0.2)
+        return states and states[-1][1] == "active"
+
+    wait_for("the node acting on a goal", active, 40, [node])
+    robot_for(1.0)
+    assert any(v > 0 or w != 0 for _, v, w in commands), "the policy drives"
+
+    # /scan falls silent, /odom goes on
+    pump(good_scan())
+    last_scan = time.monotonic()
+    commands.clear()
+    robot_for(1.2, scan=None)
+    zero = [t for t, v, w in commands if v == 0 and w == 0]
+    assert zero, "a zero /cmd_vel after /scan fell silent"
+    silent_to_stop = zero[0] - (last_scan + 0.2)  # silent from when the next scan was due (5 Hz)
+    assert silent_to_stop <= 0.5, f"stopped {silent_to_stop:.2f} s after /scan fell silent"
+    assert all(v == 0 and w == 0 for t, v, w in commands if t >= zero[0])
+    assert any(s == "stopped: /scan silent" for _, s in states)
+
+    # malformed scans: each refused at once with a stop, and counted
+    malformed = [
+        LaserScan(**{**good_scan().__dict__, "ranges": [6.0] * 120 + [math.nan] + [6.0] * 120}),  # NaN
+        LaserScan(**{**good_scan().__dict__, "ranges": [6.0] * 200, "intensities": [0.0] * 200}),  # wrong length
+        good_scan(frame="laser"),  # wrong frame
+        LaserScan(**{**good_scan().__dict__, "intensities": [37.0] * 241}),  # reflectivity, not labels
+    ]
+    for bad in malformed:
+        robot_for(0.6)  # good again: active
+        assert states[-1][1] == "active", states[-3:]
+        commands.clear()
+        pump(bad)
+        sent = time.monotonic()
+        wait_for("a stop on a malformed scan", lambda: pump() or (any(v == 0 and w == 0 for _, v, w in commands)
+                                                                  and states[-1][1].startswith("stopped: refused")), 2)
+        assert [t for t, v, w in commands if v == 0 and w == 0][0] - sent < 0.3
+    out = stop(node)
+    assert "'scans_refused': 4" in out, out[-800:]
+
+
+# -- the node's core, without DDS -------------------------------------------------------------------------------
+def ns(**fields):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(**fields)
+
+
+def scan_of(ranges, labels, frame="base_link", fov=math.radians(240), angle_min=None):
+    n = len(ranges)
+    a0 = -fov / 2 if angle_min is None else angle_min
+    return ns(header=ns(frame_id=frame), angle_min=a0, angle_max=a0 + fov, angle_increment=fov / (n - 1),
+              range_max=10.0, ranges=list(ranges), intensities=list(labels))
+
+
+def odom_of(x, y, yaw, frame="odom"):
+    return ns(header=ns(frame_id=frame), pose=ns(pose=ns(position=ns(x=x, y=y),
+                                                         orientation=ns(x=0.0, y=0.0, z=math.sin(yaw / 2),
+                                                                        w=math.cos(yaw / 2)))))
+
+
+def test_the_node_builds_the_observation_the_simulator_builds():
+    from curlnav.policy import PolicyArtefact
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+    from curlnav.sim import NamoEnv
+
+    policy = PolicyArtefact(POLICY)
+    seen = []
+    node = PolicyNode(lambda obs: seen.append(obs) or policy(obs), ScanLayout.of(policy.metadata))
+    env = NamoEnv("open-room")
+    try:
+        obs, info = env.reset(seed=3, options={"pair": "diagonal"})
+        node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=env.pair.gx, y=env.pair.gy))))
+        for step in range(12):
+            node.on_scan(scan_of(obs[3 * 241:4 * 241], env.last_labels), now=float(step))
+            node.on_odom(odom_of(*info["pose"]), now=float(step))
+            command = node.act(float(step))
+            np.testing.assert_allclose(seen[-1], obs, atol=2e-6, err_msg=f"step {step}")
+            obs, _, _, _, info = env.step([command.linear / 1.0, command.angular / 1.0, command.arm / 0.5])
+    finally:
+        env.close()
+
+
+def test_other_beam_layouts_are_resampled_and_malformed_scans_refused():
+    from curlnav.ros2.node import NodeConfig, PolicyNode, ScanLayout, ScanRefused, resample_scan
+
+    layout = ScanLayout()
+    # a 360-degree scanner, 0.5 degree apart from -180: a movable object 2 m away at +30 degrees
+    ranges, labels = np.full(720, 8.0), np.zeros(720)
+    ranges[420], labels[420] = 2.0, 1.0  # -180 + 0.5 * 420 = +30 degrees
+    ranges[0] = math.inf  # no return
+    r, lab = resample_scan(scan_of(ranges, labels, fov=math.radians(359.5), angle_min=-math.pi), layout)
+    assert r.shape == lab.shape == (241,)
+    assert r[150] == 2.0 and lab[150] == 1.0 and lab.sum() == 1  # beam 150: +30 degrees
+    assert np.all(np.delete(r, 150) == 8.0)
+    # a coarser scanner (2 degrees apart): every policy beam takes the nearest input beam
+    r, _ = resample_scan(scan_of(np.linspace(1, 9, 121), np.zeros(121)), layout)
+    assert np.isfinite(r).all() and r[0] == 1.0 and r[-1] == 9.0
+    bad = {"NaN": scan_of([5.0] * 120 + [math.nan] + [5.0] * 120, [0.0] * 241),
+           "length": ns(**{**scan_of([5.0] * 241, [0.0] * 241).__dict__, "ranges": [5.0] * 200,
+                           "intensities": [0.0] * 200}),
+           "labels": scan_of([5.0] * 241, [0.0] * 240),
+           "reflectivity": scan_of([5.0] * 241, [37.0] * 241)}
+    for name, scan in bad.items():
+        with pytest.raises(ScanRefused):
+            resample_scan(scan, layout)
+    node = PolicyNode(lambda obs: np.array([1.0, 0.0, 0.0]), layout, NodeConfig())
+    node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=5.0, y=0.0))))
+    node.on_odom(odom_of(0.0, 0.0, 0.0), 0.0)
+    assert node.on_scan(scan_of([5.0] * 241, [0.0] * 241), 0.0) and node.act(0.0).linear == 1.0
+    for scan in [*bad.values(), scan_of([5.0] * 241, [0.0] * 241, frame="laser")]:
+        assert not node.on_scan(scan, 0.1)
+        assert node.act(0.1).is_stop and node.state.startswith("stopped: refused /scan")
+    assert node.counts["scans_refused"] == 5
+    assert node.on_scan(scan_of([5.0] * 241, [0.0] * 241), 0.2) and not node.act(0.2).is_stop
+    assert node.act(0.71).is_stop and node.state == "stopped: /scan silent"  # 0.51 s after the last scan
+
+
+def test_the_node_follows_a_plan_waypoint_by_waypoint():
+    from curlnav.ros2.node import PolicyNode
+
+    targets = []
+    node = PolicyNode(lambda obs: targets.append(obs[-3:].copy()) or np.zeros(3), follow_plan=True)
+    corner = [(x, 0.0) for x in np.arange(0.0, 6.01, 0.5)] + [(6.0, y) for y in np.arange(0.5, 6.01, 0.5)]
+    path = ns(header=ns(frame_id="odom"),
+              poses=[ns(pose=ns(position=ns(x=float(x), y=float(y)))) for x, y in corner])
+    node.on_odom(odom_of(0.0, 0.0, 0.0), 0.0)
+    assert node.on_plan(path) and node.goal == (6.0, 6.0)
+    node.on_scan(scan_of([5.0] * 241, [0.0] * 241), 0.0)
+    node.act(0.0)
+    assert abs(targets[-1][2]) < 1e-6  # the waypoint 3 m ahead along the path: straight ahead, not the goal at 45 deg
+    node.on_odom(odom_of(5.5, 0.0, 0.0), 0.1)
+    node.on_scan(scan_of([5.0] * 241, [0.0] * 241), 0.1)
+    node.act(0.1)
+    assert targets[-1][2] > math.radians(60)  # round the corner: the waypoint is up the second leg
