@@ -9,9 +9,11 @@ import sys
 from pathlib import Path
 
 
-def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: str, gif: bool = False) -> int:
+def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: str, gif: bool = False,
+                    mcap: str | None = None) -> int:
     """One episode of ``policy`` (observation -> action) in ``world``, drawn to a PNG in ``out``
-    (and, with ``gif``, animated step by step in a GIF beside it)."""
+    (and, with ``gif``, animated step by step in a GIF beside it; with ``mcap``, written to that
+    MCAP file with ROS 2 schemas: ``curlnav.ros2.recording``)."""
     from curlnav.evaluation.animation import EpisodeRecorder
     from curlnav.sim import NamoEnv
     from curlnav.sim.render import save_env_picture
@@ -19,11 +21,18 @@ def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: s
     env = NamoEnv(world, cfg)
     obs, info = env.reset(seed=seed, options={"pair": pair} if pair is not None else None)
     recorder = EpisodeRecorder(env) if gif else None
+    if mcap is not None:
+        from curlnav.ros2.recording import EpisodeMcap
+
+        mcap = EpisodeMcap(mcap, env, obs)
     total = 0.0
     while True:
         if recorder is not None:
             recorder.record()
-        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        action = policy(obs)
+        obs, reward, terminated, truncated, info = env.step(action)
+        if mcap is not None:
+            mcap.step(action, obs)
         total += reward
         if terminated or truncated:
             break
@@ -41,6 +50,9 @@ def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: s
         recorder.record()
         animation = recorder.save_gif(picture.with_suffix(".gif"), title=f"{label} on {env.world.name}/{info['pair']}")
         print(f"animation: {animation}")
+    if mcap is not None:
+        mcap.close()
+        print(f"mcap: {mcap.path}")
     env.close()
     return 0
 
@@ -182,7 +194,7 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
 
     policy = PolicyArtefact(args.artefact)
     return _drive_and_draw(policy, args.world, args.pair, args.seed, evaluation_config(), args.out,
-                           f"policy-v{policy.version}", gif=args.gif)
+                           f"policy-v{policy.version}", gif=args.gif, mcap=args.mcap)
 
 
 def _cmd_bench_learner(args: argparse.Namespace) -> int:
@@ -534,6 +546,8 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
     p.add_argument("--out", default="runs/policy-run", help="folder for the picture")
     p.add_argument("--gif", action="store_true", help="also write an animated GIF of the episode beside the picture")
+    p.add_argument("--mcap", default=None, metavar="FILE",
+                   help="also write the episode to an MCAP file with ROS 2 schemas (Foxglove opens it)")
     p.set_defaults(func=_cmd_policy_run)
 
     p = sub.add_parser("serve", help="run one service (the container entry point)")

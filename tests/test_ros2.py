@@ -551,3 +551,43 @@ def test_the_node_follows_a_plan_waypoint_by_waypoint():
     node.on_scan(scan_of([5.0] * 241, [0.0] * 241), 0.1)
     node.act(0.1)
     assert targets[-1][2] > math.radians(60)  # round the corner: the waypoint is up the second leg
+
+
+# -- episodes as MCAP ---------------------------------------------------------------------------------------
+def test_policy_run_writes_an_mcap_episode_that_reads_back_with_ros2_schemas(tmp_path):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    path = tmp_path / "episode.mcap"
+    out = subprocess.run([sys.executable, "-m", "curlnav.cli", "policy", "run", str(POLICY), "--pair", "diagonal",
+                          "--out", str(tmp_path), "--mcap", str(path)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    steps = int(re.search(r"after (\d+) steps", out.stdout)[1])
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert reader.get_header().profile == "ros2"
+        channels = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
+        counts = {summary.channels[i].topic: n for i, n in summary.statistics.channel_message_counts.items()}
+        decoded = {}
+        for _, channel, _, message in reader.iter_decoded_messages():
+            decoded.setdefault(channel.topic, []).append(message)
+    types = {topic: (schema.name, schema.encoding) for topic, schema in channels.items()}
+    assert types == {"/scan": ("sensor_msgs/msg/LaserScan", "ros2msg"), "/odom": ("nav_msgs/msg/Odometry", "ros2msg"),
+                     "/tf": ("tf2_msgs/msg/TFMessage", "ros2msg"), "/tf_static": ("tf2_msgs/msg/TFMessage", "ros2msg"),
+                     "/map": ("nav_msgs/msg/OccupancyGrid", "ros2msg"), "/cmd_vel": ("geometry_msgs/msg/Twist", "ros2msg"),
+                     "/arm_cmd": ("std_msgs/msg/Float64", "ros2msg"),
+                     "/markers": ("visualization_msgs/msg/MarkerArray", "ros2msg")}
+    # the start, then one of each per control step; the map and the static transform once
+    assert counts == {"/map": 1, "/tf_static": 1, "/scan": steps + 1, "/odom": steps + 1, "/tf": steps + 1,
+                      "/markers": steps + 1, "/cmd_vel": steps, "/arm_cmd": steps}
+    assert {topic: len(messages) for topic, messages in decoded.items()} == counts
+    scan = decoded["/scan"][-1]
+    assert len(scan.ranges) == len(scan.intensities) == 241 and scan.header.frame_id == "base_link"
+    last = decoded["/odom"][-1].pose.pose.position
+    assert math.dist((last.x, last.y), (8.8, 8.8)) <= 0.8  # the episode reached the goal
+    markers = {m.ns: m for m in decoded["/markers"][-1].markers}
+    assert {"balls", "goal", "path"} <= set(markers) and len(markers["path"].points) == steps + 1
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in decoded["/odom"]]
+    assert np.allclose(np.diff(stamps), 0.2, atol=1e-3)  # simulated time, one control period a step

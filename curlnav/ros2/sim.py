@@ -41,12 +41,26 @@ class SimRobot:
         action = (min(max(linear / robot.max_linear_speed, 0.0), 1.0),
                   min(max(angular / robot.max_angular_speed, -1.0), 1.0),
                   min(max(arm / robot.arm_reach, 0.0), 1.0))
+        observation, _, _, _, self.info = self.env.step(action)
+        self.observe(observation)
+
+    @classmethod
+    def over(cls, env: NamoEnv, observation: np.ndarray) -> SimRobot:
+        """The message builders over an environment stepped by someone else (an episode being
+        recorded), just after its reset; call ``observe`` after each of its steps."""
+        robot = cls.__new__(cls)
+        robot.env, robot.config, robot._obs = env, env.config, observation
+        robot.pose, robot.twist, robot.command_arm = tuple(env.scene.robot_pose()[:3]), (0.0, 0.0), 0.0
+        return robot
+
+    def observe(self, observation: np.ndarray) -> None:
+        """Take the environment's state after a step: pose, twist (from the pose change) and scan."""
         x0, y0, yaw0 = self.pose
-        self._obs, _, _, _, self.info = self.env.step(action)
-        x, y, yaw = self.pose = self.info["pose"]
+        x, y, yaw = self.pose = tuple(self.env.scene.robot_pose()[:3])
         dt = self.config.control_period
         along = (x - x0) * math.cos(yaw0) + (y - y0) * math.sin(yaw0)
         self.twist = (along / dt, math.atan2(math.sin(yaw - yaw0), math.cos(yaw - yaw0)) / dt)
+        self._obs = observation
 
     def ranges(self) -> np.ndarray:
         """(beams,) the newest scan's ranges (m)."""
