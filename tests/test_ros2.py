@@ -250,6 +250,15 @@ def domain_id():
     return random.Random(os.getpid() * 1000 + time.time_ns()).randrange(100, 230)
 
 
+def _die_with_parent() -> None:
+    """SIGTERM the child when the test process dies, even by a crash that skips the teardown (Linux)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 @pytest.fixture
 def curlnav(tmp_path):
     """``curlnav(*args)`` starts ``curlnav ARGS`` (stderr to a file, read back on failure); all
@@ -259,7 +268,7 @@ def curlnav(tmp_path):
     def start(*args: str) -> subprocess.Popen:
         log = open(tmp_path / f"proc{len(procs)}.log", "w+")
         proc = subprocess.Popen([sys.executable, "-m", "curlnav.cli", *args], cwd=ROOT, stdout=log,
-                                stderr=subprocess.STDOUT, text=True)
+                                stderr=subprocess.STDOUT, text=True, preexec_fn=_die_with_parent)
         proc.log = log
         proc.stderr = log
         procs.append(proc)
