@@ -8,16 +8,24 @@ its share of the warm-up) and n-step writer come from ``D4PGBuilder`` and run in
 ``batch_steps`` steps and at every episode end (reliable, BLOCK); each episode is reported to
 the scheduler, which is asked for the next world and pair at every reset. A liveliness token
 announces the actor; Zenoh reconnects by itself when the router comes back.
+
+Every batch is kept until the replay acknowledges it (``ResendBuffer``: bounded in memory and on
+disk) and sent only while the replay is heard from (its credit, every 20 ms): a partition, a
+router or a replay restart loses nothing generated; the batches go out again, in order, once the
+replay is back. When the buffer is full the actor stops stepping. At stop the actor sends its last
+partial batch and waits (``flush_s``) for what it holds to be acknowledged, then writes its counts
+to ``<data_dir>/actor-final.json``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -39,6 +47,7 @@ from curlnav.bus.transport import RateMeter, reliable_publisher
 from curlnav.config import ConfigError, D4PGConfig, ExperimentConfig
 
 from .loop import EpisodeLoop
+from .resend import ResendBuffer
 
 log = logging.getLogger("curlnav.actor")
 
@@ -52,6 +61,11 @@ class ActorServiceConfig:
     actor_count: int = 1  # actors in the run: each takes this share of the warm-up
     deployment: Deployment = Deployment(data_dir="")
     batch_steps: int = 32  # environment steps per transition batch on the bus
+    resend_memory_bytes: int = 64 << 20  # unacknowledged batches kept in memory ...
+    resend_disk_bytes: int = 1 << 30  # ... then in a spill file in data_dir; beyond both the actor pauses
+    resend_after_s: float = 5.0  # an unacknowledged batch is sent again (with all after it) after this
+    flush_s: float = 15.0  # at stop: how long to wait for the last batches to be acknowledged
+    unheard_batches: int = 64  # while the replay is not heard (cut off, restarting): batches made, then wait
 
     def __post_init__(self) -> None:
         if not 0 < len(self.actor_id) <= MAX_ACTOR_ID or any(c in self.actor_id for c in "/*$?#"):
@@ -75,6 +89,7 @@ class ActorCore:
         # sequence numbers start at this process's start time in microseconds, so a restarted
         # actor's batches always number above its predecessor's (the replay drops resends by seq)
         self.seq = time.time_ns() // 1000
+        self.generated = 0  # transitions put into batches by this process
         max_batch = experiment.replay.insert_batch
         if cfg.batch_steps + experiment.d4pg.n_step > max_batch:
             raise ConfigError(f"actor batches of {cfg.batch_steps} steps (plus the n-step tail of "
@@ -96,6 +111,7 @@ class ActorCore:
             return None
         msg = TransitionBatch(self.cfg.actor_id, self.seq, self.weights_version, frames)
         self.seq += 1
+        self.generated += frames.num_transitions
         return msg.encode()
 
 
@@ -117,10 +133,18 @@ class ActorService:
         self._pending_weights: Weights | None = None
         self._credit = (1_000_000, 0.0)  # (transitions the replay accepts now, when heard)
         self.acked_seq = -1  # the highest of this actor's batch seqs the replay has accepted (logged)
-        self.unacked: deque[int] = deque(maxlen=100_000)  # seqs sent and not yet acknowledged, oldest first
-        self.m_unacked = Gauge("actor_batches_unacknowledged", "batches sent that the replay has not yet accepted "
-                               "(batches refused as duplicates stay counted)", registry=self.registry)
-        self.m_unacked.set_function(lambda: len(self.unacked))
+        data_dir = cfg.deployment.data_dir or f"runs/service/actors/{cfg.actor_id}"
+        self.resend = ResendBuffer(data_dir, cfg.resend_memory_bytes, cfg.resend_disk_bytes, cfg.resend_after_s)
+        self._resend_lock = threading.Lock()  # the credit callback acknowledges, the loop adds and sends
+        self.m_unacked = Gauge("actor_batches_unacknowledged", "batches generated that the replay has not yet "
+                               "accepted (kept and sent again)", registry=self.registry)
+        self.m_unacked.set_function(lambda: len(self.resend))
+        self.m_generated = Gauge("actor_transitions_generated", "transitions put into batches",
+                                 registry=self.registry)
+        self.m_generated.set_function(lambda: self.core.generated)
+        self.m_resent = Gauge("actor_batches_resent", "batches sent again (go-back-N)", registry=self.registry)
+        self.m_resent.set_function(lambda: self.resend.resent)
+        self.paused_s = 0.0  # time spent with the resend buffer full
         self._lock = threading.Lock()
         self.stop = threading.Event()
 
@@ -135,9 +159,24 @@ class ActorService:
             if self._pending_weights is None or msg.version >= self._pending_weights.version:
                 self._pending_weights = msg
 
-    def sent(self, seq: int) -> None:
-        """Batch ``seq`` went out: unacknowledged until the replay's credit says otherwise."""
-        self.unacked.append(seq)
+    def sent(self, seq: int, payload: bytes = b"") -> None:
+        """Batch ``seq`` is made: kept until the replay acknowledges it."""
+        with self._resend_lock:
+            self.resend.add(seq, payload)
+
+    def heard(self, within_s: float = 1.0) -> bool:
+        """The replay's credit came within ``within_s``: it is reachable, batches may go."""
+        return time.monotonic() - self._credit[1] <= within_s
+
+    def send_due(self, publisher) -> int:
+        """Put what the resend buffer says is due (nothing while the replay is not heard)."""
+        if not self.heard():
+            return 0
+        with self._resend_lock:
+            due = self.resend.due()
+        for _, payload in due:
+            publisher.put(payload)
+        return len(due)
 
     def _on_credit(self, sample) -> None:
         try:
@@ -156,11 +195,68 @@ class ActorService:
         it (counted as ``foreign_ack``) and keeps the refused ones unacknowledged."""
         if acked >= self.core.seq:
             self.m_rejected.labels("foreign_ack").inc()
-            self.core.seq = acked + 1
+            with self._resend_lock:  # what it holds would be duplicates: numbered above the ack, sent again
+                self.core.seq = self.resend.renumber(acked + 1, self._renumbered)
             return
         self.acked_seq = max(self.acked_seq, acked)
-        while self.unacked and self.unacked[0] <= acked:
-            self.unacked.popleft()
+        with self._resend_lock:
+            self.resend.ack(acked)
+
+    def _batch_out(self, transitions) -> None:
+        """The steps since the last batch as a batch: kept, then sent with whatever else is due."""
+        seq = self.core.seq
+        payload = self.core.batch()
+        if payload is not None:
+            self.sent(seq, payload)
+            self._last_size = len(payload)
+            allowed, heard = self._credit
+            self._credit = (allowed - self.cfg.batch_steps, heard)  # spend it until the next word
+        self.send_due(transitions)
+
+    _last_size = 0
+
+    def _wait_for_room(self, transitions) -> None:
+        """While the resend buffer is full, step nothing: send what is due and wait for acknowledgements."""
+        started = time.monotonic()
+        while not self.stop.is_set():
+            with self._resend_lock:  # full, or the replay unreachable: generate no more than it may take
+                full = self.resend.full(self._last_size) or (
+                    not self.heard() and self.resend.unsent() >= self.cfg.unheard_batches)
+            if not full:
+                break
+            self.send_due(transitions)
+            self.stop.wait(0.05)
+        self.paused_s += time.monotonic() - started
+
+    def _finish(self, transitions, data_dir: str) -> None:
+        """At stop: the partial batch out, up to ``flush_s`` for everything held to be
+        acknowledged, then the counts to ``<data_dir>/actor-final.json``."""
+        self._batch_out(transitions)
+        deadline = time.monotonic() + self.cfg.flush_s
+        while len(self.resend) and time.monotonic() < deadline:
+            self.send_due(transitions)
+            time.sleep(0.05)
+        with self._resend_lock:
+            held = len(self.resend)
+            final = {"actor_id": self.cfg.actor_id, "generated": self.core.generated, "unacknowledged_batches": held,
+                     "unacknowledged_transitions": None if held else 0, "resent_batches": self.resend.resent,
+                     "paused_s": round(self.paused_s, 3), "acked_seq": self.acked_seq}
+            if held:
+                final["unacknowledged_transitions"] = sum(
+                    TransitionBatch.decode(p).batch.num_transitions for _, p in self.resend.due(float("inf")))
+            self.resend.close()
+        path = Path(data_dir) / "actor-final.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(final) + "\n")
+        log.info("actor %s stopped: %d transitions generated, %d batches unacknowledged", self.cfg.actor_id,
+                 self.core.generated, held)
+
+    def _renumbered(self, payload: bytes, seq: int) -> bytes:
+        try:
+            msg = TransitionBatch.decode(payload)
+        except ProtoError:
+            return payload
+        return dataclasses.replace(msg, seq=seq).encode()
 
     def _wait_for_credit(self) -> None:
         """Pause (sleeping, not spinning) while the replay's limiter holds inserts back. A stale
@@ -235,23 +331,20 @@ class ActorService:
                 while not self.stop.is_set() and end is None:
                     if core.steps % cfg.batch_steps == 0:
                         self._wait_for_credit()
+                        self._wait_for_room(transitions)
                     end = loop.step()
                     self.m_steps.inc()
                     self.step_rate.add()
                     if end is not None or core.steps % cfg.batch_steps == 0:
-                        seq = core.seq
-                        payload = core.batch()
-                        if payload is not None:
-                            self.sent(seq)
-                            transitions.put(payload)
-                            allowed, heard = self._credit
-                            self._credit = (allowed - cfg.batch_steps, heard)  # spend it until the next word
+                        self._batch_out(transitions)
                     if end is None and core.steps % 50 == 0:
                         self._apply_weights()
                 if end is None:
+                    self._finish(transitions, deployment.data_dir)
                     break
                 info = end.info
                 self.m_episodes.labels(info["world"], "success" if end.success else "failure").inc()
+                self.send_due(transitions)  # resends (after a partition) go on between batches too
                 episodes.put(EpisodeReport(cfg.actor_id, world, assignment.pair if assignment else "",
                                            end.success, float(end.episode_return), int(info["base_collisions"]),
                                            int(info["end_effector_collisions"]), int(info["steps"]), version_used,

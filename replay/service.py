@@ -19,9 +19,16 @@ it names (``transitions/<actor_id>``, else ``key_mismatch``); a ``seq`` above th
 microseconds plus ``SEQ_FUTURE_MARGIN_S`` is refused (``seq_future``; actors number their batches
 from their start time in microseconds, one per batch, so they never get there), also when the log
 is read back at a restart. The acknowledgements are bounded (``MAX_TRACKED_ACTORS`` ids, those
-without a liveliness token leave first), an actor's entry goes when its liveliness token does, and
+without a liveliness token leave first), an actor leaves the credit message when its liveliness token goes, and
 the credit message names only actors holding a token (at most ``CREDIT_ACKS``; ids are at most
-128 characters): a few KB whatever is sent. Sampling is a queryable (``replay/sample``) answered from
+128 characters): a few KB whatever is sent.
+
+Nothing generated is lost across a partition or a restart: an actor keeps every batch until it is
+acknowledged and resends from the oldest one, in order (``curlnav.actor.resend``). The replay
+accepts an actor's batches in sequence only: a resend at or below its acknowledgement is a
+``duplicate``; a batch above a gap (those before it were lost) is refused (``out_of_order``), so the
+acknowledgement stays below the gap until the lost batches arrive; a jump of ``NEW_STREAM_GAP`` or
+more is a restarted actor. Sampling is a queryable (``replay/sample``) answered from
 its own thread, never stalled by persistence (there is no snapshot to write: the log is the
 state; segments whose transitions have left the table are deleted). With a prioritized replay,
 the learner's ``PriorityUpdate`` messages set the sampled items' new priorities (priorities are
@@ -38,7 +45,6 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import zenoh
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
@@ -58,6 +64,9 @@ SEQ_FUTURE_MARGIN_S = 600.0  # clock skew allowed between an actor's host and th
 MAX_TRACKED_ACTORS = 1024  # actor ids whose acknowledgement and last seq are kept
 MAX_LIVE_ACTORS = 4096  # liveliness tokens of actors followed (beyond: counted and ignored)
 CREDIT_ACKS = 256  # acknowledgements in one credit message (the most recently accepted live actors)
+#: a seq this far (1 s of microseconds) above an actor's last accepted one starts a new stream (a
+#: restarted actor numbers from its start time); a smaller jump is a gap: batches were lost on the way
+NEW_STREAM_GAP = 1_000_000
 
 
 def seq_limit() -> int:
@@ -72,6 +81,8 @@ class ReplayServiceConfig:
     deployment: Deployment = Deployment(data_dir="runs/service/replay")
     prune_every_s: float = 30.0  # s between deletions of log segments that left the table
     fsync: bool = True  # fsync the log before a batch counts as accepted (off: only for benchmarks)
+    shm: bool = False  # answer samples from Zenoh shared memory (a learner on this host reads them without a socket)
+    shm_pool_mib: int = 64  # the shared-memory pool (MiB): a few sampled batches of 1.5 MB each
 
 
 class ReplayService:
@@ -147,13 +158,13 @@ class ReplayService:
                 self.last_seq.pop(gone, None)
 
     def actor_alive(self, actor: str, alive: bool) -> None:
-        """An actor's liveliness token came (``alive``) or went: a gone actor's entries go (a
-        restarted actor numbers its batches from its new start time anyway)."""
+        """An actor's liveliness token came (``alive``) or went. A gone actor leaves the credit
+        message but keeps its acknowledgement (bounded with the others, gone ones first out): an
+        actor cut off by a partition comes back and resends what it holds unacknowledged, and
+        the batches accepted before the cut must stay duplicates."""
         with self._acks_lock:
             if not alive:
                 self.live.discard(actor)
-                self.acked.pop(actor, None)
-                self.last_seq.pop(actor, None)
                 return
             if len(self.live) < MAX_LIVE_ACTORS:
                 self.live.add(actor)
@@ -184,8 +195,14 @@ class ReplayService:
             except (ProtoError, ReplayInputError) as exc:
                 self.m_rejected.labels(exc.reason).inc()
                 continue
-            if msg.seq <= acked.get(msg.actor_id, self.acked.get(msg.actor_id, -1)):
+            last = acked.get(msg.actor_id, self.acked.get(msg.actor_id))
+            if last is not None and msg.seq <= last:
                 self.m_rejected.labels("duplicate").inc()  # a resend of a batch already accepted
+                continue
+            if last is not None and last + 1 < msg.seq < last + NEW_STREAM_GAP:
+                # batches before it were lost (a partition, a replay restart): refused, so the
+                # acknowledgement stays below the gap and the actor resends from it, in order
+                self.m_rejected.labels("out_of_order").inc()
                 continue
             self.log.append(payload, total)
             total += msg.batch.num_transitions
@@ -220,18 +237,19 @@ class ReplayService:
         transitions added (0 when refused)."""
         return sum(self.insert_accepted(msg, timeout, force) for msg in self.accept_batches([(sender, payload)]))
 
-    def handle_sample(self, payload: bytes) -> bytes:
+    def handle_sample(self, payload: bytes) -> bytearray:
         try:
             request = SampleRequest.decode(payload)
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
             raise
-        sample = self.table.sample(request.batch_size, timeout=request.timeout_s)
+        # gathered straight into the reply's raw buffers (frames, not stacked observations)
+        writer = SampledBatch.writer(request.batch_size, self.layout, self.table.action_size)
+        self.table.sample_frames(request.batch_size, timeout=request.timeout_s,
+                                 out={name: writer.view(name) for name in writer.schema})
         self.m_sampled.inc(request.batch_size)
         self.sample_rate.add(request.batch_size)
-        return SampledBatch(sample.obs.astype(np.float16), sample.action, sample.reward, sample.discount,
-                            sample.next_obs.astype(np.float16), sample.keys,
-                            sample.probabilities.astype(np.float32)).encode()
+        return writer.payload()
 
     def handle_priorities(self, payload: bytes) -> int:
         """Apply a learner's ``PriorityUpdate``; returns the items updated (0 when refused)."""
@@ -381,6 +399,21 @@ class ReplayService:
             except RateLimiterTimeout:
                 continue  # the learner has not caught up: the batch waits, accepted and logged
 
+    _shm_provider = None
+
+    def _in_shm(self, data: bytearray):
+        """``data`` in a Zenoh shared-memory buffer when ``shm`` is on (one copy in; Zenoh hands a
+        reader on this host the segment, and sends the bytes to one elsewhere), else as is."""
+        if not self.cfg.shm:
+            return data
+        from zenoh import shm
+
+        if self._shm_provider is None:
+            self._shm_provider = shm.ShmProvider.default_backend(self.cfg.shm_pool_mib << 20)
+        buf = self._shm_provider.alloc(len(data), shm.BlockOn(shm.GarbageCollect()))
+        buf[0:len(data)] = data
+        return zenoh.ZBytes(buf)
+
     def _sample_loop(self, queryable, key: str) -> None:
         while not self.stop.is_set():
             query = queryable.try_recv()
@@ -389,7 +422,7 @@ class ReplayService:
                 continue
             try:
                 payload = query.payload.to_bytes() if query.payload is not None else b""
-                query.reply(key, self.handle_sample(payload))
+                query.reply(key, self._in_shm(self.handle_sample(payload)))
             except RateLimiterTimeout:
                 query.reply_err(b"rate_limited")
             except ProtoError as exc:

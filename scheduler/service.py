@@ -54,6 +54,7 @@ MAX_WAITING = 4 * MAX_ACTORS  # liveliness tokens remembered while the table is 
 IDLE_S = 120.0  # an actor that has neither asked for a world nor reported for this long may make room
 STATUS_ACTORS = 64  # actors detailed in /status (the rest are counted in live_actor_count)
 STATUS_ROLES = ("replay", "learner")  # services whose status the scheduler keeps
+MAX_LOST = 256  # actors remembered as lost (their token went: killed, or cut off by a partition)
 
 
 class SchedulerCore:
@@ -82,6 +83,8 @@ class SchedulerCore:
         self.actors: dict[str, dict] = {}  # live actors: id -> {assignment, last_report, episodes, joined}
         self.active: dict[str, float] = {}  # live actor id -> monotonic time it last asked or reported (or joined)
         self.waiting: OrderedDict[str, None] = OrderedDict()  # tokens that came while the table was full
+        self.lost: OrderedDict[str, dict] = OrderedDict()  # actors whose token went: id -> {since, episodes}
+        self.rejoined = 0  # lost actors whose token came back (a healed partition, a restart)
         self.services: dict[str, dict] = {}  # role -> last status values
         self.recent_episodes: deque = deque(maxlen=100)  # (return, base collisions) of the last 100 reports
         self.registry = CollectorRegistry()
@@ -169,7 +172,11 @@ class SchedulerCore:
 
     def _admit(self, actor_id: str) -> None:
         self.waiting.pop(actor_id, None)
-        self.actors[actor_id] = {"episodes": 0, "assignment": None, "last_report": None, "joined": time.time()}
+        lost = self.lost.pop(actor_id, None)
+        if lost is not None:  # taken back: its count goes on; it asks for a world before its reports count
+            self.rejoined += 1
+        self.actors[actor_id] = {"episodes": lost["episodes"] if lost else 0, "assignment": None,
+                                 "last_report": None, "joined": time.time()}
         self.active[actor_id] = time.monotonic()
 
     def _wait(self, actor_id: str) -> None:
@@ -203,8 +210,17 @@ class SchedulerCore:
             pass
 
     def actor_left(self, actor_id: str) -> None:
+        """Its liveliness token went (killed, or its host cut off): marked lost (``MAX_LOST`` kept),
+        taken back when the token comes again. The curriculum is not touched: reports count only
+        from live actors with an assignment, and assignments carry their epoch."""
         with self.lock:
             self.waiting.pop(actor_id, None)
+            entry = self.actors.get(actor_id)
+            if entry is not None:
+                self.lost.pop(actor_id, None)
+                self.lost[actor_id] = {"since": time.time(), "episodes": entry["episodes"]}
+                while len(self.lost) > MAX_LOST:
+                    self.lost.popitem(last=False)
             self._forget(actor_id)
 
     def force_advance(self) -> bool:
@@ -247,6 +263,8 @@ class SchedulerCore:
                 "window_size": len(st.window), "criterion": None if st.criterion is None else vars(st.criterion),
                 "success_by_world_pair": rates, "advances": st.history,
                 "live_actor_count": len(self.actors),
+                "lost_actors": {k: dict(v) for k, v in list(self.lost.items())[-STATUS_ACTORS:]},
+                "rejoined_actors": self.rejoined,
                 "live_actors": {k: dict(self.actors[k]) for k in self._shown_actors()},
                 "return_last_100": mean([e[0] for e in self.recent_episodes]),
                 "base_collisions_last_100": mean([e[1] for e in self.recent_episodes]),
