@@ -13,8 +13,8 @@ sends (``due``) while the replay is heard from:
 Bounds: ``memory_bytes`` of payloads in memory (default 64 MiB), then ``disk_bytes`` more in a
 spill file in the actor's folder (default 1 GiB; emptied once everything in it is
 acknowledged). When both are full the actor stops stepping (``full``) until acknowledgements free
-room: it generates nothing it could lose. At 32 steps of a 1,080-beam observation a batch is about
-150 KB, so the defaults hold about 7,000 batches (about 40 minutes of one actor cut off).
+room: it generates nothing it could lose. (The actor also makes at most ``unheard_batches`` while
+the replay is not heard at all, so a long partition costs neither CPU nor disk.)
 """
 
 from __future__ import annotations

@@ -332,7 +332,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
 def _cmd_bench_transport(args: argparse.Namespace) -> int:
     from curlnav.bench.transport import run_transport_bench
 
-    run_transport_bench(publishers=args.publishers, batches=args.batches)
+    run_transport_bench(publishers=args.publishers, batches=args.batches, paths=tuple(args.paths.split(",")),
+                        in_flight=args.in_flight)
     return 0
 
 
@@ -351,6 +352,18 @@ def _cmd_bench_faults(args: argparse.Namespace) -> int:
     rows = run_fault_bench(actors=args.actors, warm_s=args.warm_s, run_dir=args.run_dir)
     return 0 if all(r.get("lost", 0) == 0 and r.get("forward", True) and r.get("back_s") is not None
                     for r in rows) else 1
+
+
+def _cmd_bench_hosts(args: argparse.Namespace) -> int:
+    from curlnav.bench.hosts import run_hosts_bench
+    from curlnav.bench.netns import unavailable
+
+    why = unavailable()
+    if why:
+        raise SystemExit(f"curlnav: error: bench hosts needs network namespaces: {why}")
+    result = run_hosts_bench(hosts=args.hosts, actors_per_host=args.actors_per_host, partition_s=args.partition_s,
+                             minutes=args.minutes, run_dir=args.run_dir, netem=args.netem)
+    return 0 if result["lost"] == 0 else 1
 
 
 def _cmd_bench_metrics(args: argparse.Namespace) -> int:
@@ -576,11 +589,20 @@ def _add_bus_commands(sub) -> None:
     def credentials(args: argparse.Namespace) -> int:
         from curlnav.bus.security import acl_table, make_credentials
 
-        done = make_credentials(args.out, args.run)
+        tls = {}
+        for item in filter(None, (i.strip() for i in args.tls.split(","))):
+            name, _, address = item.partition("=")
+            tls[name.strip()] = address.strip()
+        done = make_credentials(args.out, args.run, actors=args.actors, shared_actor=args.shared_actor,
+                                tls_hosts=tls or None)
         print(f"bus credentials of run {args.run!r} in {args.out}: "
               + ", ".join(f"{role} ({state})" for role, state in done.items()))
         print(f"give `--bus-credentials {args.out}` (CURLNAV_BUS_CREDENTIALS) to every `curlnav serve`, or to each "
-              f"service only its own folder {args.out}/<role>")
+              f"service only its own folder {args.out}/<role> (an actor: {args.out}/actor-<n>, which it then is)")
+        if tls:
+            print(f"TLS between routers: the run's CA {args.out}/tls/ca.pem (keep {args.out}/tls/ca.key off the hosts); "
+                  f"start each router with `--tls NAME --listen tls/ADDRESS:7447` and its peers with "
+                  f"`--connect tls/ADDRESS:7447`")
         print("access control, default deny (keys under curlnav/<run>/):\n" + acl_table())
         return 0
 
@@ -590,6 +612,15 @@ def _add_bus_commands(sub) -> None:
                                               "password, the router's dictionary and access control")
     p.add_argument("--out", required=True, help="folder to write (0700, files 0600); passwords already there are kept")
     p.add_argument("--run", default=env_default("run", "default"), help="the run (Zenoh key prefix) they are for")
+    p.add_argument("--actors", type=int, default=8,
+                   help="the declared maximum of actor replicas: one user per actor, actor-0 .. actor-<N-1>, each "
+                        "allowed to put only under its own id (more may be added later; none are removed)")
+    p.add_argument("--shared-actor", action="store_true",
+                   help="also one user any actor may use (it may put under any actor id): only for replicas that "
+                        "cannot be told apart (compose --scale)")
+    p.add_argument("--tls", default="", metavar="NAME=ADDRESS,...",
+                   help="routers linked over TLS: the run's CA (tls/ca.pem) and a certificate per router name, for "
+                        "the address where it listens (an IP or a DNS name)")
     p.set_defaults(func=credentials)
 
 
@@ -652,6 +683,9 @@ def _add_bench_commands(sub) -> None:
     p = bench_sub.add_parser("transport", help="replay service throughput from 4 publishers, sampling, weight latency")
     p.add_argument("--publishers", type=int, default=4, help="publishing processes")
     p.add_argument("--batches", type=int, default=400, help="batches of 64 transitions per publisher")
+    p.add_argument("--paths", default="plain,shm", help="sampling paths to measure: plain (sockets), shm (Zenoh "
+                                                       "shared memory), comma-separated")
+    p.add_argument("--in-flight", type=int, default=4, help="sample requests the learner keeps outstanding")
     p.set_defaults(func=_cmd_bench_transport)
     p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
     p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
@@ -668,6 +702,16 @@ def _add_bench_commands(sub) -> None:
     p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")
     p.add_argument("--run-dir", default="runs/bench-faults")
     p.set_defaults(func=_cmd_bench_faults)
+    p = bench_sub.add_parser("hosts", help="a run over network namespaces (a router per host, TLS between them): "
+                                          "cut an actor host off, heal, train on; what was lost (root)")
+    p.add_argument("--hosts", type=int, default=3, help="namespaces: host 0 runs replay, learner and scheduler")
+    p.add_argument("--actors-per-host", type=int, default=2, help="actors on each of hosts 1..H-1")
+    p.add_argument("--partition-s", type=float, default=20.0, help="seconds host 1 stays cut off (its link down)")
+    p.add_argument("--minutes", type=float, default=None, help="the whole run (default: 30 s before and after)")
+    p.add_argument("--netem", default="", help="latency and loss on the actor hosts' links, as tc netem takes "
+                                               "them (e.g. 'delay 20ms loss 1%%'), where the kernel has netem")
+    p.add_argument("--run-dir", default="runs/bench-hosts")
+    p.set_defaults(func=_cmd_bench_hosts)
 
 
 def main(argv: list[str] | None = None) -> int:

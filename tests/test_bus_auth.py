@@ -28,6 +28,7 @@ from curlnav.bus.security import (
     BusCredentialsError,
     BusUser,
     access_control,
+    actor_ids,
     allowed,
     load_router,
     load_user,
@@ -52,23 +53,28 @@ def wait_for(what, check, timeout=20.0):
 
 def test_credentials_are_private_kept_and_bound_to_their_run(tmp_path):
     bus = tmp_path / "bus"
-    assert make_credentials(bus, RUN) == {role: "created" for role in ROLES}
+    users_made = [*ROLES, *actor_ids(8)]  # the services, and one user per actor (8 by default)
+    assert make_credentials(bus, RUN) == {name: "created" for name in users_made}
     assert stat.S_IMODE(bus.stat().st_mode) == 0o700
     for path in bus.rglob("*"):
         assert stat.S_IMODE(path.stat().st_mode) == (0o700 if path.is_dir() else 0o600), path
     users = {role: load_user(bus, role, RUN) for role in ROLES}
     assert len({u.password for u in users.values()}) == len(ROLES)  # one random password per role
+    actors = {a: load_user(bus, "actor", RUN, a) for a in actor_ids(8)}
+    assert [a.user for a in actors.values()] == actor_ids(8) and len({a.password for a in actors.values()}) == 8
     lines = (bus / "router" / "users.txt").read_text().splitlines()
-    assert sorted(lines) == sorted(f"{u.user}:{u.password}" for u in users.values())
+    assert sorted(lines) == sorted(f"{u.user}:{u.password}" for u in [*users.values(), *actors.values()])
+    with pytest.raises(BusCredentialsError, match="belong to actor 'actor-1', this actor is 'actor-0'"):
+        load_user(bus / "actor-1", "actor", RUN, "actor-0")  # an actor given another's folder
     # a second call (--resume, a compose restart) keeps every password
-    assert make_credentials(bus, RUN) == {role: "kept" for role in ROLES}
+    assert make_credentials(bus, RUN) == {name: "kept" for name in users_made}
     assert {role: load_user(bus, role).password for role in ROLES} == {r: u.password for r, u in users.items()}
     # another run: the same users, the access control rewritten for its prefix
     make_credentials(bus, "other")
-    assert load_user(bus, "actor", "other").password == users["actor"].password
+    assert load_user(bus, "actor", "other", "actor-0").password == actors["actor-0"].password
     assert "curlnav/other/weights" in json.dumps(load_router(bus).access_control)
     with pytest.raises(BusCredentialsError, match="for run 'other'"):
-        load_user(bus, "actor", RUN)
+        load_user(bus, "actor", RUN, "actor-0")
     # a role's own folder (what a container mounts), and no other role's
     assert load_user(bus / "learner", "learner").password == users["learner"].password
     with pytest.raises(BusCredentialsError, match="the learner's, not the actor's"):
@@ -85,20 +91,22 @@ def test_the_table_names_only_topology_keys_and_the_acl_is_default_deny():
              topo.alive("actor")}
     for role, rows in ALLOWED.items():
         for _message, key in rows:
-            assert f"{topo.prefix}/{key}" in known, (role, key)
-    acl = access_control("x")
+            assert f"{topo.prefix}/{key.format(id='*')}" in known, (role, key)
+    acl = access_control("x", actor_ids(2))
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
-    assert {p["id"] for p in acl["policies"]} == set(ROLES)
-    perms = permissions("x")
+    assert {p["id"] for p in acl["policies"]} == {*ROLES, "actor-0", "actor-1"}
+    perms = permissions("x", actor_ids(2))
+    user_of = {"actor": "actor-0"}
 
     def who(message: str, key: str, flow: str = "ingress") -> list[str]:
         """The roles allowed ``message`` on ``key`` (Zenoh: an allowed key expression includes it)."""
         return [role for role in ALLOWED if any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key))
-                                                for k in perms[role].get((flow, message), ()))]
+                                                for k in perms[user_of.get(role, role)].get((flow, message), ()))]
 
     assert who("put", topo.weights) == ["learner"] and who("put", topo.priorities) == ["learner"]
     assert who("put", topo.credit) == ["replay"] and who("put", topo.status("replay")) == ["replay"]
-    assert who("put", topo.episodes("a")) == ["actor"] and who("put", topo.transitions("a")) == ["actor"]
+    assert who("put", topo.episodes("actor-0")) == ["actor"] and who("put", topo.transitions("actor-0")) == ["actor"]
+    assert who("put", topo.episodes("actor-1")) == [] and who("put", topo.transitions("actor-1")) == []  # not its id
     assert who("put", topo.status("evil")) == [] and who("put", topo.alive("actor", "a")) == []
     assert who("declare_queryable", topo.sample) == ["replay"] and who("query", topo.sample) == ["learner"]
     assert who("declare_queryable", topo.weights_latest) == ["learner"]
@@ -110,9 +118,11 @@ def test_the_table_names_only_topology_keys_and_the_acl_is_default_deny():
     assert who("declare_queryable", topo.config("actor", "a")) == []  # actors never answer for the run's config
     assert who("query", topo.config()) == list(ALLOWED)  # the config agreement: everyone asks
     assert all(who(m, topo.prefix + "/**") == [] for m in ("put", "delete", "declare_subscriber", "query"))
-    for role in ALLOWED:  # liveliness tokens only under alive/<role>/
-        assert perms[role]["ingress", "liveliness_token"] == [topo.alive(role)]
-    assert [r for r in ALLOWED if ("ingress", "declare_liveliness_subscriber") in perms[r]] == ["replay", "scheduler"]
+    for role in ALLOWED:  # liveliness tokens only under alive/<role>/ (an actor: its own id)
+        assert perms[user_of.get(role, role)]["ingress", "liveliness_token"] == [
+            topo.alive(role, "actor-0" if role == "actor" else "*")]
+    assert [r for r in ALLOWED if ("ingress", "declare_liveliness_subscriber") in perms[user_of.get(r, r)]] == [
+        "replay", "scheduler"]
 
 
 def test_cli_writes_credentials(tmp_path):
@@ -120,7 +130,7 @@ def test_cli_writes_credentials(tmp_path):
     result = subprocess.run([sys.executable, "-m", "curlnav.cli", "bus", "credentials", "--out", str(out),
                              "--run", RUN], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-    assert "actor (created)" in result.stdout and "default deny" in result.stdout
+    assert "actor-0 (created)" in result.stdout and "default deny" in result.stdout
     assert load_user(out, "scheduler", RUN).user == "scheduler"
 
 
@@ -150,12 +160,12 @@ class Bus:
 
         wait_for("the router to listen", listening, timeout=60)
 
-    def user(self, role: str) -> BusUser:
-        return load_user(self.credentials, role, RUN)
+    def user(self, role: str, ident: str = "actor-0") -> BusUser:
+        return load_user(self.credentials, role, RUN, ident if role == "actor" else None)
 
-    def session(self, role: str) -> zenoh.Session:
-        """A session authenticated as ``role``."""
-        session = open_session(self.endpoint, 10.0, user=self.user(role))
+    def session(self, role: str, ident: str = "actor-0") -> zenoh.Session:
+        """A session authenticated as ``role`` (an actor: as actor ``ident``)."""
+        session = open_session(self.endpoint, 10.0, user=self.user(role, ident))
         self.sessions.append(session)
         return session
 
@@ -294,6 +304,28 @@ def test_learner_credentials_cannot_forge_episodes_or_transitions(bus):
     assert not episodes.has(report + b"forged") and not transitions.has(b"forged")
 
 
+def test_an_actor_cannot_write_under_another_actors_id(bus):
+    """One identity per actor (issue 30): actor-1's own credentials put nothing under actor-0's id
+    (transitions, episode reports); the control: actor-0 puts under its own."""
+    scheduler, replay = bus.session("scheduler"), bus.session("replay")
+    episodes, transitions = Inbox(), Inbox()
+    scheduler.declare_subscriber(TOPO.episodes(), lambda s: episodes.add(str(s.key_expr).encode() + b" "
+                                                                         + s.payload.to_bytes()))
+    replay.declare_subscriber(TOPO.transitions(), lambda s: transitions.add(str(s.key_expr).encode() + b" "
+                                                                            + s.payload.to_bytes()))
+    forger, actor = bus.session("actor", "actor-1"), bus.session("actor", "actor-0")
+    for _ in range(20):
+        forger.put(TOPO.episodes("actor-0"), b"forged report")
+        forger.put(TOPO.transitions("actor-0"), b"forged batch")
+    key = TOPO.transitions("actor-0").encode()
+    deliver_until(lambda p: actor.put(TOPO.transitions("actor-0"), p.split(b" ", 1)[1]), key + b" real batch",
+                  transitions, "actor-0's own batch")
+    deliver_until(lambda p: forger.put(TOPO.transitions("actor-1"), p.split(b" ", 1)[1]),
+                  TOPO.transitions("actor-1").encode() + b" its own", transitions, "actor-1's batch under its own id")
+    time.sleep(0.5)
+    assert not any(b"forged" in item for item in transitions.items + episodes.items)
+
+
 def test_only_the_replay_answers_samples_and_only_the_learner_asks(bus):
     learner = bus.session("learner")
 
@@ -329,8 +361,9 @@ def test_fake_liveliness_tokens_are_not_seen_by_the_scheduler(bus):
     assert bus.refused(None)  # an unauthenticated session cannot declare anything
     for role in ("learner", "replay", "scheduler"):  # phantom actors from the other roles
         bus.session(role).liveliness().declare_token(TOPO.alive("actor", f"phantom-{role}"))
-    bus.session("actor").liveliness().declare_token(TOPO.alive("actor", "real"))
-    wait_for("the real actor's token", lambda: seen.has(TOPO.alive("actor", "real").encode()))
+    bus.session("actor", "actor-1").liveliness().declare_token(TOPO.alive("actor", "phantom-actor-1"))  # not its id
+    bus.session("actor").liveliness().declare_token(TOPO.alive("actor", "actor-0"))
+    wait_for("the real actor's token", lambda: seen.has(TOPO.alive("actor", "actor-0").encode()))
     time.sleep(0.5)
     assert [k for k in seen.items if b"phantom" in k] == []
     # an actor's token outside alive/actor/ is refused too (the router's own user may watch everything)
@@ -370,4 +403,4 @@ def test_the_readme_table_is_the_code_table():
         shown.add(("liveliness_token", live.split("token ")[1].split("`")[1]))
         if "watches" in live:
             shown.add(("declare_liveliness_subscriber", live.split("watches ")[1].strip("`")))
-        assert shown == set(allowed(role)), role
+        assert shown == set(allowed(role, "<own id>")), role

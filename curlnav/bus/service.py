@@ -143,7 +143,8 @@ class ServiceShell:
     def new_session(self):
         """Another Zenoh session to the router, closed with the shell."""
         credentials = self.deployment.credentials
-        user = load_user(credentials, self.role, self.deployment.run) if credentials else None
+        ident = self.instance if self.role == "actor" else None  # an actor authenticates as itself
+        user = load_user(credentials, self.role, self.deployment.run, ident) if credentials else None
         session = open_session(self.deployment.router, user=user)
         self.on_close("Zenoh session", session.close)
         return session

@@ -21,7 +21,7 @@ import zenoh
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
-from curlnav.bus.security import BusUser, RouterAuth, load_router
+from curlnav.bus.security import BusUser, RouterAuth, TlsFiles, load_router, load_tls
 
 log = logging.getLogger("curlnav")
 
@@ -32,15 +32,29 @@ class RouterUnreachable(ConnectionError):
 
 def zenoh_config(mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
                  connect_timeout_s: float = -1, user: BusUser | None = None,
-                 guard: RouterAuth | None = None) -> zenoh.Config:
+                 guard: RouterAuth | None = None, tls: TlsFiles | None = None) -> zenoh.Config:
     """Multicast scouting off (Docker networks carry none). Clients wait ``connect_timeout_s``
     for their router at start (-1: forever), so services can start in any order. ``user``: the
     bus user this session authenticates as (Zenoh usrpwd); ``guard``: a router's dictionary of
-    users and access control (``curlnav.bus.security``)."""
+    users and access control (``curlnav.bus.security``); ``tls``: the run's CA and this router's
+    certificate for its ``tls/`` links, mutual (each side shows a certificate of the run's CA; the
+    connecting side checks that the other's names the address it dialled)."""
     conf = zenoh.Config()
+    if tls is not None:
+        for key, value in (("root_ca_certificate", tls.ca), ("listen_certificate", tls.certificate),
+                           ("listen_private_key", tls.key), ("connect_certificate", tls.certificate),
+                           ("connect_private_key", tls.key)):
+            conf.insert_json5(f"transport/link/tls/{key}", json.dumps(str(value)))
+        conf.insert_json5("transport/link/tls/enable_mtls", "true")
+        conf.insert_json5("transport/link/tls/verify_name_on_connect", "true")
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    if connect:
+    if connect and mode == "router":  # other routers may be down or cut off: start anyway, retry for ever
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        conf.insert_json5("connect/timeout_ms", "-1")  # with exit_on_failure false: in the background (measured)
+        conf.insert_json5("connect/exit_on_failure", "false")
+        conf.insert_json5("connect/retry", '{"period_init_ms": 500, "period_max_ms": 2000, "period_increase_factor": 2}')
+    elif connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
         conf.insert_json5("connect/timeout_ms", str(-1 if connect_timeout_s < 0 else int(connect_timeout_s * 1000)))
     if listen:
@@ -69,13 +83,17 @@ def open_session(router: str, connect_timeout_s: float | None = None, user: BusU
                                 f"{exc}") from None
 
 
-def run_router(listen: str, stop: threading.Event, connect: list[str] | None = None, credentials: str = "",
-               audit: bool = True) -> None:
-    """A Zenoh router (a Python session in router mode) until ``stop`` is set. ``credentials``:
-    a run's bus credentials folder (or the router's own): the router then admits only the run's
-    users and applies the run's access control, and (``audit``) counts and logs every message
-    it refuses (``curlnav.bus.audit``: it takes over the process's stdout, so only in a router
-    process of its own)."""
+def run_router(listen: str | list[str], stop: threading.Event, connect: list[str] | None = None,
+               credentials: str = "", audit: bool = True, tls_name: str = "") -> None:
+    """A Zenoh router (a Python session in router mode) until ``stop`` is set. ``listen``: one
+    endpoint or several. ``credentials``: a run's bus credentials folder (or the router's own):
+    the router then admits only the run's users and applies the run's access control, and
+    (``audit``) counts and logs every message it refuses (``curlnav.bus.audit``: it takes over the
+    process's stdout, so only in a router process of its own). ``tls_name``: this router's name in
+    the run's TLS folder (``curlnav bus credentials --tls NAME=ADDRESS``): its ``tls/`` endpoints,
+    listening and connecting, use mutual TLS with the run's CA."""
+    listen = [listen] if isinstance(listen, str) else list(listen)
+    tls = load_tls(credentials, tls_name) if tls_name else None
     from curlnav.bus.audit import DenialAudit
 
     guard = load_router(credentials) if credentials else None
@@ -86,7 +104,9 @@ def run_router(listen: str, stop: threading.Event, connect: list[str] | None = N
         denials = DenialAudit().start() if audit else None
     else:
         log.warning("bus: no credentials: anyone who reaches this router may publish and query (--bus-credentials)")
-    session = zenoh.open(zenoh_config("router", connect=connect, listen=[listen], guard=guard))
+    if tls is not None:
+        log.info("bus: mutual TLS on tls/ links as router %r (CA %s)", tls_name, tls.ca)
+    session = zenoh.open(zenoh_config("router", connect=connect, listen=listen, guard=guard, tls=tls))
     try:
         stop.wait()
     finally:

@@ -34,7 +34,11 @@ def add_serve_arguments(p) -> None:
     p.add_argument("role", choices=ROLES)
     p.add_argument("--run", default=env_default("run", "default"), help="run name: the Zenoh key prefix")
     p.add_argument("--router", default=env_default("router", "tcp/127.0.0.1:7447"), help="Zenoh router endpoint")
-    p.add_argument("--listen", default=env_default("listen", "tcp/0.0.0.0:7447"), help="router: listen endpoint")
+    p.add_argument("--listen", default=env_default("listen", "tcp/0.0.0.0:7447"),
+                   help="router: listen endpoints, comma-separated (tls/ADDRESS:PORT for other hosts' routers)")
+    p.add_argument("--tls", default=env_default("tls", ""), metavar="NAME",
+                   help="router: its name in the run's TLS folder (`curlnav bus credentials --tls NAME=ADDRESS`): "
+                        "tls/ endpoints, listened on and connected to, use mutual TLS with the run's CA")
     p.add_argument("--connect", default=env_default("connect", ""),
                    help="router: other routers to join, comma-separated endpoints (multi-host)")
     p.add_argument("--data-dir", default=env_default("data_dir", "runs/service"), help="state folder (per role below it)")
@@ -52,6 +56,10 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--checkpoint-every-s", type=float, default=env_default("checkpoint_every_s", 30.0),
                    help="learner: s between checkpoints (a crash loses at most this much learning)")
     p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
+    p.add_argument("--device", default=env_default("device", "auto"),
+                   help="learner: auto (cuda when a GPU is present, else cpu), cuda, cuda:N or cpu")
+    p.add_argument("--shm", action="store_true", default=bool(env_default("shm", "")),
+                   help="replay: answer samples through Zenoh shared memory (a learner on the same host)")
     p.add_argument("--bus-credentials", default=env_default("bus_credentials", ""),
                    help="the run's bus credentials folder (`curlnav bus credentials`) or this role's own: "
                         "services authenticate as their role, the router admits only the run's users and "
@@ -85,14 +93,14 @@ def build_service(args):
     if args.role == "replay":
         from curlnav.replay.service import ReplayService, ReplayServiceConfig
 
-        return ReplayService(ReplayServiceConfig(deployment("replay")), experiment)
+        return ReplayService(ReplayServiceConfig(deployment("replay"), shm=args.shm), experiment)
     if args.role == "learner":
         from curlnav.learner.service import LearnerService, LearnerServiceConfig
 
         return LearnerService(LearnerServiceConfig(deployment("learner"), publish_every=args.publish_every,
                                                    export_every_s=args.export_every_s,
                                                    checkpoint_every_s=args.checkpoint_every_s,
-                                                   torch_threads=args.threads), experiment)
+                                                   torch_threads=args.threads, device=args.device), experiment)
     if args.role == "scheduler":
         from curlnav.scheduler.service import SchedulerService, SchedulerServiceConfig
 
@@ -105,11 +113,21 @@ def build_service(args):
     if args.role == "actor":
         from curlnav.actor.service import ActorService, ActorServiceConfig
 
-        actor_id = args.actor_id or f"{socket.gethostname()}-{os.getpid()}"
+        actor_id = args.actor_id or _credentials_actor_id(args.bus_credentials) or f"{socket.gethostname()}-{os.getpid()}"
         index = args.actor_index if args.actor_index >= 0 else zlib.crc32(actor_id.encode()) % 997
         return ActorService(ActorServiceConfig(actor_id=actor_id, actor_index=index, actor_count=args.actor_count,
                                                deployment=deployment(f"actors/{actor_id}")), experiment)
     raise ValueError(f"no service for role {args.role!r}")
+
+
+def _credentials_actor_id(credentials: str) -> str:
+    """An actor given only its own credentials folder (``DIR/actor-<n>``) is that actor."""
+    if not credentials or not (Path(credentials) / "user.json").is_file():
+        return ""
+    from curlnav.bus.security import SHARED_ACTOR, load_user
+
+    user = load_user(credentials, "actor")
+    return "" if user.user == SHARED_ACTOR else user.user
 
 
 def serve(args) -> int:
@@ -125,7 +143,8 @@ def serve(args) -> int:
     if args.role == "router":
         peers = [e.strip() for e in args.connect.split(",") if e.strip()]
         logging.info("router listening on %s%s", args.listen, f", joining {peers}" if peers else "")
-        run_router(args.listen, stop, connect=peers or None, credentials=args.bus_credentials)
+        listen = [e.strip() for e in args.listen.split(",") if e.strip()]
+        run_router(listen, stop, connect=peers or None, credentials=args.bus_credentials, tls_name=args.tls)
         return 0
     service = build_service(args)  # bad input raises here: one line, exit 2 (refused)
     service.stop = stop
@@ -234,7 +253,7 @@ class LocalCluster:
         from curlnav.bus.security import make_credentials
 
         self.bus_dir = self.run_dir / "bus"
-        make_credentials(self.bus_dir, run)
+        make_credentials(self.bus_dir, run, actors=max(actors, 1))
         self.run, self.actors = run, actors
         self.extra = extra or {}
         self.admin_token = admin_token
@@ -251,12 +270,14 @@ class LocalCluster:
                 "--http-host", "127.0.0.1", "--config", str(self.config_path), "--bus-credentials", str(self.bus_dir),
                 *self.extra.get(role, []), *more]
 
-    def bus_session(self, role: str, connect_timeout_s: float = 10.0):
-        """A Zenoh session to this cluster's router, authenticated as ``role`` (tests, tools)."""
+    def bus_session(self, role: str, connect_timeout_s: float = 10.0, ident: str = "actor-0"):
+        """A Zenoh session to this cluster's router, authenticated as ``role`` (an actor: as
+        actor ``ident``) (tests, tools)."""
         from curlnav.bus.security import load_user
         from curlnav.bus.transport import open_session
 
-        return open_session(self.router, connect_timeout_s, user=load_user(self.bus_dir, role, self.run))
+        user = load_user(self.bus_dir, role, self.run, ident if role == "actor" else None)
+        return open_session(self.router, connect_timeout_s, user=user)
 
     def _spawn(self, name: str, role: str, *more: str) -> subprocess.Popen:
         return self.spawn(name, self.service_command(role, *more))
