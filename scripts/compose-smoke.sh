@@ -116,7 +116,7 @@ step "the same services on a single-node swarm (docker stack deploy -c docker-st
 docker swarm init --advertise-addr 127.0.0.1 >/dev/null
 bus_tmp=$(mktemp -d)
 export CURLNAV_BUS=$bus_tmp/bus  # the stack's secrets are read from here
-"$CLI" bus credentials --run compose --out "$CURLNAV_BUS" | sed -n 1p
+"$CLI" bus credentials --run compose --out "$CURLNAV_BUS" --shared-actor | sed -n 1p
 CURLNAV_CURRICULA=$PWD/scheduler/curricula docker stack deploy -c docker-stack.yml curlnav
 wait_for "swarm: 2 live actors with episodes, learner version >= 1" 420 \
   'len(actors) == 2 and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'

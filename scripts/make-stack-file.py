@@ -8,7 +8,7 @@ every curlnav service waits for its router. Run: python scripts/make-stack-file.
 Bus credentials: Docker secrets instead of compose's one-shot `credentials` service and its
 volumes (swarm has no start order, and a volume lives on one node). Each service gets only its
 own role's files, readable by the image's user only, in /run/secrets. Make them first, on the
-node that deploys: `curlnav bus credentials --run compose --out runs/bus` (CURLNAV_BUS: another
+node that deploys: `curlnav bus credentials --run compose --out runs/bus --shared-actor` (CURLNAV_BUS: another
 folder; the same --run as CURLNAV_RUN).
 """
 
@@ -59,7 +59,7 @@ for name, service in compose["services"].items():
     stack["services"][name] = service
 header = ("# Generated from docker-compose.yml by scripts/make-stack-file.py: the same services for\n"
           "# `docker stack deploy -c docker-stack.yml curlnav` (Compose v3 schema, no build or depends_on).\n"
-          "# Bus credentials are Docker secrets: first `curlnav bus credentials --run compose --out runs/bus`\n"
+          "# Bus credentials are Docker secrets: first `curlnav bus credentials --run compose --out runs/bus --shared-actor`\n"
           "# (CURLNAV_BUS: another folder).\n")
 out = root / "docker-stack.yml"
 out.write_text(header + yaml.safe_dump(stack, sort_keys=False))
