@@ -13,7 +13,6 @@ import hashlib
 import json
 import logging
 import os
-import queue
 import re
 import shutil
 import threading
@@ -24,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, Weights
+from curlnav.proto.messages import PriorityUpdate, SampledBatch, ServiceStatus, Weights
 from prometheus_client import CollectorRegistry, Counter, Gauge
 from safetensors.torch import save as safetensors_bytes
 
@@ -35,6 +34,7 @@ from curlnav.config import ConfigError, ExperimentConfig, config_differences, co
 
 from .artefact import export_policy, training_worlds
 from .d4pg import TensorBatch, load_checkpoint, save_checkpoint, sgd_step
+from .feed import BatchAssembler, SampleFeed, describe_device, resolve_device
 
 log = logging.getLogger("curlnav.learner")
 
@@ -49,6 +49,10 @@ class LearnerServiceConfig:
     export_every_s: float = 120.0
     keep_artefacts: int = 5  # newest artefact versions kept on disk
     torch_threads: int = 1  # on 2 cores shared with actors, 1 thread ran 31 updates/s, 2 threads 22
+    device: str = "auto"  # auto: cuda when a GPU is present, else cpu
+    in_flight: int = 4  # sample queries outstanding at the replay (it gathers the next while one travels)
+    prefetch: int = 4  # decoded batches waiting (as tensors on the device)
+    priority_every: int = 4  # updates whose new priorities travel in one PriorityUpdate
 
 
 class VersionMark:
@@ -89,10 +93,13 @@ class LearnerService:
         self.data_dir = Path(cfg.deployment.data_dir)
         (self.data_dir / "artefacts").mkdir(parents=True, exist_ok=True)
         torch.set_num_threads(cfg.torch_threads)
+        self.device = resolve_device(cfg.device)
+        log.info(describe_device(self.device))
+        self.assembler = BatchAssembler(self.device)
         ckpt = self.data_dir / "latest.safetensors"
         self.version_mark = VersionMark(self.data_dir / "version")
         if ckpt.exists():
-            self.state, extra = load_checkpoint(ckpt)
+            self.state, extra = load_checkpoint(ckpt, self.device)
             if self.state.config != experiment.d4pg:
                 diffs = config_differences(config_to_dict(self.state.config), config_to_dict(experiment.d4pg), "d4pg.")
                 raise ConfigError(f"{ckpt} was trained with another d4pg config ({'; '.join(diffs[:3])}; checkpoint "
@@ -104,7 +111,7 @@ class LearnerService:
             log.info("resumed from %s at %d updates (checkpoint version %d), now weights version %d", ckpt,
                      self.state.steps, int(extra.get("version", 0)), self.version)
         else:
-            self.state = builder.make_learner_state()
+            self.state = builder.make_learner_state(self.device)
             # no checkpoint, but a crash may have come after versions went out: go on above them
             published = max(self.version_mark.read(), *self.artefact_versions(), 0)
             self.version = published + 1 if published else 0
@@ -117,22 +124,25 @@ class LearnerService:
         self.update_rate = RateMeter()
         self.latest_weights: bytes = weights_message(self.state, self.version).encode()
         self.metrics: dict[str, float] = {}
-        self.pending_priorities: PriorityUpdate | None = None  # for the replay, when prioritized
+        self.pending_priorities: list[PriorityUpdate] = []  # for the replay, when prioritized
         self.stop = threading.Event()
         self.started = time.monotonic()
         # what artefacts name as their training (worlds, curriculum): fixed for the run, read once
         self.artefact_training = training_worlds(self.experiment.curriculum.world, self.experiment.curriculum.file)
 
     # -- pure parts ----------------------------------------------------------------------------
-    def learn_from(self, payload: bytes) -> dict[str, float]:
-        batch = SampledBatch.decode(payload)
-        if batch.obs.shape[1] != self.layout.size:
-            raise ProtoError("shape", f"observations of {batch.obs.shape[1]} values, expected {self.layout.size}")
+    def learn_from(self, payload: bytes | SampledBatch, tensors: TensorBatch | None = None) -> dict[str, float]:
+        """One update from a sampled batch (a raw ``SampledBatch`` message, checked against the
+        layout, or one the feed decoded, with its tensors)."""
+        batch = payload if isinstance(payload, SampledBatch) else SampledBatch.decode(payload, self.layout)
+        if tensors is None:
+            tensors = self.assembler(batch)
         weights = self.builder.importance_weights(batch.probabilities, self.replay_size)
-        tensors = TensorBatch.from_sample(batch, self.state.device, weights)
+        if weights is not None:
+            tensors.weights = torch.as_tensor(weights, dtype=torch.float32).to(self.device)
         self.state, self.metrics, item_loss = sgd_step(self.state, tensors)
         if self.experiment.replay.prioritized:
-            self.pending_priorities = PriorityUpdate(batch.keys, (item_loss + 1e-6).astype(np.float32))
+            self.pending_priorities.append(PriorityUpdate(batch.keys.copy(), (item_loss + 1e-6).astype(np.float32)))
         self.m_updates.inc()
         self.update_rate.add()
         self.m_loss.set(self.metrics["losses/critic"])
@@ -238,23 +248,19 @@ class LearnerService:
             if not self.artefact_versions():
                 self.export()
             weights_pub.put(self.latest_weights)
-            ready: queue.Queue[bytes] = queue.Queue(maxsize=2)
-            fetcher = threading.Thread(target=self._prefetch, args=(session, topo.sample, ready), daemon=True)
-            fetcher.start()
+            feed = SampleFeed(session, topo.sample, self.experiment.d4pg.batch_size, self.layout,
+                              in_flight=cfg.in_flight, depth=cfg.prefetch, assembler=self.assembler,
+                              on_reject=lambda reason: self.m_rejected.labels(reason).inc()).start()
             last_status = last_ckpt = last_export = time.monotonic()
             try:
                 while not self.stop.is_set():
-                    got = False
-                    try:
-                        self.learn_from(ready.get(timeout=0.2))
-                        got = True
-                    except queue.Empty:
-                        pass
-                    except ProtoError as exc:
-                        self.m_rejected.labels(exc.reason).inc()
-                    if self.pending_priorities is not None:
-                        priorities_pub.put(self.pending_priorities.encode())
-                        self.pending_priorities = None
+                    item = feed.get(timeout=0.2)
+                    got = item is not None
+                    if got:
+                        self.learn_from(*item)
+                    if len(self.pending_priorities) >= cfg.priority_every or (self.pending_priorities and not got):
+                        priorities_pub.put(PriorityUpdate.merge(self.pending_priorities).encode())
+                        self.pending_priorities = []
                     if got and self.state.steps % cfg.publish_every == 0:
                         weights_pub.put(self.publish_version())
                     now = time.monotonic()
@@ -269,7 +275,7 @@ class LearnerService:
                         last_export = now
             finally:
                 self.stop.set()
-                fetcher.join(timeout=10)
+                feed.close()
                 self.checkpoint()
                 self.export()
                 log.info("learner stopped at %d updates, version %d", self.state.steps, self.version)
@@ -281,16 +287,3 @@ class LearnerService:
             self.env_steps = max(int(values.get("inserted", 0)), self.env_steps)
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
-
-    def _prefetch(self, session, key: str, ready: queue.Queue[bytes]) -> None:
-        """Keep the next batches coming while the current one is learned from."""
-        request = SampleRequest(self.experiment.d4pg.batch_size, timeout_s=0.5).encode()
-        while not self.stop.is_set():
-            for reply in session.get(key, payload=request, timeout=5.0):
-                if reply.ok is not None:  # an error reply: rate limited or not ready, ask again
-                    while not self.stop.is_set():
-                        try:
-                            ready.put(reply.ok.payload.to_bytes(), timeout=0.5)
-                            break
-                        except queue.Full:
-                            continue

@@ -13,6 +13,7 @@ import numpy as np
 
 from .codec import ProtoError, check_header, dumps, field, loads, pack_array, unpack_array
 from .frames import FrameBatch
+from .rawbuf import KIND_PRIORITY_UPDATE, KIND_SAMPLED_BATCH, RawWriter, first_dim, read_raw
 
 VERSION = 1
 MAX_BEAMS = 4096
@@ -111,67 +112,137 @@ class SampleRequest:
 
 @dataclass
 class SampledBatch:
-    """replay -> learner (query reply): stacked observations rebuilt from frames, as float16
-    (ranges are stored as float16 anyway and labels are 0/1; goal frames keep 3 significant
-    digits), which halves the bytes per update."""
+    """replay -> learner (query reply): a sampled batch as frames, in raw contiguous buffers
+    (``rawbuf.py``): for the observation and the next observation, the ranges (float16, m,
+    (B, range_frames, beams)), labels (uint8, (B, label_frames, beams)) and goal frames
+    (float32, (B, goal_frames, 3)) of their history, oldest first; ``action`` (float32, (B, 3)),
+    ``reward``, ``discount`` (float32, (B,)), ``keys`` (int64, (B,)) and ``probabilities``
+    (float32, (B,): each item's probability of being drawn). The stacked float32 observation is
+    ``obs()`` (or built on the learner's device from the frames: fewer bytes to copy)."""
 
-    obs: np.ndarray  # float16 (B, obs_size)
-    action: np.ndarray  # float32 (B, 3)
-    reward: np.ndarray  # float32 (B,)
-    discount: np.ndarray  # float32 (B,)
-    next_obs: np.ndarray  # float16 (B, obs_size)
-    keys: np.ndarray  # int64 (B,)
-    probabilities: np.ndarray  # float32 (B,): each item's probability of being drawn
+    obs_ranges: np.ndarray
+    obs_labels: np.ndarray
+    obs_goal: np.ndarray
+    next_ranges: np.ndarray
+    next_labels: np.ndarray
+    next_goal: np.ndarray
+    action: np.ndarray
+    reward: np.ndarray
+    discount: np.ndarray
+    keys: np.ndarray
+    probabilities: np.ndarray
     KIND = "sampled_batch"
-    VERSION = 2  # 2: probabilities (importance weights of prioritized replay)
-
-    def encode(self) -> bytes:
-        return dumps({"kind": self.KIND, "v": self.VERSION, **{n: pack_array(getattr(self, n)) for n in
-                                                               ("obs", "action", "reward", "discount", "next_obs",
-                                                                "keys", "probabilities")}})
+    VERSION = 3  # 2: msgpack, stacked float16 observations; 3: raw buffers, frames
+    MAX_BATCH = 8192
+    FIELDS = ("obs_ranges", "obs_labels", "obs_goal", "next_ranges", "next_labels", "next_goal", "action", "reward",
+              "discount", "keys", "probabilities")
 
     @staticmethod
-    def decode(data: bytes) -> SampledBatch:
-        obj = loads(data)
-        check_header(obj, SampledBatch.KIND, SampledBatch.VERSION)
-        try:
-            b, size = obj["obs"]["shape"]
-        except (KeyError, TypeError, ValueError):
-            raise ProtoError("shape", "obs must be (B, obs_size)") from None
-        specs = {"obs": ("<f2", (b, size)), "action": ("<f4", (b, 3)), "reward": ("<f4", (b,)),
-                 "discount": ("<f4", (b,)), "next_obs": ("<f2", (b, size)), "keys": ("<i8", (b,)),
-                 "probabilities": ("<f4", (b,))}
-        return SampledBatch(**{n: unpack_array(obj.get(n), n, dt, sh) for n, (dt, sh) in specs.items()})
+    def schema(batch: int, layout, action_size: int = 3) -> dict[str, tuple[str, tuple[int, ...]]]:
+        """``name -> (dtype, shape)`` for ``batch`` items of ``layout`` (an ``ObservationLayout``)."""
+        frames = {"ranges": ("<f2", (batch, layout.range_frames, layout.beams)),
+                  "labels": ("|u1", (batch, layout.label_frames, layout.beams)),
+                  "goal": ("<f4", (batch, layout.goal_frames, 3))}
+        return {**{f"obs_{k}": v for k, v in frames.items()}, **{f"next_{k}": v for k, v in frames.items()},
+                "action": ("<f4", (batch, action_size)), "reward": ("<f4", (batch,)), "discount": ("<f4", (batch,)),
+                "keys": ("<i8", (batch,)), "probabilities": ("<f4", (batch,))}
+
+    @staticmethod
+    def writer(batch: int, layout, action_size: int = 3, buffer=None) -> RawWriter:
+        """An empty message whose arrays (``writer.view(name)``) a replay gathers into."""
+        return RawWriter(KIND_SAMPLED_BATCH, SampledBatch.VERSION, SampledBatch.schema(batch, layout, action_size),
+                         buffer)
+
+    def encode(self) -> bytearray:
+        layout = _FrameDims(self.obs_ranges.shape[2], self.obs_ranges.shape[1], self.obs_labels.shape[1],
+                            self.obs_goal.shape[1])
+        w = SampledBatch.writer(len(self.keys), layout, self.action.shape[1])
+        for name in self.FIELDS:
+            w.view(name)[...] = getattr(self, name)
+        return w.payload()
+
+    @staticmethod
+    def decode(data: bytes | bytearray | memoryview, layout, action_size: int = 3) -> SampledBatch:
+        """Check ``data`` against ``layout``'s frame shapes (any batch size 1..``MAX_BATCH``) and
+        return read-only views into it. Rewards, discounts and probabilities are checked for
+        range; the frames were checked by the replay when they were inserted."""
+        batch = first_dim(data)
+        if not 1 <= batch <= SampledBatch.MAX_BATCH:
+            raise ProtoError("shape", f"a batch of {batch} items (1..{SampledBatch.MAX_BATCH})")
+        arrays = read_raw(data, KIND_SAMPLED_BATCH, SampledBatch.VERSION,
+                          SampledBatch.schema(batch, layout, action_size), SampledBatch.KIND)
+        small = np.concatenate([arrays["reward"], arrays["discount"], arrays["probabilities"]])
+        if not np.isfinite(small).all():
+            raise ProtoError("non_finite", "reward, discount or probabilities contain NaN or infinity")
+        if (arrays["discount"] < 0).any() or (arrays["discount"] > 1).any() or (arrays["probabilities"] < 0).any():
+            raise ProtoError("range", "discount outside [0, 1] or a negative probability")
+        return SampledBatch(**arrays)
+
+    @staticmethod
+    def stack(ranges: np.ndarray, labels: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """Frames into stacked float32 observations (B, size): ranges, labels, goals."""
+        b = len(ranges)
+        r, lab = ranges[0].size, labels[0].size
+        out = np.empty((b, r + lab + goal[0].size), np.float32)
+        out[:, :r] = ranges.reshape(b, -1)
+        out[:, r:r + lab] = labels.reshape(b, -1)
+        out[:, r + lab:] = goal.reshape(b, -1)
+        return out
+
+    def obs(self) -> np.ndarray:
+        return self.stack(self.obs_ranges, self.obs_labels, self.obs_goal)
+
+    def next_obs(self) -> np.ndarray:
+        return self.stack(self.next_ranges, self.next_labels, self.next_goal)
+
+
+@dataclass(frozen=True)
+class _FrameDims:
+    beams: int
+    range_frames: int
+    label_frames: int
+    goal_frames: int
 
 
 @dataclass
 class PriorityUpdate:
     """learner -> replay: new priorities (the items' critic losses) for sampled keys, when the
-    replay is prioritized. Keys that left the table meanwhile are ignored by the replay."""
+    replay is prioritized, in raw buffers like ``SampledBatch``; a learner sends the keys of
+    several updates in one message. Keys that left the table meanwhile are ignored."""
 
     keys: np.ndarray  # int64 (B,)
     priorities: np.ndarray  # float32 (B,), positive
     KIND = "priority_update"
-
-    def encode(self) -> bytes:
-        return dumps({"kind": self.KIND, "v": VERSION, "keys": pack_array(self.keys),
-                      "priorities": pack_array(self.priorities)})
+    VERSION = 2  # 1: msgpack; 2: raw buffers
 
     @staticmethod
-    def decode(data: bytes) -> PriorityUpdate:
-        obj = loads(data)
-        check_header(obj, PriorityUpdate.KIND, VERSION)
-        try:
-            (b,) = obj["keys"]["shape"]
-        except (KeyError, TypeError, ValueError):
-            raise ProtoError("shape", "keys must be (B,)") from None
+    def schema(n: int) -> dict[str, tuple[str, tuple[int, ...]]]:
+        return {"keys": ("<i8", (n,)), "priorities": ("<f4", (n,))}
+
+    def encode(self) -> bytearray:
+        w = RawWriter(KIND_PRIORITY_UPDATE, self.VERSION, self.schema(len(self.keys)))
+        w.view("keys")[...] = self.keys
+        w.view("priorities")[...] = self.priorities
+        return w.payload()
+
+    @staticmethod
+    def merge(updates: list[PriorityUpdate]) -> PriorityUpdate:
+        """Several updates as one message (a key sampled twice keeps its latest priority:
+        the replay applies them in order)."""
+        return PriorityUpdate(np.concatenate([u.keys for u in updates]),
+                              np.concatenate([u.priorities for u in updates]))
+
+    @staticmethod
+    def decode(data: bytes | bytearray | memoryview) -> PriorityUpdate:
+        b = first_dim(data)
         if not 0 < b <= MAX_ITEMS:
             raise ProtoError("size", f"priority_update of {b} items (1..{MAX_ITEMS})")
-        keys = unpack_array(obj.get("keys"), "keys", "<i8", (b,))
-        priorities = unpack_array(obj.get("priorities"), "priorities", "<f4", (b,))
+        arrays = read_raw(data, KIND_PRIORITY_UPDATE, PriorityUpdate.VERSION, PriorityUpdate.schema(b),
+                          PriorityUpdate.KIND)
+        priorities = arrays["priorities"]
         if not (np.isfinite(priorities).all() and (priorities > 0).all()):
             raise ProtoError("non_finite", "priorities must be finite and positive")
-        return PriorityUpdate(keys, priorities)
+        return PriorityUpdate(arrays["keys"], priorities)
 
 
 @dataclass

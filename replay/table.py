@@ -127,6 +127,17 @@ class SampleBatch:
     next_obs: np.ndarray
 
 
+def stack_frames(ranges: np.ndarray, labels: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """Frames ((B, R, beams), (B, L, beams), (B, G, 3)) into stacked float32 observations (B, size)."""
+    b = len(ranges)
+    r, lab = ranges[0].size, labels[0].size
+    out = np.empty((b, r + lab + goal[0].size), np.float32)
+    out[:, :r] = ranges.reshape(b, -1)
+    out[:, r:r + lab] = labels.reshape(b, -1)
+    out[:, r + lab:] = goal.reshape(b, -1)
+    return out
+
+
 class ReplayTable:
     """See the module docstring. Thread-safe; ``insert`` and ``sample`` may block on the limiter."""
 
@@ -297,6 +308,35 @@ class ReplayTable:
 
     def sample(self, batch_size: int, timeout: float | None = None) -> SampleBatch:
         """Draw ``batch_size`` transitions (with replacement); blocks on the rate limiter."""
+        f = self.sample_frames(batch_size, timeout)
+        return SampleBatch(keys=f["keys"], probabilities=f["probabilities"].astype(np.float64),
+                           priorities=f["priorities"], times_sampled=f["times_sampled"],
+                           obs=stack_frames(f["obs_ranges"], f["obs_labels"], f["obs_goal"]), action=f["action"],
+                           reward=f["reward"], discount=f["discount"],
+                           next_obs=stack_frames(f["next_ranges"], f["next_labels"], f["next_goal"]))
+
+    def frame_shapes(self, batch_size: int) -> dict[str, tuple[str, tuple[int, ...]]]:
+        """``name -> (dtype, shape)`` of what ``sample_frames`` fills (``SampledBatch.schema``)."""
+        lay, b = self.layout, batch_size
+        frames = {"ranges": ("<f2", (b, lay.range_frames, lay.beams)), "labels": ("|u1", (b, lay.label_frames, lay.beams)),
+                  "goal": ("<f4", (b, lay.goal_frames, 3))}
+        return {**{f"obs_{k}": v for k, v in frames.items()}, **{f"next_{k}": v for k, v in frames.items()},
+                "action": ("<f4", (b, self.action_size)), "reward": ("<f4", (b,)), "discount": ("<f4", (b,)),
+                "keys": ("<i8", (b,)), "probabilities": ("<f4", (b,))}
+
+    def sample_frames(self, batch_size: int, timeout: float | None = None,
+                      out: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+        """Draw ``batch_size`` transitions and gather them as frames, one vectorised gather per
+        array, straight into ``out`` (arrays of ``frame_shapes``: the views of a message being
+        built) or into new arrays. Also returns ``priorities`` and ``times_sampled``.
+
+        The observation of an item is the history of its frame (``layout.history`` frames,
+        oldest first, the episode's first frame repeated before it), as the environment
+        stacked it; ranges, labels and goals take the newest ``range_frames``,
+        ``label_frames`` and ``goal_frames`` of that history."""
+        shapes = self.frame_shapes(batch_size)
+        if out is None:
+            out = {name: np.empty(shape, dtype) for name, (dtype, shape) in shapes.items()}
         with self._cond:
             self._wait(lambda: self.rate_limiter.can_sample(self.size, batch_size), timeout, "sample")
             slots = self._draw(batch_size)
@@ -308,19 +348,46 @@ class ReplayTable:
                 self._t_priority[slots[stale]] = 0.0  # never drawn again by the prioritised sampler
                 slots[stale] = self._draw(int(stale.sum()))
                 stale = self._t_obs[slots] < oldest
-            probabilities = self._probabilities(slots)
+            out["probabilities"][...] = self._probabilities(slots)
             self._t_sampled[slots] += 1
             self.rate_limiter.samples += batch_size
             self.total_sampled += batch_size
-            obs = self._observations(self._t_obs[slots], oldest)
-            next_obs = self._observations(self._t_next[slots], oldest)
-            keys = self._first_key + ((slots - self._first_key) % self.max_size)
-            out = SampleBatch(keys=keys.astype(np.int64), probabilities=probabilities,
-                              priorities=self._t_priority[slots].copy(), times_sampled=self._t_sampled[slots].copy(),
-                              obs=obs, action=self._t_action[slots].copy(), reward=self._t_reward[slots].copy(),
-                              discount=self._t_discount[slots].copy(), next_obs=next_obs)
+            for prefix, ids in (("obs_", self._t_obs[slots]), ("next_", self._t_next[slots])):
+                self._gather_frames(self._history(ids, oldest), out, prefix)
+            np.take(self._t_action, slots, axis=0, out=out["action"], mode="wrap")
+            np.take(self._t_reward, slots, out=out["reward"], mode="wrap")
+            np.take(self._t_discount, slots, out=out["discount"], mode="wrap")
+            out["keys"][...] = self._first_key + ((slots - self._first_key) % self.max_size)
+            out["priorities"] = self._t_priority[slots]
+            out["times_sampled"] = self._t_sampled[slots]
             self._cond.notify_all()
-            return out
+        return out
+
+    def _history(self, frame_ids: np.ndarray, oldest: int) -> np.ndarray:
+        """Frame ids (B, history) of the observations ending at ``frame_ids``, oldest first."""
+        h = self.layout.history
+        hist = np.empty((len(frame_ids), h), np.int64)
+        hist[:, h - 1] = ids = frame_ids
+        for k in range(h - 2, -1, -1):
+            prev = self._f_prev[ids % self.frame_capacity]
+            ids = np.where(prev >= oldest, prev, ids)
+            hist[:, k] = ids
+        return hist
+
+    def _observations(self, frame_ids: np.ndarray, oldest: int) -> np.ndarray:
+        """Stacked float32 observations (B, size) ending at ``frame_ids``."""
+        out = {name: np.empty(shape, dtype) for name, (dtype, shape) in self.frame_shapes(len(frame_ids)).items()}
+        self._gather_frames(self._history(frame_ids, oldest), out, "obs_")
+        return stack_frames(out["obs_ranges"], out["obs_labels"], out["obs_goal"])
+
+    def _gather_frames(self, hist: np.ndarray, out: dict[str, np.ndarray], prefix: str) -> None:
+        lay = self.layout
+        h = lay.history
+        slots = hist % self.frame_capacity
+        for name, store, count in (("ranges", self._f_ranges, lay.range_frames),
+                                   ("labels", self._f_labels, lay.label_frames),
+                                   ("goal", self._f_goal, lay.goal_frames)):
+            np.take(store, slots[:, h - count:], axis=0, out=out[prefix + name], mode="wrap")
 
     def _live_slots(self) -> np.ndarray:
         return (self._first_key + np.arange(self.size)) % self.max_size
@@ -342,33 +409,6 @@ class ReplayTable:
         live = self._live_slots()
         total = (self._t_priority[live] ** self.priority_exponent).sum()
         return (self._t_priority[slots] ** self.priority_exponent) / max(total, 1e-300)
-
-    def _observations(self, frame_ids: np.ndarray, oldest: int) -> np.ndarray:
-        layout = self.layout
-        fc = self.frame_capacity
-        history = [frame_ids]
-        ids = frame_ids
-        for _ in range(layout.history - 1):
-            prev = self._f_prev[ids % fc]
-            ids = np.where(prev >= oldest, prev, ids)
-            history.append(ids)
-        history.reverse()  # oldest first
-        b = len(frame_ids)
-        beams = layout.beams
-        out = np.empty((b, layout.size), np.float32)
-        r_end = layout.range_frames * beams
-        l_end = r_end + layout.label_frames * beams
-        ranges = out[:, :r_end].reshape(b, layout.range_frames, beams)
-        labels = out[:, r_end:l_end].reshape(b, layout.label_frames, beams)
-        goals = out[:, l_end:].reshape(b, layout.goal_frames, 3)
-        h = layout.history
-        for k in range(layout.range_frames):
-            ranges[:, k] = self._f_ranges[history[h - layout.range_frames + k] % fc]
-        for k in range(layout.label_frames):
-            labels[:, k] = self._f_labels[history[h - layout.label_frames + k] % fc]
-        for k in range(layout.goal_frames):
-            goals[:, k] = self._f_goal[history[h - layout.goal_frames + k] % fc]
-        return out
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> int:
         """Set priorities of live keys (stale keys are ignored); returns how many were set."""

@@ -12,6 +12,7 @@ from curlnav.proto.messages import (
     Assignment,
     AssignmentRequest,
     EpisodeReport,
+    SampledBatch,
     SampleRequest,
     ServiceStatus,
     TransitionBatch,
@@ -98,7 +99,8 @@ def test_replay_core_counts_rejections_and_keeps_accepted_data(tmp_path):
     assert service.table.size == 12
     assert service.rejected() == {"malformed": 2, "version": 1}
     reply = service.handle_sample(SampleRequest(8, 0.1).encode())
-    assert len(reply) > 8 * LAYOUT.size * 4
+    batch = SampledBatch.decode(reply, LAYOUT)  # raw buffers: frames, checked against the layout
+    assert batch.obs().shape == batch.next_obs().shape == (8, LAYOUT.size) and len(batch.keys) == 8
     # no save, no close: as after kill -9, the log has every accepted batch
     restored = ReplayService(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))), small)
     assert restored.table.size == 12 and restored.accepted_total == 12

@@ -43,115 +43,182 @@ def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: in
     session.close()
 
 
-def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64,
-                        run_dir: str = "runs/bench-transport") -> dict:
-    from curlnav.bus.transport import open_session, reliable_publisher
-    from curlnav.config import D4PGConfig
+def _start_services(run_dir: Path, router: str, run: str, shm: bool) -> tuple[list[subprocess.Popen], str]:
+    common = [sys.executable, "-m", "curlnav.cli", "serve"]
+    procs = [subprocess.Popen(common + ["router", "--listen", router], stdout=open(run_dir / "logs/router.log", "wb"),
+                              stderr=subprocess.STDOUT),
+             subprocess.Popen(common + ["replay", "--router", router, "--run", run, "--data-dir", str(run_dir),
+                                        "--set", "replay.min_size=256", "--set", "replay.samples_per_insert=0"]
+                              + (["--shm"] if shm else []),
+                              stdout=open(run_dir / "logs/replay.log", "wb"), stderr=subprocess.STDOUT)]
+    port_file = run_dir / "replay" / "http_port"
+    deadline = time.monotonic() + 60
+    while not port_file.exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    return procs, f"http://127.0.0.1:{int(port_file.read_text())}/healthz"
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs[::-1]:
+        p.terminate()
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, per_batch: int, in_flight: int,
+                       weights: bool) -> dict:
+    """One measurement: ``publishers`` processes insert while a ``SampleFeed`` (the learner's
+    sampler) samples batches of 256 over the same window; ``path`` is plain or shm."""
+    from curlnav.bus.transport import open_session
     from curlnav.layout import ObservationLayout
-    from curlnav.learner.d4pg import init_state
-    from curlnav.learner.service import weights_message
-    from curlnav.proto.messages import SampledBatch, SampleRequest, Weights
+    from curlnav.learner.feed import SampleFeed
     from curlnav.proto.topology import Topology
     from curlnav.run.launch import free_port, http_json
 
-    run_dir = Path(run_dir)
     if run_dir.exists():
         import shutil
 
         shutil.rmtree(run_dir)
     (run_dir / "logs").mkdir(parents=True)
-    port = free_port()
-    router = f"tcp/127.0.0.1:{port}"
+    router = f"tcp/127.0.0.1:{free_port()}"
     run = "bench"
-    print(f"machine: {platform.machine()} cpus={os.cpu_count()} python={platform.python_version()}")
-    common = [sys.executable, "-m", "curlnav.cli", "serve"]
-    procs = [subprocess.Popen(common + ["router", "--listen", router], stdout=open(run_dir / "logs/router.log", "wb"),
-                              stderr=subprocess.STDOUT),
-             subprocess.Popen(common + ["replay", "--router", router, "--run", run, "--data-dir", str(run_dir),
-                                        "--set", "replay.min_size=256", "--set", "replay.samples_per_insert=0"],
-                              stdout=open(run_dir / "logs/replay.log", "wb"), stderr=subprocess.STDOUT)]
+    procs, replay_url = _start_services(run_dir, router, run, shm=path == "shm")
     try:
-        port_file = run_dir / "replay" / "http_port"
-        deadline = time.monotonic() + 60
-        while not port_file.exists() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        replay_url = f"http://127.0.0.1:{int(port_file.read_text())}/healthz"
         session = open_session(router)
         topo = Topology(run)
         # each publisher's n-step writer (n = 5) holds its last 4 steps back: they never complete
         sent = publishers * (batches * per_batch - 4)
-        print(f"{publishers} publisher processes x {batches} batches x {per_batch} steps = {sent:,} transitions")
+        print(f"[{path}] {publishers} publisher processes x {batches} batches x {per_batch} steps = {sent:,} "
+              f"transitions; the learner's sampler: batches of 256, {in_flight} requests in flight")
         pubs = [subprocess.Popen([sys.executable, "-m", "curlnav.bench.transport", router, run, f"pub-{i}", str(batches),
                                   str(per_batch)]) for i in range(publishers)]
+        feed = SampleFeed(session, topo.sample, 256, ObservationLayout(), in_flight=in_flight, depth=in_flight)
         sampled = [0]
         sample_stop = threading.Event()
 
-        def sampler():
-            request = SampleRequest(256, 0.2).encode()
+        def consume():  # what the learner's loop does with a batch: take it
             while not sample_stop.is_set():
-                for reply in session.get(topo.sample, payload=request, timeout=5.0):
-                    if reply.ok is not None:
-                        SampledBatch.decode(reply.ok.payload.to_bytes())
-                        sampled[0] += 256
+                if feed.get(timeout=0.2) is not None:
+                    sampled[0] += 256
 
-        thread = threading.Thread(target=sampler, daemon=True)
-        # time from the first accepted transition to the last
+        consumer = threading.Thread(target=consume, daemon=True)
         start = None
-        while True:
+        while True:  # time from the first accepted transition to the last
             info = http_json(replay_url)
             if start is None and info["inserted"] > 0:
                 start = time.monotonic()
-                sampled_at_start = sampled[0]
-                thread.start()
+                feed.start()
+                consumer.start()
             if info["inserted"] >= sent or (all(p.poll() is not None for p in pubs) and start and
                                             time.monotonic() - start > 120):
                 break
-            time.sleep(0.05)
+            time.sleep(0.02)
         elapsed = time.monotonic() - start
+        got = sampled[0]
         sample_stop.set()
-        thread.join(timeout=10)
+        consumer.join(timeout=10)
+        feed.close()
         for p in pubs:
             p.wait(timeout=60)
         info = http_json(replay_url)
+        reasons = _rejection_reasons(replay_url.replace("/healthz", "/metrics"))
         rate = info["inserted"] / elapsed
-        print(f"accepted {info['inserted']:,} of {sent:,} transitions in {elapsed:.2f} s: {rate:,.0f} transitions/s; "
-              f"lost {sent - info['inserted']}, sequence gaps {info['seq_gaps']}, rejected {info['rejected']}")
-        print(f"sampled meanwhile: {(sampled[0] - sampled_at_start) / elapsed:,.0f} transitions/s "
-              f"({(sampled[0] - sampled_at_start) / 256 / elapsed:.1f} batches of 256 per second)")
-        # weight broadcast latency, default network, through the router
-        state = init_state(D4PGConfig(), ObservationLayout(), "cpu")
-        payload_size = len(weights_message(state, 0).encode())
-        arrivals: dict[int, float] = {}
-        listener = open_session(router)
-        sub = listener.declare_subscriber(topo.weights, lambda s: arrivals.setdefault(
-            Weights.decode(s.payload.to_bytes()).version, time.perf_counter()))
-        pub = reliable_publisher(session, topo.weights)
-        time.sleep(1.0)
-        latencies = []
-        for v in range(1, 31):
-            msg = weights_message(state, v)
-            sent_at = time.perf_counter()
-            pub.put(msg.encode())
-            deadline = time.monotonic() + 5
-            while v not in arrivals and time.monotonic() < deadline:
-                time.sleep(0.0002)
-            if v in arrivals:
-                latencies.append((arrivals[v] - sent_at) * 1000)
-            time.sleep(0.05)
-        sub.undeclare()
-        listener.close()
+        sample_rate = got / elapsed
+        refused = sum(feed.rejected.values())
+        print(f"[{path}] inserting: {rate:,.0f} transitions/s; accepted {info['inserted']:,} of {sent:,} in "
+              f"{elapsed:.2f} s; lost {sent - info['inserted']}, sequence gaps {info['seq_gaps']}, rejected "
+              f"{info['rejected']:.0f}{' ' + str(reasons) if reasons else ''}")
+        shm_note = (f", {feed.payload_shm} of {feed.received} replies through shared memory" if path == "shm" else "")
+        print(f"[{path}] sampling:  {sample_rate:,.0f} transitions/s; {sample_rate / 256:,.1f} batches of 256 per "
+              f"second over the same {elapsed:.2f} s; lost {feed.unanswered + refused} (unanswered "
+              f"{feed.unanswered}, refused {refused}), error replies {feed.errors}{shm_note}")
+        out = {"path": path, "transitions_per_s": rate, "lost": sent - info["inserted"], "seq_gaps": info["seq_gaps"],
+               "sampled_per_s": sample_rate, "sample_lost": feed.unanswered + refused,
+               "shm_replies": feed.payload_shm, "replies": feed.received}
+        if weights:
+            out["weights_latency_ms"] = _weights_latency(session, router, topo)
         session.close()
-        print(f"weights broadcast ({payload_size / 1e6:.2f} MB, default network, encode + router + decode): "
-              f"median {np.median(latencies):.1f} ms, p90 {np.percentile(latencies, 90):.1f} ms over {len(latencies)}")
-        return {"transitions_per_s": rate, "lost": sent - info["inserted"], "seq_gaps": info["seq_gaps"],
-                "sampled_per_s": (sampled[0] - sampled_at_start) / elapsed, "weights_latency_ms": float(np.median(latencies))}
+        return out
     finally:
-        for p in procs[::-1]:
-            p.terminate()
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        _stop(procs)
+
+
+def _rejection_reasons(url: str) -> dict[str, int]:
+    import re
+    import urllib.request
+
+    try:
+        text = urllib.request.urlopen(url, timeout=5).read().decode()
+    except OSError:
+        return {}
+    return {m[1]: int(float(m[2])) for m in re.finditer(r'replay_messages_rejected_total\{reason="([^"]+)"\} (\S+)', text)}
+
+
+def _weights_latency(session, router: str, topo) -> float:
+    """The default network's weights broadcast through the router: one-way latency (ms)."""
+    from curlnav.bus.transport import open_session, reliable_publisher
+    from curlnav.config import D4PGConfig
+    from curlnav.layout import ObservationLayout
+    from curlnav.learner.d4pg import init_state
+    from curlnav.learner.service import weights_message
+    from curlnav.proto.messages import Weights
+
+    state = init_state(D4PGConfig(), ObservationLayout(), "cpu")
+    payload_size = len(weights_message(state, 0).encode())
+    arrivals: dict[int, float] = {}
+    listener = open_session(router)
+    sub = listener.declare_subscriber(topo.weights, lambda s: arrivals.setdefault(
+        Weights.decode(s.payload.to_bytes()).version, time.perf_counter()))
+    pub = reliable_publisher(session, topo.weights)
+    time.sleep(1.0)
+    latencies = []
+    for v in range(1, 31):
+        msg = weights_message(state, v)
+        sent_at = time.perf_counter()
+        pub.put(msg.encode())
+        deadline = time.monotonic() + 5
+        while v not in arrivals and time.monotonic() < deadline:
+            time.sleep(0.0002)
+        if v in arrivals:
+            latencies.append((arrivals[v] - sent_at) * 1000)
+        time.sleep(0.05)
+    sub.undeclare()
+    listener.close()
+    print(f"weights broadcast ({payload_size / 1e6:.2f} MB, default network, encode + router + decode): "
+          f"median {np.median(latencies):.1f} ms, p90 {np.percentile(latencies, 90):.1f} ms over {len(latencies)}")
+    return float(np.median(latencies))
+
+
+def shm_support() -> str | None:
+    """``None`` when this zenoh wheel can allocate shared memory, else why not."""
+    try:
+        from zenoh import shm
+
+        provider = shm.ShmProvider.default_backend(1 << 20)
+        provider.alloc(1024, shm.BlockOn(shm.GarbageCollect()))
+    except Exception as exc:  # an old wheel without zenoh.shm, or no /dev/shm
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64,
+                        run_dir: str = "runs/bench-transport", paths: tuple[str, ...] = ("plain", "shm"),
+                        in_flight: int = 4) -> dict:
+    """Inserting and sampling side by side, once per sampling path (plain: the reply's bytes
+    through the router's sockets; shm: the replay answers from Zenoh shared memory), then the
+    weights broadcast latency."""
+    print(f"machine: {platform.machine()} cpus={os.cpu_count()} python={platform.python_version()} "
+          f"load average {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    if "shm" in paths and (why := shm_support()) is not None:
+        print(f"shm: not measured, this zenoh wheel cannot allocate shared memory ({why})")
+        paths = tuple(p for p in paths if p != "shm")
+    results = {}
+    for i, path in enumerate(paths):
+        results[path] = _insert_and_sample(Path(run_dir), path, publishers, batches, per_batch, in_flight,
+                                           weights=i == len(paths) - 1)
+    return results
 
 
 if __name__ == "__main__":

@@ -39,7 +39,6 @@ from curlnav.config import ExperimentConfig
 from curlnav.evaluation.protocol import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy, training_worlds
 from curlnav.learner.d4pg import (
-    TensorBatch,
     act,
     adopt_training_config,
     load_checkpoint,
@@ -47,6 +46,7 @@ from curlnav.learner.d4pg import (
     save_checkpoint,
     sgd_step,
 )
+from curlnav.learner.feed import BatchAssembler
 from curlnav.run.record import (
     EVAL_FIELDS,
     TRAIN_FIELDS,
@@ -96,6 +96,7 @@ class SerialTrainer:
         else:
             self.state = self._initial_state(builder)
             self.table = builder.make_replay_table()
+        self.assembler = BatchAssembler(self.state.device)
         self.curriculum = self._load_curriculum()
         # what artefacts name as their training (worlds, curriculum): fixed for the run, read once
         self.artefact_training = training_worlds(str(experiment.curriculum.world), experiment.curriculum.file)
@@ -200,12 +201,13 @@ class SerialTrainer:
         """One update from a sampled batch (importance-weighted and re-prioritised when the
         replay is prioritized)."""
         batch_size = self.experiment.d4pg.batch_size
-        sample = self.table.sample(batch_size, timeout=0)
-        weights = self.builder.importance_weights(sample.probabilities, self.table.size)
-        self.state, self.metrics, item_loss = sgd_step(self.state, TensorBatch.from_sample(sample, self.state.device,
-                                                                                           weights))
+        # frames gathered from the table, stacked into float32 by torch (numpy's float16
+        # conversion took most of an update's sampling time)
+        sample = self.table.sample_frames(batch_size, timeout=0)
+        weights = self.builder.importance_weights(sample["probabilities"], self.table.size)
+        self.state, self.metrics, item_loss = sgd_step(self.state, self.assembler(sample, weights))
         if self.experiment.replay.prioritized:
-            self.table.update_priorities(sample.keys, item_loss + 1e-6)
+            self.table.update_priorities(sample["keys"], item_loss + 1e-6)
 
     def _next_evaluation_number(self) -> int:
         """The next evaluation's number in eval.csv. A resumed run continues after the highest
