@@ -126,7 +126,7 @@ class SampleFeed:
     ``payload_shm`` counts replies that came through Zenoh shared memory."""
 
     def __init__(self, session, key: str, batch_size: int, layout, in_flight: int = 4, depth: int = 4,
-                 assembler: BatchAssembler | None = None, request_timeout_s: float = 0.5,
+                 assembler: BatchAssembler | None = None, request_timeout_s: float = 0.1,
                  on_reject=None) -> None:
         self.session, self.key, self.layout = session, key, layout
         self.batch_size = batch_size
