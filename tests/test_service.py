@@ -109,10 +109,11 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
     # 1000 malformed messages on each input key, each from the role allowed to send it (the bus
     # refuses everyone else: tests/test_bus_auth.py): counted, nobody dies
     topo = Topology("itest")
-    sessions = {role: cluster.bus_session(role) for role in ("actor", "learner", "replay")}
+    # an actor may put only under its own id (one bus identity per actor): actor-1 sends the garbage
+    sessions = {role: cluster.bus_session(role, ident="actor-1") for role in ("actor", "learner", "replay")}
     try:
         publishers = [reliable_publisher(sessions[role], k) for role, k in
-                      (("actor", topo.transitions("evil")), ("actor", topo.episodes("evil")),
+                      (("actor", topo.transitions("actor-1")), ("actor", topo.episodes("actor-1")),
                        ("replay", topo.status("replay")), ("learner", topo.weights))]
         for i in range(1000):
             for pub in publishers:
