@@ -72,12 +72,14 @@ def resolve_train_config(args: argparse.Namespace, run_dir: Path) -> ExperimentC
 
 
 def check_before_start(experiment: ExperimentConfig) -> None:
-    """Everything the run will load, loaded now (one line, exit 2, nothing started): the world,
-    that it can draw pairs, and with a curriculum every world of every stage and every named
+    """Everything the run will load, loaded now (one line, exit 2, nothing started): the world
+    (never a held-out seed), that it can draw pairs, and with a curriculum every world of every stage and every named
     sub-step pair."""
     from curlnav.sim import get_world
     from curlnav.sim.pairs import check_pairs_possible
+    from curlnav.worlds.heldout import check_training_world
 
+    check_training_world(experiment.curriculum.world)  # a held-out FAMILY:SEED: refused before any service starts
     world = get_world(experiment.curriculum.world)
     robot = experiment.env.robot
     check_pairs_possible(world, (robot.base_length, robot.base_width))
