@@ -164,6 +164,8 @@ def test_config_show_prints_the_resolved_config_and_a_file_round_trips(tmp_path,
     (["train", "--set", "d4pg.batch_size=0"], "d4pg.batch_size must be a positive number"),
     (["train", "--set", "replay.min_size=100"], "must be at least d4pg.batch_size"),
     (["train", "--resume"], "nothing to resume"),
+    (["train", "--world", "namo-office:300"], "namo-office seed 300 is held out for evaluation"),
+    (["train", "--serial", "--world", "namo-office:300"], "namo-office seed 300 is held out for evaluation"),
     (["train", "--serial", "--curriculum", str(Path(__file__).parents[1] / "scheduler" / "curricula" / "s1+s2-eval.yaml"),
       "--eval-episodes", "20"], "stage S1's advance (source: evaluation, window 8) can never fire"),
 ])
