@@ -306,7 +306,10 @@ class DistributedRun:
             before = rate.get(key, (0, 0.0))
             successes = (value.get("success_rate") or 0.0) * done
             if done > before[0]:  # success over the episodes since the last row
-                scalars[f"train/success/{Path(world).stem}/{pair or 'random'}"] = (successes - before[1]) / (done - before[0])
+                # a world file by its stem; a built-in, FAMILY:SEED or distribution key as it is (a
+                # distribution's params hold decimal points, which Path.stem would cut at)
+                name = Path(world).stem if world.endswith((".yaml", ".yml")) else world
+                scalars[f"train/success/{name}/{pair or 'random'}"] = (successes - before[1]) / (done - before[0])
             rate[key] = (done, successes)
         board.scalars(scalars, env_steps)
         budget = self.experiment.budget
