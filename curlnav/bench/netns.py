@@ -34,7 +34,18 @@ def unavailable() -> str | None:
     result = _ip("netns", "add", probe, check=False)
     if result.returncode != 0:
         return f"`ip netns add` refused: {result.stderr.strip()}"
-    _ip("netns", "del", probe, check=False)
+    try:
+        # namespaces alone are not enough: the hosts need a bridge and veth pairs too
+        for args, what in ((("link", "add", f"{probe}b", "type", "bridge"), "a bridge"),
+                           (("link", "add", f"{probe}v", "type", "veth", "peer", "name", f"{probe}p"),
+                            "a veth pair")):
+            made = _ip(*args, check=False)
+            if made.returncode != 0:
+                return f"`ip link add` of {what} refused: {made.stderr.strip()}"
+    finally:
+        _ip("link", "del", f"{probe}b", check=False)
+        _ip("link", "del", f"{probe}v", check=False)
+        _ip("netns", "del", probe, check=False)
     return None
 
 
