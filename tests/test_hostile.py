@@ -358,7 +358,9 @@ def test_pull_refuses_a_body_above_the_size_cap_without_holding_it_in_memory(lea
     result, peak_mb, wall = curlnav("pull", "--from", learner.url, "--out", str(tmp_path / "policy"))
     print(f"pull of a {size >> 20} MiB body: peak {peak_mb:.0f} MB, {wall:.1f} s, rc {result.returncode}")
     assert_one_line_error(result, "actor.onnx", "above")
-    assert peak_mb < 400 and not (tmp_path / "policy").exists()
+    # the CLI's imports (ONNX Runtime for the check) peak at about 270 MB alone, up to 450 MB on a
+    # loaded machine; a body held in memory would add its 288 MB on top (over 550 MB)
+    assert peak_mb < 520 and not (tmp_path / "policy").exists()
     assert not list(tmp_path.iterdir())  # the temporary folder went too
 
     def declared(listing):  # a Content-Length above the cap: refused before the body
