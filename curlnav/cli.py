@@ -169,7 +169,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     with tqdm(total=comparison.episode_count(args.seeds), unit="episode", desc="eval", disable=None) as bar:
-        episodes = comparison.run(args.seeds, on_episode=lambda e: bar.update())
+        episodes = comparison.run(args.seeds, on_episode=lambda e: bar.update(), mcap=args.mcap)
     summaries = summarise(episodes)
     for s in summaries:
         if s.world != OVERALL or len(worlds) > 1:
@@ -178,6 +178,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         print(table_ii(summaries))
     elif len(agents) > 1 or len(worlds) > 1:
         print(table(summaries))
+    if args.mcap:
+        print(f"wrote {len(episodes)} MCAP episodes in {args.mcap}")
     if args.out:
         files = write_csv(episodes, summaries, args.out)
         if suite is not None:
@@ -548,6 +550,9 @@ def _add_training_commands(sub) -> None:
                         "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
                         "writes table2.md beside the CSV files and pictures")
     p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")
+    p.add_argument("--mcap", default=None, metavar="DIR",
+                   help="also write every episode of every agent to an MCAP file with ROS 2 schemas in DIR "
+                        "(AGENT__WORLD__PAIR__NNN.mcap; Foxglove opens them), as `curlnav policy run --mcap`")
     p.set_defaults(func=_cmd_eval)
 
     policy = sub.add_parser("policy", help="use exported policy artefacts")

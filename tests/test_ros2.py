@@ -600,3 +600,41 @@ def test_policy_run_writes_an_mcap_episode_that_reads_back_with_ros2_schemas(tmp
     assert {"balls", "goal", "path"} <= set(markers) and len(markers["path"].points) == steps + 1
     stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in decoded["/odom"]]
     assert np.allclose(np.diff(stamps), 0.2, atol=1e-3)  # simulated time, one control period a step
+
+
+def test_eval_writes_every_episode_of_every_agent_as_mcap_with_ros2_schemas(tmp_path):
+    import csv
+
+    from mcap.reader import make_reader
+
+    from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.compare import mcap_name
+
+    folder, out = tmp_path / "mcap", tmp_path / "out"
+    run = subprocess.run([sys.executable, "-m", "curlnav.cli", "eval", str(POLICY.relative_to(ROOT)), "oracle",
+                          "--world", "open-room", "--episodes", "2", "--mcap", str(folder), "--out", str(out)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    with open(out / "episodes.csv") as f:
+        episodes = list(csv.DictReader(f))
+    assert len(episodes) == 4
+    period = ExperimentConfig().eval_env.control_period
+    expected = {}
+    for n, e in enumerate(episodes):
+        name = mcap_name(e["agent"], e["world"], e["pair"], n % 2)
+        expected[name] = round(float(e["time_s"]) / period)
+    assert sorted(p.name for p in folder.iterdir()) == sorted(expected)
+    assert "policies_namo-s1-barn__open-room__eval-0__000.mcap" in expected  # file-system safe: no "/"
+    topics = {"/scan", "/odom", "/tf", "/tf_static", "/map", "/cmd_vel", "/arm_cmd", "/markers"}
+    for name, steps in expected.items():
+        with open(folder / name, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            assert reader.get_header().profile == "ros2"
+            schemas = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
+            counts = {summary.channels[i].topic: k for i, k in summary.statistics.channel_message_counts.items()}
+        assert set(schemas) == topics and all(s.encoding == "ros2msg" and s.data for s in schemas.values())
+        assert schemas["/scan"].name == "sensor_msgs/msg/LaserScan"
+        # the start, then one scan per control step of the episode; one command per step
+        assert counts["/scan"] == steps + 1 and counts["/cmd_vel"] == steps, (name, counts, steps)
+        assert counts["/map"] == counts["/tf_static"] == 1

@@ -17,13 +17,15 @@ trial succeeds, and stops, 0.8 m short of the goal, so that is the shortest succ
 
 Outputs: ``table`` (agents side by side), ``write_csv`` (``episodes.csv``, a row per episode;
 ``summary.csv``), ``draw_trajectories`` (a picture per world and pair with every agent's path,
-as the paper's Fig. 7).
+as the paper's Fig. 7), and with ``Comparison.run(mcap=DIR)`` every episode as an MCAP file with
+ROS 2 schemas (``curlnav.ros2.recording.EpisodeMcap``, as ``curlnav policy run --mcap``).
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import re
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -157,8 +159,12 @@ class Comparison:
             self._shortest[key] = max(to_goal - self.env_config.goal_tolerance, 0.0)
         return self._shortest[key]
 
-    def run(self, seeds: int = 1, on_episode: Callable[[Episode], None] | None = None) -> list[Episode]:
+    def run(self, seeds: int = 1, on_episode: Callable[[Episode], None] | None = None,
+            mcap: str | Path | None = None) -> list[Episode]:
+        """Every agent on every world's pairs, ``seeds`` times; with ``mcap`` (a folder), each
+        episode also written there as ``mcap_name(...)`` with ROS 2 schemas (``EpisodeMcap``)."""
         episodes: list[Episode] = []
+        names = _file_safe_labels(list(self.agents)) if mcap is not None else {}
         for world in self.worlds:
             pairs = self.pairs[world.name]
             for label, agent in self.agents.items():
@@ -176,7 +182,9 @@ class Comparison:
                             if on_episode:
                                 on_episode(episodes[-1])
 
-                        evaluate(agent, world, pairs, self.env_config, seed=base, on_episode=record, env=env)
+                        recorder = None if mcap is None else _mcap_recorder(Path(mcap), names[label], world, pairs, k)
+                        evaluate(agent, world, pairs, self.env_config, seed=base, on_episode=record, env=env,
+                                 recorder=recorder)
                 finally:
                     env.close()
         return episodes
@@ -190,6 +198,38 @@ class Comparison:
                        info["steps"] * self.env_config.control_period, int(info["base_collisions"]),
                        int(info["end_effector_collisions"]), driven, shortest, spl_term(success, shortest, driven),
                        int(info.get("base_collision_events", 0)), tuple(map(tuple, info["trajectory"])))
+
+
+def _file_safe(text: str) -> str:
+    """``text`` with every run of characters other than letters, digits, ``.``, ``_``, ``-`` as one ``_``."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._") or "_"
+
+
+def _file_safe_labels(labels: list[str]) -> dict[str, str]:
+    """A distinct file-system-safe name per agent label (``-2``, ``-3`` ... on a clash)."""
+    out: dict[str, str] = {}
+    for label in labels:
+        name, n = _file_safe(label), 1
+        while (name if n == 1 else f"{name}-{n}") in out.values():
+            n += 1
+        out[label] = name if n == 1 else f"{name}-{n}"
+    return out
+
+
+def _mcap_recorder(folder: Path, agent: str, world: World, pairs: list[StartGoal], k: int) -> Callable:
+    """``evaluate``'s ``recorder`` for seed ``k`` of ``agent`` on ``world``: an ``EpisodeMcap`` per episode."""
+    from curlnav.ros2.recording import EpisodeMcap
+
+    def recorder(i: int, env: NamoEnv, observation: np.ndarray) -> EpisodeMcap:
+        return EpisodeMcap(folder / mcap_name(agent, world.name, pairs[i].name, k * len(pairs) + i), env, observation)
+
+    return recorder
+
+
+def mcap_name(agent: str, world: str, pair: str, episode: int) -> str:
+    """The MCAP file of one episode: ``AGENT__WORLD__PAIR__NNN.mcap``, each part file-system safe;
+    ``episode`` counts the agent's episodes on the world (over seeds) from 0."""
+    return f"{_file_safe(agent)}__{_file_safe(world)}__{_file_safe(pair)}__{episode:03d}.mcap"
 
 
 def _mean(values: list[float]) -> float:

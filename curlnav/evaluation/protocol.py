@@ -82,13 +82,25 @@ class EpisodeAgent(Protocol):
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray: ...
 
 
+class StepRecorder(Protocol):
+    """What ``evaluate``'s ``recorder`` makes for an episode (``curlnav.ros2.recording.EpisodeMcap``
+    is one): ``step(action, observation)`` after each ``env.step``, ``close()`` when it ends."""
+
+    def step(self, action: np.ndarray, observation: np.ndarray) -> None: ...
+
+    def close(self) -> None: ...
+
+
 def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: str | World,
              pairs: list[StartGoal], env_config: EnvConfig | None = None, seed: int = EVAL_SEED,
-             on_episode: Callable[[int, dict], None] | None = None, env: NamoEnv | None = None) -> EvalResult:
+             on_episode: Callable[[int, dict], None] | None = None, env: NamoEnv | None = None,
+             recorder: Callable[[int, NamoEnv, np.ndarray], StepRecorder] | None = None) -> EvalResult:
     """Run ``policy`` (``obs -> action``, or an ``EpisodeAgent``) greedily once per pair (balls
     placed from ``seed + i``) in an environment of ``env_config`` (default:
     ``evaluation_config()``; pass an evaluation environment). ``on_episode(i, info)`` gets the
-    last step's ``info`` plus ``trajectory`` (the base's ``(x, y)`` at every step, m)."""
+    last step's ``info`` plus ``trajectory`` (the base's ``(x, y)`` at every step, m).
+    ``recorder(i, env, observation)``, if given, is called after each reset and returns a
+    ``StepRecorder`` that sees every step of episode ``i`` and is closed when it ends."""
     cfg = env_config if env_config is not None else evaluation_config()
     own_env = env is None
     env = env or NamoEnv(world, cfg)
@@ -99,11 +111,18 @@ def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: s
             obs, info = env.reset(seed=seed + i, options={"world": world, "pair": pair})
             if agent is not None:
                 agent.reset(env.world, env.pair)
-            while True:
-                action = agent.act(obs, info) if agent is not None else policy(obs)
-                obs, _, terminated, truncated, info = env.step(action)
-                if terminated or truncated:
-                    break
+            steps = recorder(i, env, obs) if recorder is not None else None
+            try:
+                while True:
+                    action = agent.act(obs, info) if agent is not None else policy(obs)
+                    obs, _, terminated, truncated, info = env.step(action)
+                    if steps is not None:
+                        steps.step(action, obs)
+                    if terminated or truncated:
+                        break
+            finally:
+                if steps is not None:
+                    steps.close()
             info["trajectory"] = list(env.trajectory)
             successes += int(info["is_success"])
             collisions += info["base_collisions"]
