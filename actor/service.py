@@ -64,7 +64,7 @@ class ActorServiceConfig:
     resend_memory_bytes: int = 64 << 20  # unacknowledged batches kept in memory ...
     resend_disk_bytes: int = 1 << 30  # ... then in a spill file in data_dir; beyond both the actor pauses
     resend_after_s: float = 5.0  # an unacknowledged batch is sent again (with all after it) after this
-    flush_s: float = 15.0  # at stop: how long to wait for the last batches to be acknowledged
+    flush_s: float = 10.0  # at stop: how long to wait for the last batches to be acknowledged (the launcher waits 30 s)
     unheard_batches: int = 64  # while the replay is not heard (cut off, restarting): batches made, then wait
 
     def __post_init__(self) -> None:
@@ -233,8 +233,8 @@ class ActorService:
         acknowledged, then the counts to ``<data_dir>/actor-final.json``."""
         self._batch_out(transitions)
         deadline = time.monotonic() + self.cfg.flush_s
-        while len(self.resend) and time.monotonic() < deadline:
-            self.send_due(transitions)
+        while len(self.resend) and time.monotonic() < deadline and self.heard(within_s=2.0):
+            self.send_due(transitions)  # a replay not heard for 2 s acknowledges nothing: stop waiting
             time.sleep(0.05)
         with self._resend_lock:
             held = len(self.resend)
