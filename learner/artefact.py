@@ -13,7 +13,6 @@ A folder with:
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 import tempfile
@@ -24,6 +23,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 
+from curlnav.policy import sha256_of  # the one checksum of artefact files, for writer and reader
 from curlnav.sim.config import EnvConfig
 
 from .d4pg import D4PGState
@@ -33,12 +33,6 @@ ARTEFACT_FORMAT = "curlnav-policy"
 ARTEFACT_VERSION = 1
 
 
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def training_worlds(curriculum_world: str, curriculum_file: str = "") -> tuple[list[str], dict]:

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from curlnav.proto.messages import SampledBatch
 
 from curlnav.layout import ObservationLayout
 
@@ -129,13 +130,7 @@ class SampleBatch:
 
 def stack_frames(ranges: np.ndarray, labels: np.ndarray, goal: np.ndarray) -> np.ndarray:
     """Frames ((B, R, beams), (B, L, beams), (B, G, 3)) into stacked float32 observations (B, size)."""
-    b = len(ranges)
-    r, lab = ranges[0].size, labels[0].size
-    out = np.empty((b, r + lab + goal[0].size), np.float32)
-    out[:, :r] = ranges.reshape(b, -1)
-    out[:, r:r + lab] = labels.reshape(b, -1)
-    out[:, r + lab:] = goal.reshape(b, -1)
-    return out
+    return SampledBatch.stack(ranges, labels, goal)  # one stacking, beside the wire schema
 
 
 class ReplayTable:
