@@ -79,6 +79,10 @@ class Hosts:
         try:
             _ip("link", "add", self.bridge, "type", "bridge")
             self.made.append(f"link:{self.bridge}")
+            # a Docker engine sets iptables' FORWARD policy to DROP, which also drops bridged traffic
+            # between the namespaces: let this bridge's own traffic through (best effort, no iptables: fine)
+            subprocess.run(["iptables", "-I", "FORWARD", "-i", self.bridge, "-o", self.bridge, "-j", "ACCEPT"],
+                           capture_output=True, timeout=30, check=False)
             _ip("addr", "add", f"{self.subnet}.254/24", "dev", self.bridge)
             _ip("link", "set", self.bridge, "up")
             for i in range(self.count):
