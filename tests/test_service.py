@@ -134,8 +134,10 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
     assert cluster.dead() == []
     version = status()["learner"]["version"]
     wait_for("learning goes on", lambda: status()["learner"]["version"] > version, timeout=120)
-    # policy artefacts are served with their checksums
-    listing = http_json(f"http://127.0.0.1:{learner_port}/policy/latest")
+    # policy artefacts are served with their checksums: v0 at start, then one every 5 s (--export-every-s),
+    # so a trained version appears within a few export periods even on a loaded machine
+    listing = wait_for("a trained policy version exported", lambda: (
+        (got := http_json(f"http://127.0.0.1:{learner_port}/policy/latest"))["version"] >= 1 and got), timeout=60)
     assert listing["version"] >= 1 and "actor.onnx" in listing["files"] and listing["files"]["actor.onnx"]["sha256"]
     # a killed actor leaves /status
     cluster.kill_process("actor-1")
