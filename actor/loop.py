@@ -75,7 +75,9 @@ class EpisodeLoop:
         if terminated or truncated:
             self.episodes += 1
             self.obs = None
-            return EpisodeEnd(info, self.episode_return, bool(truncated and not terminated))
+            end = EpisodeEnd(info, self.episode_return, bool(truncated and not terminated))
+            self.worlds.record(end.success)  # the level sampler of a drawn world learns the outcome
+            return end
         return None
 
     def flush(self) -> FrameBatch:

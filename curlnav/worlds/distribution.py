@@ -15,6 +15,9 @@ In a curriculum file a stage's ``worlds`` may hold, beside world files and names
 - ``every`` (default 1): a fresh world is drawn every ``every`` episodes of this distribution;
   the episodes between are spread uniformly over the last ``pool`` (default 4) fresh worlds,
   whose scenes stay built (``NamoEnv.scene_cache``). ``every: 1`` is a new world per episode.
+- ``levels`` (default ``uniform``): which seed a fresh draw takes: ``uniform``, ``difficulty``
+  (the paper's ordering: a widening frontier of the easiest seeds) or ``plr`` (prioritized level
+  replay by learnability and staleness, fresh levels from that frontier): ``curlnav.worlds.levels``.
 
 A distribution travels as its canonical key (``WorldDistribution.key``), e.g.
 ``barn-3x3:0-99(fill_pct=0.1~0.3)``: the scheduler assigns it, the actor parses and draws it, and
@@ -36,11 +39,12 @@ import numpy as np
 from curlnav.sim.world import World
 
 from .heldout import check_training_seed, check_training_world, held_out_from
+from .levels import LEVEL_SAMPLERS, LevelSampler
 
 DEFAULT_EVERY = 1  # episodes per fresh world
 DEFAULT_POOL = 4  # fresh worlds the episodes between fresh draws are spread over
 DEFAULT_CACHE = 16  # built worlds (and scenes) an actor keeps, all distributions together
-SPEC_KEYS = ("family", "seeds", "params", "every", "pool")
+SPEC_KEYS = ("family", "seeds", "params", "every", "pool", "levels")
 _KEY = re.compile(r"^(?P<family>[a-z0-9][a-z0-9-]*):(?P<lo>\d+)-(?P<hi>\d+)(?:\((?P<body>[^()]*)\))?$")
 
 
@@ -125,6 +129,7 @@ class WorldDistribution:
     params: tuple[ParamRange, ...] = ()
     every: int = DEFAULT_EVERY
     pool: int = DEFAULT_POOL
+    levels: str = "uniform"  # the level sampler (curlnav.worlds.levels.LEVEL_SAMPLERS)
 
     def __post_init__(self) -> None:
         known = _generator_params(self.family)
@@ -144,6 +149,9 @@ class WorldDistribution:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise DistributionError(f"{self.family}: {name} must be a whole number >= 1, got {_show(value)}")
+        if self.levels not in LEVEL_SAMPLERS:
+            raise DistributionError(f"{self.family}: levels must be one of {', '.join(LEVEL_SAMPLERS)}, "
+                                    f"got {_show(self.levels)}")
 
     # -- the two spellings ---------------------------------------------------------------------
     @staticmethod
@@ -166,7 +174,7 @@ class WorldDistribution:
             raise DistributionError(f"{family[:40]}: params must be a mapping, got {_show(params)}")
         ranges = tuple(ParamRange.from_spec(str(k), v) for k, v in sorted(params.items(), key=lambda kv: str(kv[0])))
         return WorldDistribution(family, seeds[0], seeds[1], ranges, raw.get("every", DEFAULT_EVERY),
-                                 raw.get("pool", DEFAULT_POOL))
+                                 raw.get("pool", DEFAULT_POOL), raw.get("levels", "uniform"))
 
     @property
     def key(self) -> str:
@@ -177,6 +185,8 @@ class WorldDistribution:
             parts.append(f"every={self.every}")
         if self.pool != DEFAULT_POOL:
             parts.append(f"pool={self.pool}")
+        if self.levels != "uniform":
+            parts.append(f"levels={self.levels}")
         return f"{self.family}:{self.lo}-{self.hi}" + (f"({','.join(parts)})" if parts else "")
 
     @staticmethod
@@ -186,11 +196,14 @@ class WorldDistribution:
         if not m:
             raise DistributionError(f"{_show(key)} is not a world distribution (FAMILY:LO-HI or "
                                     f"FAMILY:LO-HI(name=lo~hi,...))")
-        params, every, pool = [], DEFAULT_EVERY, DEFAULT_POOL
+        params, every, pool, levels = [], DEFAULT_EVERY, DEFAULT_POOL, "uniform"
         for item in filter(None, (m.group("body") or "").split(",")):
             name, sep, text = item.partition("=")
             if not sep:
                 raise DistributionError(f"{_show(key)}: {_show(item)} is not name=value")
+            if name == "levels":
+                levels = text
+                continue
             if name in ("every", "pool"):
                 if not text.isdigit():
                     raise DistributionError(f"{_show(key)}: {name} must be a whole number, got {_show(text)}")
@@ -203,7 +216,8 @@ class WorldDistribution:
                 params.append(ParamRange.from_spec(name, [lo, hi]))
             else:
                 params.append(ParamRange(name, value=_scalar(text)))
-        return WorldDistribution(m.group("family"), int(m.group("lo")), int(m.group("hi")), tuple(params), every, pool)
+        return WorldDistribution(m.group("family"), int(m.group("lo")), int(m.group("hi")), tuple(params), every, pool,
+                                 levels)
 
     # -- worlds ----------------------------------------------------------------------------
     @property
@@ -261,12 +275,15 @@ class WorldDraws:
     _worlds: OrderedDict = field(init=False, default_factory=OrderedDict)  # (key, seed) -> World
     _draws: dict = field(init=False, default_factory=dict)  # key -> _Draws
     _parsed: dict = field(init=False, default_factory=dict)  # key -> WorldDistribution
+    _samplers: dict = field(init=False, default_factory=dict)  # key -> LevelSampler (levels other than uniform)
+    _last: tuple | None = field(init=False, default=None)  # (key, seed) of the world resolve() gave last
     generated: int = 0  # worlds generated (cache misses)
 
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(self.seed)
 
     def resolve(self, spec: Any) -> Any:
+        self._last = None
         if not is_distribution(spec):
             check_training_world(spec)  # FAMILY:SEED assigned for training: never a held-out seed
             return spec
@@ -277,14 +294,37 @@ class WorldDraws:
         if state is None:
             state = self._draws[spec] = _Draws(deque(maxlen=dist.pool))
         if state.episodes % dist.every == 0 or not state.pool:
-            seed = int(self.rng.integers(dist.lo, dist.hi + 1))
+            if dist.levels == "uniform":
+                seed = int(self.rng.integers(dist.lo, dist.hi + 1))
+            else:
+                sampler = self._samplers.get(spec)
+                if sampler is None:
+                    sampler = self._samplers[spec] = LevelSampler(dist, dist.levels)
+                seed = sampler.draw(self.rng)
             world = self.world(dist, seed)
-            state.pool.append(world)
+            state.pool.append((seed, world))
             state.fresh += 1
         else:
-            world = state.pool[int(self.rng.integers(len(state.pool)))]
+            seed, world = state.pool[int(self.rng.integers(len(state.pool)))]
         state.episodes += 1
+        self._last = (spec, seed)
         return world
+
+    def record(self, success: bool) -> None:
+        """The episode on the world ``resolve`` gave last has ended: its level sampler learns
+        the outcome (nothing to do for uniform draws or a world that is no distribution's)."""
+        if self._last is None:
+            return
+        spec, seed = self._last
+        self._last = None
+        sampler = self._samplers.get(spec)
+        if sampler is not None:
+            sampler.record(seed, success)
+
+    def levels(self, key: str) -> dict | None:
+        """The level sampler's summary for distribution ``key`` (None for uniform draws)."""
+        sampler = self._samplers.get(key)
+        return None if sampler is None else sampler.summary()
 
     def fresh_draws(self, key: str) -> int:
         """How many fresh worlds this actor has drawn from distribution ``key``."""
