@@ -348,6 +348,19 @@ def _cmd_bench_draws(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_actor(args: argparse.Namespace) -> int:
+    from curlnav.bench.actor import run_actor_bench
+
+    try:
+        envs = tuple(int(k) for k in args.envs.split(","))
+    except ValueError:
+        raise SystemExit(f"curlnav: error: --envs takes whole numbers separated by commas, got {args.envs[:40]!r}") from None
+    if not envs or min(envs) < 1 or args.steps < 1 or args.episode_steps < 1 or args.repeats < 1:
+        raise SystemExit("curlnav: error: --envs, --steps, --episode-steps and --repeats must be at least 1")
+    run_actor_bench(args.world, envs=envs, steps=args.steps, episode_steps=args.episode_steps, repeats=args.repeats)
+    return 0
+
+
 def _cmd_bench_faults(args: argparse.Namespace) -> int:
     from curlnav.bench.faults import run_fault_bench
 
@@ -702,6 +715,14 @@ def _add_bench_commands(sub) -> None:
     p.add_argument("--every", default="1,4", help="comma-separated episodes per fresh world, one row each")
     p.add_argument("--repeats", type=int, default=1, help="runs per row, taken in turn; the fastest is shown")
     p.set_defaults(func=_cmd_bench_draws)
+    p = bench_sub.add_parser("actor", help="an actor process's steps/s with K environments on one core vs the bare "
+                                           "environment (run it as: taskset -c 0 curlnav bench actor)")
+    p.add_argument("--world", default="barn-3x3:0", help="world: built-in, YAML or FAMILY:SEED")
+    p.add_argument("--envs", default="1,2,4,8", help="comma-separated environments per process, one row each")
+    p.add_argument("--steps", type=int, default=4000, help="timed environment steps per row")
+    p.add_argument("--episode-steps", type=int, default=200, help="steps per episode")
+    p.add_argument("--repeats", type=int, default=1, help="runs per row; the fastest is shown")
+    p.set_defaults(func=_cmd_bench_actor)
     p = bench_sub.add_parser("faults", help="kill -9 replay, learner and scheduler of a local run: what was lost")
     p.add_argument("--actors", type=int, default=2)
     p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")

@@ -148,3 +148,19 @@ class BehaviourPolicy:
         if self.network is None or self.steps <= self.warmup_steps:
             return self.rng.uniform(ACTION_LOW, ACTION_HIGH).astype(np.float32)
         return act(self.network, obs, self.sigma, self.rng)
+
+    def batch(self, obs: np.ndarray) -> np.ndarray:
+        """Actions ``(K, 3)`` for observations ``(K, size)``: one forward pass for all K (the
+        K steps count towards the warm-up; during it, uniformly random actions)."""
+        obs = np.asarray(obs, dtype=np.float32)
+        k = len(obs)
+        self.steps += k
+        if self.network is None or self.steps <= self.warmup_steps:
+            return self.rng.uniform(ACTION_LOW, ACTION_HIGH, size=(k, len(ACTION_LOW))).astype(np.float32)
+        device = next(self.network.parameters()).device
+        with torch.no_grad():
+            actions = self.network(torch.as_tensor(obs, device=device)).cpu().numpy()
+        if self.sigma > 0:
+            low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
+            actions = np.clip(actions + self.rng.normal(0.0, self.sigma * (high - low) / 2, size=actions.shape), low, high)
+        return actions.astype(np.float32)

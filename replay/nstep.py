@@ -35,6 +35,7 @@ class NStepWriter:
         self.n_step = n_step
         self.discount = discount
         self._next_id = 0
+        self.take_id = self._own_id  # where frame ids come from (writers that share an id space replace it)
         self._prev_id: int | None = None
         self._pending: deque[tuple[int, np.ndarray, float]] = deque()  # (frame id, action, reward)
         self._frames: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -42,12 +43,16 @@ class NStepWriter:
 
     def _add_frame(self, obs: np.ndarray, first: bool) -> int:
         ranges, labels, goal = self.layout.newest_frame(np.asarray(obs))
-        frame_id = self._next_id
-        self._next_id += 1
+        frame_id = self.take_id()
         prev = frame_id if first or self._prev_id is None else self._prev_id
         self._frames.append((frame_id, prev, ranges.astype(np.float16), labels.astype(np.uint8),
                              goal.astype(np.float32)))
         self._prev_id = frame_id
+        return frame_id
+
+    def _own_id(self) -> int:
+        frame_id = self._next_id
+        self._next_id += 1
         return frame_id
 
     def first(self, obs: np.ndarray) -> None:

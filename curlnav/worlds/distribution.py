@@ -313,11 +313,19 @@ class WorldDraws:
     def record(self, success: bool) -> None:
         """The episode on the world ``resolve`` gave last has ended: its level sampler learns
         the outcome (nothing to do for uniform draws or a world that is no distribution's)."""
-        if self._last is None:
-            return
-        spec, seed = self._last
-        self._last = None
-        sampler = self._samplers.get(spec)
+        last = self.take_last()
+        if last is not None:
+            self.record_outcome(*last, success)
+
+    def take_last(self) -> tuple[str, int] | None:
+        """``(key, seed)`` of the world ``resolve`` gave last (None for a plain world), once:
+        what a loop of several environments keeps per environment for ``record_outcome``."""
+        last, self._last = self._last, None
+        return last
+
+    def record_outcome(self, key: str, seed: int, success: bool) -> None:
+        """An episode on seed ``seed`` of distribution ``key`` ended with ``success``."""
+        sampler = self._samplers.get(key)
         if sampler is not None:
             sampler.record(seed, success)
 

@@ -1,0 +1,129 @@
+"""One actor process, K environments: a batched policy call per step of all K, and one n-step
+writer whose K streams share the frame ids of the process (issue 31).
+
+``VectorEpisodeLoop`` is ``EpisodeLoop`` for K environments: ``begin(k, ...)`` resets environment
+``k`` with its own assignment (world and pair), ``step()`` asks the behaviour policy once for all
+K actions (one forward pass of the network on a (K, observation) batch), steps each environment,
+writes each transition into environment ``k``'s stream and returns the episodes that ended
+(``(k, EpisodeEnd)``), whose environments wait for their next ``begin``. ``flush()`` returns the
+frames and transitions of all K streams as one ``FrameBatch``: frame ids are unique across the
+streams, and each frame's ``prev_id`` stays within its own environment, so the replay maps them as
+it maps one writer's.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+
+import numpy as np
+from curlnav.proto.frames import FrameBatch
+from curlnav.replay.nstep import NStepWriter
+
+from curlnav.layout import ObservationLayout
+from curlnav.sim import NamoEnv
+from curlnav.worlds.distribution import WorldDraws
+
+from .loop import EpisodeEnd
+
+
+class VectorNStepWriter:
+    """K n-step streams (one per environment) numbering their frames from one counter."""
+
+    def __init__(self, layout: ObservationLayout, streams: int, n_step: int = 5, discount: float = 0.99) -> None:
+        if streams < 1:
+            raise ValueError(f"a vector writer needs at least one stream, got {streams}")
+        self.layout = layout
+        self.writers = [NStepWriter(layout, n_step, discount) for _ in range(streams)]
+        ids = itertools.count()
+        for writer in self.writers:
+            writer.take_id = ids.__next__  # one id space for the process: ids unique across streams
+
+    def __len__(self) -> int:
+        return len(self.writers)
+
+    def __getitem__(self, k: int) -> NStepWriter:
+        return self.writers[k]
+
+    def flush(self) -> FrameBatch:
+        """The frames and transitions of every stream since the last flush, stream after stream."""
+        parts = [w.flush() for w in self.writers]
+        parts = [p for p in parts if p.num_frames or p.num_transitions]
+        if not parts:
+            return FrameBatch.empty(self.layout.beams)
+        if len(parts) == 1:
+            return parts[0]
+        return FrameBatch(*(np.concatenate([getattr(p, name) for p in parts]) for name in FrameBatch.__dataclass_fields__))
+
+
+class VectorEpisodeLoop:
+    """K environments stepped together with one batched policy call per step."""
+
+    def __init__(self, envs: list[NamoEnv], policy: Callable[[np.ndarray], np.ndarray], writer: VectorNStepWriter,
+                 worlds: WorldDraws | None = None) -> None:
+        if len(envs) != len(writer):
+            raise ValueError(f"{len(envs)} environments but {len(writer)} writer streams")
+        self.envs = envs
+        self.policy = policy  # (K, observation) -> (K, 3): BehaviourPolicy.batch
+        self.writer = writer
+        self.worlds = worlds if worlds is not None else WorldDraws()  # one set of draws (and pools) for all K
+        self.obs: list[np.ndarray | None] = [None] * len(envs)
+        self.returns = [0.0] * len(envs)
+        self.drawn: list[tuple | None] = [None] * len(envs)  # (key, seed) of each environment's drawn world
+        self.steps = 0  # environment steps, all environments
+        self.episodes = 0
+
+    @property
+    def size(self) -> int:
+        return len(self.envs)
+
+    def waiting(self) -> list[int]:
+        """The environments whose episode has ended (or never begun): each needs ``begin``."""
+        return [k for k, obs in enumerate(self.obs) if obs is None]
+
+    def begin(self, k: int, seed: int, options: dict | None = None) -> np.ndarray:
+        """Reset environment ``k`` (``options``: world and pair; a distribution's key draws a world)."""
+        env, draws = self.envs[k], self.worlds
+        self.drawn[k] = None
+        if options and options.get("world") is not None:
+            world = draws.resolve(options["world"])
+            if world is not options["world"]:
+                options = {**options, "world": world}
+                env.scene_cache = max(env.scene_cache, draws.cache)
+            self.drawn[k] = draws.take_last()
+        obs, _ = env.reset(seed=seed, options=options)
+        self.writer[k].first(obs)
+        self.obs[k] = obs
+        self.returns[k] = 0.0
+        return obs
+
+    def step(self) -> list[tuple[int, EpisodeEnd]]:
+        """One step of every running environment (one policy call for all); the episodes that
+        ended, as ``(environment index, EpisodeEnd)``."""
+        running = [k for k, obs in enumerate(self.obs) if obs is not None]
+        if not running:
+            raise RuntimeError("begin() an environment before step()")
+        actions = self.policy(np.stack([self.obs[k] for k in running]))
+        ends = []
+        for k, action in zip(running, actions):
+            obs, reward, terminated, truncated, info = self.envs[k].step(action)
+            self.writer[k].step(action, reward, obs, terminated, truncated)
+            self.steps += 1
+            self.returns[k] += reward
+            self.obs[k] = obs
+            if terminated or truncated:
+                self.episodes += 1
+                self.obs[k] = None
+                end = EpisodeEnd(info, self.returns[k], bool(truncated and not terminated))
+                if self.drawn[k] is not None:
+                    self.worlds.record_outcome(*self.drawn[k], end.success)
+                    self.drawn[k] = None
+                ends.append((k, end))
+        return ends
+
+    def flush(self) -> FrameBatch:
+        return self.writer.flush()
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()

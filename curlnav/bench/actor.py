@@ -1,0 +1,123 @@
+"""``curlnav bench actor``: what one actor process makes of its core, K environments at a time.
+
+Rows, each the same number of environment steps after a warm-up episode, episodes of
+``episode_steps`` steps (no end at a collision, so the rows do the same work):
+
+- ``bare environment``: ``NamoEnv.step`` with uniformly random actions, nothing else (the ceiling);
+- ``actor process, K envs``: what an actor process does per step: ``VectorEpisodeLoop`` with the
+  default network (random weights, past the warm-up, exploration noise), one batched policy call
+  for the K environments, the n-step writer, and a ``TransitionBatch`` encoded every
+  ``batch_steps`` environment steps, as it goes on the wire (the Zenoh put is not timed).
+
+``ratio`` is a row's steps/s over the bare environment's. Run it pinned to one core (``taskset -c
+0 curlnav bench actor``) with nothing else running: actors run one per core.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
+from curlnav.config import D4PGConfig
+from curlnav.layout import ObservationLayout
+from curlnav.learner.networks import Actor, BehaviourPolicy
+from curlnav.proto.messages import TransitionBatch
+from curlnav.sim import EnvConfig, NamoEnv
+
+LOW, HIGH = np.array([0.0, -1.0, 0.0]), np.array([1.0, 1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class ActorBenchRow:
+    name: str
+    envs: int
+    steps: int
+    seconds: float
+
+    @property
+    def steps_per_second(self) -> float:
+        return self.steps / self.seconds
+
+
+def bare_env(world: str, steps: int, episode_steps: int, seed: int = 0) -> ActorBenchRow:
+    cfg = EnvConfig(max_episode_steps=episode_steps, end_on_base_collision=False)
+    env = NamoEnv(world, cfg)
+    rng = np.random.default_rng(seed)
+    try:
+        env.reset(seed=seed)
+        for _ in range(episode_steps):  # warm-up: the scene, numba
+            env.step(rng.uniform(LOW, HIGH).astype(np.float32))
+        env.reset(seed=seed + 1)
+        start = time.perf_counter()
+        for _ in range(steps):
+            _, _, terminated, truncated, _ = env.step(rng.uniform(LOW, HIGH).astype(np.float32))
+            if terminated or truncated:
+                env.reset()
+        return ActorBenchRow("bare environment", 1, steps, time.perf_counter() - start)
+    finally:
+        env.close()
+
+
+def actor_process(world: str, envs: int, steps: int, episode_steps: int, batch_steps: int = 32,
+                  seed: int = 0) -> ActorBenchRow:
+    cfg = EnvConfig(max_episode_steps=episode_steps, end_on_base_collision=False)
+    layout = ObservationLayout.from_env_config(cfg)
+    d4pg = D4PGConfig()
+    policy = BehaviourPolicy(layout, d4pg, sigma=0.3, warmup_steps=0, rng=np.random.default_rng(seed))
+    network = Actor(layout, d4pg)
+    network.eval()
+    policy.use_network(network)
+    loop = VectorEpisodeLoop([NamoEnv(world, cfg) for _ in range(envs)], policy.batch,
+                             VectorNStepWriter(layout, envs, d4pg.n_step, d4pg.discount))
+    seq = 0
+
+    def run(n: int) -> None:
+        nonlocal seq
+        since_batch = 0
+        target = loop.steps + n
+        while loop.steps < target:
+            for k in loop.waiting():
+                loop.begin(k, seed=seed + 1000 * k + loop.episodes, options={"world": world})
+            before = loop.steps
+            ended = loop.step()
+            since_batch += loop.steps - before
+            if ended or since_batch >= batch_steps:
+                frames = loop.flush()
+                if frames.num_frames or frames.num_transitions:
+                    TransitionBatch("actor-0", seq, 1, frames).encode()
+                    seq += 1
+                since_batch = 0
+
+    try:
+        run(episode_steps * envs)  # warm-up: scenes, numba, torch
+        start = time.perf_counter()
+        before = loop.steps
+        run(steps)
+        return ActorBenchRow(f"actor process, {envs} env{'s' if envs > 1 else ''}", envs, loop.steps - before,
+                             time.perf_counter() - start)
+    finally:
+        loop.close()
+
+
+def run_actor_bench(world: str = "barn-3x3:0", envs: tuple[int, ...] = (1, 2, 4, 8), steps: int = 4000,
+                    episode_steps: int = 200, repeats: int = 1, say=print) -> list[tuple[ActorBenchRow, float]]:
+    """Print the bare environment's steps/s, then each K's, with its ratio; return the rows."""
+    torch.set_num_threads(1)
+    say(f"# curlnav bench actor: {world}, {steps} timed environment steps per row, episodes of {episode_steps} "
+        f"steps, torch threads 1, fastest of {repeats}")
+    bare = max((bare_env(world, steps, episode_steps) for _ in range(repeats)), key=lambda r: r.steps_per_second)
+    say(f"{bare.name:<28} {bare.steps_per_second:8.0f} steps/s")
+    rows = []
+    for k in envs:
+        row = max((actor_process(world, k, steps, episode_steps) for _ in range(repeats)),
+                  key=lambda r: r.steps_per_second)
+        ratio = row.steps_per_second / bare.steps_per_second
+        rows.append((row, ratio))
+        say(f"{row.name:<28} {row.steps_per_second:8.0f} steps/s  ratio {ratio:.2f}")
+    best_row, best_ratio = max(rows, key=lambda r: r[1])
+    say(f"best: {best_row.envs} environments per process, ratio {best_ratio:.2f} of the bare environment")
+    return rows

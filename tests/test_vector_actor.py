@@ -1,0 +1,94 @@
+"""One actor process stepping K environments with one batched policy call (issue 31): what
+reaches the replay is exactly what the K environments saw, frame stacks included, and each
+environment keeps its own episodes and assignment."""
+
+from __future__ import annotations
+
+import numpy as np
+from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
+from curlnav.learner.networks import BehaviourPolicy
+from curlnav.replay import ReplayTable
+
+from curlnav.config import D4PGConfig
+from curlnav.layout import ObservationLayout
+from curlnav.sim import EnvConfig, NamoEnv
+
+
+def test_the_replay_rebuilds_exactly_what_each_of_k_environments_observed():
+    cfg = EnvConfig(max_episode_steps=9, end_on_base_collision=False)
+    layout = ObservationLayout.from_env_config(cfg)
+    k = 3
+    rng = np.random.default_rng(5)
+    seen = {}  # action bytes -> (environment, observation it was taken at): the environments' own truth
+    history = [[] for _ in range(k)]  # per environment: the observations its actions were taken at
+    calls = []
+
+    def policy(obs: np.ndarray) -> np.ndarray:  # one call for all running environments
+        running = [e for e, o in enumerate(loop.obs) if o is not None]
+        actions = rng.uniform([0, -1, 0], [1, 1, 1], size=(len(obs), 3)).astype(np.float32)
+        calls.append(len(obs))
+        for e, o, a in zip(running, obs, actions):
+            seen[a.tobytes()] = (e, len(history[e]))
+            history[e].append(o.copy())
+        return actions
+
+    loop = VectorEpisodeLoop([NamoEnv("open-room", cfg) for _ in range(k)], policy,
+                             VectorNStepWriter(layout, k, n_step=1, discount=0.9))
+    table = ReplayTable(layout, max_size=10_000)
+    episodes = [0] * k
+    try:
+        for _ in range(40):
+            for e in loop.waiting():
+                history[e].append(None)  # an episode boundary: no next observation across it
+                loop.begin(e, seed=100 * e + episodes[e], options={"world": "open-room"})
+            for e, end in loop.step():
+                episodes[e] += 1
+                assert end.info["steps"] == 9
+            table.insert(loop.flush(), stream="actor-0")  # K streams under one actor id, as on the wire
+    finally:
+        loop.close()
+    assert calls == [k] * 40 and episodes == [4, 4, 4]
+    assert table.size == 40 * k
+    sample = table.sample(300)
+    checked_next = 0
+    for i in range(300):
+        e, j = seen[sample.action[i].tobytes()]
+        obs = history[e][j]
+        assert np.allclose(sample.obs[i], obs, rtol=2e-3, atol=2e-3), "a frame stack mixed environments"
+        if j + 1 < len(history[e]) and history[e][j + 1] is not None:
+            assert np.allclose(sample.next_obs[i], history[e][j + 1], rtol=2e-3, atol=2e-3)
+            assert np.isclose(sample.discount[i], 0.9)
+            checked_next += 1
+    assert checked_next > 200
+
+
+def test_a_batched_behaviour_policy_acts_as_k_single_calls():
+    layout = ObservationLayout()
+    d4pg = D4PGConfig()
+    single = BehaviourPolicy(layout, d4pg, sigma=0.0, warmup_steps=0, rng=np.random.default_rng(0))
+    batched = BehaviourPolicy(layout, d4pg, sigma=0.0, warmup_steps=0, rng=np.random.default_rng(0))
+    from curlnav.learner.networks import Actor
+
+    network = Actor(layout, d4pg)
+    network.eval()
+    single.use_network(network)
+    batched.use_network(network)
+    obs = np.random.default_rng(1).uniform(0, 5, size=(6, layout.size)).astype(np.float32)
+    assert np.allclose(batched.batch(obs), np.stack([single(o) for o in obs]), atol=1e-5)
+    assert batched.steps == single.steps == 6
+    noisy = BehaviourPolicy(layout, d4pg, sigma=0.3, warmup_steps=0, rng=np.random.default_rng(0))
+    noisy.use_network(network)
+    actions = noisy.batch(obs)
+    assert actions.shape == (6, 3) and not np.allclose(actions, batched.batch(obs))
+    warm = BehaviourPolicy(layout, d4pg, sigma=0.3, warmup_steps=10, rng=np.random.default_rng(0))
+    assert warm.batch(obs).shape == (6, 3) and warm.steps == 6  # random actions in the warm-up
+
+
+def test_bench_actor_prints_steps_per_second_and_the_ratio_to_the_bare_environment():
+    from curlnav.bench.actor import run_actor_bench
+
+    lines = []
+    rows = run_actor_bench("t-maze:0", envs=(1, 2), steps=60, episode_steps=20, say=lines.append)
+    assert [r.envs for r, _ in rows] == [1, 2] and all(r.steps >= 60 and ratio > 0 for r, ratio in rows)
+    assert lines[1].startswith("bare environment") and "steps/s" in lines[1]
+    assert all("steps/s  ratio" in line for line in lines[2:4]) and lines[-1].startswith("best: ")
