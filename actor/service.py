@@ -2,11 +2,13 @@
 
 Weights arrive on ``weights`` (and ``weights/latest`` when joining); the subscriber only keeps
 the newest message and the loop loads it between steps, so weight traffic never stalls the
-simulation. The environment, behaviour policy (actor ``actor_index``'s rung of the sigma ladder,
-its share of the warm-up) and n-step writer come from ``D4PGBuilder`` and run in the shared
-``EpisodeLoop``, exactly as in the serial trainer. Transitions go out in batches every
-``batch_steps`` steps and at every episode end (reliable, BLOCK); each episode is reported to
-the scheduler, which is asked for the next world and pair at every reset. A liveliness token
+simulation. The environments, behaviour policy (actor ``actor_index``'s rung of the sigma ladder,
+its share of the warm-up) and n-step writer come from ``D4PGBuilder``: ``envs`` environments
+(``--envs``, default 1) stepped together with one batched policy call (``VectorEpisodeLoop``;
+with one environment it acts exactly as the serial trainer's ``EpisodeLoop``). Transitions go out
+in batches every ``batch_steps`` environment steps and at every episode end (reliable, BLOCK);
+each episode is reported to the scheduler, which is asked for the next world and pair at every
+reset of each environment, so each keeps its own assignment. A liveliness token
 announces the actor; Zenoh reconnects by itself when the router comes back.
 
 Every batch is kept until the replay acknowledges it (``ResendBuffer``: bounded in memory and on
@@ -46,7 +48,6 @@ from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import RateMeter, reliable_publisher
 from curlnav.config import ConfigError, D4PGConfig, ExperimentConfig
 
-from .loop import EpisodeLoop
 from .resend import ResendBuffer
 
 log = logging.getLogger("curlnav.actor")
@@ -60,7 +61,8 @@ class ActorServiceConfig:
     actor_index: int = 0  # rung of the sigma ladder and seed offset
     actor_count: int = 1  # actors in the run: each takes this share of the warm-up
     deployment: Deployment = Deployment(data_dir="")
-    batch_steps: int = 32  # environment steps per transition batch on the bus
+    batch_steps: int = 32  # environment steps per transition batch on the bus (all environments together)
+    envs: int = 1  # environments this process steps together (one batched policy call per step)
     resend_memory_bytes: int = 64 << 20  # unacknowledged batches kept in memory ...
     resend_disk_bytes: int = 1 << 30  # ... then in a spill file in data_dir; beyond both the actor pauses
     resend_after_s: float = 5.0  # an unacknowledged batch is sent again (with all after it) after this
@@ -70,6 +72,8 @@ class ActorServiceConfig:
     def __post_init__(self) -> None:
         if not 0 < len(self.actor_id) <= MAX_ACTOR_ID or any(c in self.actor_id for c in "/*$?#"):
             raise ConfigError(f"actor id {self.actor_id[:40]!r}: 1..{MAX_ACTOR_ID} characters, none of / * $ ? #")
+        if isinstance(self.envs, bool) or not isinstance(self.envs, int) or not 1 <= self.envs <= 64:
+            raise ConfigError(f"envs per actor process must be a whole number in 1..64, got {self.envs!r}")
 
 
 class ActorCore:
@@ -80,9 +84,7 @@ class ActorCore:
         builder = D4PGBuilder(experiment)
         self.layout = builder.layout
         self.policy = builder.make_behaviour_policy(cfg.actor_index, cfg.actor_count)
-        self.loop = EpisodeLoop(builder.make_env(), self.policy, builder.make_nstep_writer(),
-                                builder.make_world_draws(cfg.actor_index))
-        self.env = self.loop.env
+        self.loop = builder.make_actor_loop(cfg.actor_index, self.policy, cfg.envs)
         self.default_world = experiment.curriculum.world
         self.rng = np.random.default_rng([experiment.seed, cfg.actor_index, 1])
         self.weights_version = -1
@@ -91,10 +93,12 @@ class ActorCore:
         self.seq = time.time_ns() // 1000
         self.generated = 0  # transitions put into batches by this process
         max_batch = experiment.replay.insert_batch
-        if cfg.batch_steps + experiment.d4pg.n_step > max_batch:
-            raise ConfigError(f"actor batches of {cfg.batch_steps} steps (plus the n-step tail of "
-                              f"{experiment.d4pg.n_step}) exceed replay.insert_batch = {max_batch}, the most one "
-                              f"batch may carry: lower --batch-steps or raise replay.insert_batch")
+        # a batch holds up to batch_steps + envs - 1 steps' transitions plus each environment's n-step tail
+        if cfg.batch_steps + cfg.envs * experiment.d4pg.n_step > max_batch:
+            raise ConfigError(f"actor batches of {cfg.batch_steps} steps (plus the n-step tails of {cfg.envs} "
+                              f"environment(s) of {experiment.d4pg.n_step}) may exceed replay.insert_batch = "
+                              f"{max_batch}, the most one batch may carry: lower --batch-steps or --envs, or raise "
+                              f"replay.insert_batch")
 
     @property
     def steps(self) -> int:
@@ -312,40 +316,59 @@ class ActorService:
             for reply in session.get(topo.weights_latest, timeout=5.0):
                 if reply.ok is not None:
                     self._on_weights(reply.ok)
+            tasks: list[tuple] = [()] * loop.size  # per environment: (assignment, world, weights version at begin)
+            since_batch = 0  # environment steps since the last batch
             while not self.stop.is_set():
                 shell.recheck_agreement()  # a service of another config that joined after this actor
-                self._apply_weights()
-                assignment = self._assignment(session, topo.assign)
-                world = assignment.world if assignment else core.default_world
-                options = {"world": world}
-                if assignment and assignment.pair:
-                    options["pair"] = assignment.pair
-                try:
-                    loop.begin(seed=int(core.rng.integers(1 << 31)), options=options)
-                except (KeyError, ValueError) as exc:
-                    log.error("actor %s: cannot use assignment %s: %s", cfg.actor_id, options, exc)
+                if not self._begin_waiting(session, topo.assign, tasks):
                     self.stop.wait(1.0)
                     continue
-                version_used = core.weights_version
-                end = None
-                while not self.stop.is_set() and end is None:
-                    if core.steps % cfg.batch_steps == 0:
-                        self._wait_for_credit()
-                        self._wait_for_room(transitions)
-                    end = loop.step()
-                    self.m_steps.inc()
-                    self.step_rate.add()
-                    if end is not None or core.steps % cfg.batch_steps == 0:
-                        self._batch_out(transitions)
-                    if end is None and core.steps % 50 == 0:
-                        self._apply_weights()
-                if end is None:
-                    self._finish(transitions, deployment.data_dir)
-                    break
-                info = end.info
-                self.m_episodes.labels(info["world"], "success" if end.success else "failure").inc()
-                self.send_due(transitions)  # resends (after a partition) go on between batches too
-                episodes.put(EpisodeReport(cfg.actor_id, world, assignment.pair if assignment else "",
-                                           end.success, float(end.episode_return), int(info["base_collisions"]),
-                                           int(info["end_effector_collisions"]), int(info["steps"]), version_used,
-                                           assignment.epoch if assignment else -1).encode())
+                if since_batch == 0:
+                    self._wait_for_credit()
+                    self._wait_for_room(transitions)
+                    if self.stop.is_set():
+                        break
+                before = loop.steps
+                ends = loop.step()
+                stepped = loop.steps - before
+                self.m_steps.inc(stepped)
+                self.step_rate.add(stepped)
+                since_batch += stepped
+                if ends or since_batch >= cfg.batch_steps:
+                    self._batch_out(transitions)
+                    since_batch = 0
+                if loop.steps // 50 != before // 50:
+                    self._apply_weights()
+                for k, end in ends:
+                    assignment, world, version_used = tasks[k]
+                    info = end.info
+                    self.m_episodes.labels(info["world"], "success" if end.success else "failure").inc()
+                    episodes.put(EpisodeReport(cfg.actor_id, world, assignment.pair if assignment else "",
+                                               end.success, float(end.episode_return), int(info["base_collisions"]),
+                                               int(info["end_effector_collisions"]), int(info["steps"]), version_used,
+                                               assignment.epoch if assignment else -1).encode())
+                if ends:
+                    self.send_due(transitions)  # resends (after a partition) go on between batches too
+            self._finish(transitions, deployment.data_dir)
+
+    def _begin_waiting(self, session, assign_key: str, tasks: list) -> bool:
+        """Begin a new episode in every environment whose last one ended, each with its own
+        assignment from the scheduler (the newest weights loaded first). False when an
+        assignment could not be used (logged; the caller waits and tries again)."""
+        core, loop = self.core, self.core.loop
+        waiting = loop.waiting()
+        if waiting:
+            self._apply_weights()
+        for k in waiting:
+            assignment = self._assignment(session, assign_key)
+            world = assignment.world if assignment else core.default_world
+            options = {"world": world}
+            if assignment and assignment.pair:
+                options["pair"] = assignment.pair
+            try:
+                loop.begin(k, seed=int(core.rng.integers(1 << 31)), options=options)
+            except (KeyError, ValueError) as exc:
+                log.error("actor %s: cannot use assignment %s: %s", self.cfg.actor_id, options, exc)
+                return False
+            tasks[k] = (assignment, world, core.weights_version)
+        return True

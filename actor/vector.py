@@ -42,6 +42,14 @@ class VectorNStepWriter:
     def __len__(self) -> int:
         return len(self.writers)
 
+    @property
+    def n_step(self) -> int:
+        return self.writers[0].n_step
+
+    @property
+    def discount(self) -> float:
+        return self.writers[0].discount
+
     def __getitem__(self, k: int) -> NStepWriter:
         return self.writers[k]
 
@@ -76,6 +84,11 @@ class VectorEpisodeLoop:
     @property
     def size(self) -> int:
         return len(self.envs)
+
+    @property
+    def env(self) -> NamoEnv:
+        """The first environment (all K share one config)."""
+        return self.envs[0]
 
     def waiting(self) -> list[int]:
         """The environments whose episode has ended (or never begun): each needs ``begin``."""

@@ -57,6 +57,17 @@ class D4PGBuilder:
     def make_nstep_writer(self) -> NStepWriter:
         return NStepWriter(self.layout, self.config.d4pg.n_step, self.config.d4pg.discount)
 
+    def make_actor_loop(self, actor_index: int, policy: BehaviourPolicy, envs: int = 1):
+        """Actor ``actor_index``'s loop of ``envs`` training environments: one batched call of
+        ``policy`` per step of all of them, one n-step writer stream each (``VectorEpisodeLoop``)."""
+        from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
+
+        if envs < 1:
+            raise ValueError(f"an actor steps at least one environment, got {envs}")
+        writer = VectorNStepWriter(self.layout, envs, self.config.d4pg.n_step, self.config.d4pg.discount)
+        return VectorEpisodeLoop([self.make_env() for _ in range(envs)], policy.batch, writer,
+                                 self.make_world_draws(actor_index))
+
     def make_behaviour_policy(self, actor_index: int = 0, actor_count: int = 1, stream: int = 0) -> BehaviourPolicy:
         """The policy actor ``actor_index`` of ``actor_count`` runs: random actions for its share
         of the warm-up, then the latest network with its rung of the sigma ladder. ``stream``

@@ -161,9 +161,14 @@ def test_both_training_modes_draw_from_an_assigned_distribution(tmp_path):
     scheduler.actor_joined("a0")
     assignment = Assignment.decode(scheduler.assign(AssignmentRequest("a0").encode()))
     assert assignment.world == TINY
-    core = ActorCore(ActorServiceConfig(actor_id="a0"), experiment)
+    core = ActorCore(ActorServiceConfig(actor_id="a0", envs=2), experiment)  # two environments, each its own episodes
     try:
-        names = [_episode(core.loop, i, assignment.world) for i in range(4)]
+        names = []
+        while len(names) < 4:
+            for k in core.loop.waiting():
+                core.loop.begin(k, len(names) + k, {"world": assignment.world})
+                names.append(core.loop.envs[k].world.name)
+            core.loop.step()
         assert all(n.startswith("t-maze-") for n in names) and core.loop.worlds.fresh_draws(TINY) == 2
     finally:
         core.loop.close()
