@@ -156,6 +156,19 @@ class ExplorationConfig:
 
 
 @dataclass(frozen=True)
+class ActorConfig:
+    """How each actor process runs. Each actor may choose its own (a host with more cores per
+    actor, another value), so this section is not part of the services' agreement hash."""
+
+    envs_per_process: int = 1  # environments one actor process steps together, one batched policy call per step
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.envs_per_process, int) and not isinstance(self.envs_per_process, bool)
+                 and 1 <= self.envs_per_process <= 64,
+                 f"actor.envs_per_process must be a whole number in 1..64, got {self.envs_per_process!r}")
+
+
+@dataclass(frozen=True)
 class CurriculumConfig:
     """What to train on: one world (with its pairs, or random pairs), or a curriculum file."""
 
@@ -208,6 +221,7 @@ class ExperimentConfig:
     d4pg: D4PGConfig = field(default_factory=D4PGConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    actor: ActorConfig = field(default_factory=ActorConfig)
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)
@@ -421,8 +435,8 @@ def config_hash(cfg: ExperimentConfig) -> str:
 
 def service_config_hash(cfg: ExperimentConfig) -> str:
     """The hash the services of a run must agree on: every section they use (not ``budget``
-    nor ``evaluation``, which only the launcher reads)."""
-    data = {k: v for k, v in config_to_dict(cfg).items() if k not in ("budget", "evaluation")}
+    nor ``evaluation``, which only the launcher reads, nor ``actor``, each actor's own choice)."""
+    data = {k: v for k, v in config_to_dict(cfg).items() if k not in ("budget", "evaluation", "actor")}
     return hashlib.sha256(json.dumps(data, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 

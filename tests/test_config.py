@@ -71,18 +71,20 @@ def test_serial_and_distributed_modes_build_the_same_parts_from_one_config(prese
 def test_a_changed_field_reaches_every_service(tmp_path, monkeypatch):
     monkeypatch.setenv("CURLNAV_D4PG__N_STEP", "3")  # a CURLNAV_* variable maps to the same field
     changes = ["--set", "d4pg.batch_size=64", "--set", "replay.min_size=640", "--set", "exploration.sigma_ladder=[0.9]",
-               "--world", "door-corridor"]
+               "--set", "actor.envs_per_process=2", "--world", "door-corridor"]
     services = {role: build_service(serve_args(role, tmp_path, *changes, *(["--actor-index", "5"] if role == "actor"
                                                                             else [])))
                 for role in ("replay", "learner", "scheduler", "actor")}
     expected = resolve_config(overrides=["d4pg.batch_size=64", "replay.min_size=640", "exploration.sigma_ladder=[0.9]",
-                                         "curriculum.world=door-corridor", "d4pg.n_step=3"], environ={})
+                                         "curriculum.world=door-corridor", "d4pg.n_step=3", "actor.envs_per_process=2"],
+                             environ={})
     try:
         assert {config_hash(s.experiment) for s in services.values()} == {config_hash(expected)}
         assert services["replay"].table.rate_limiter.min_size_to_sample == 640
         assert services["learner"].state.config.batch_size == 64 and services["learner"].state.config.n_step == 3
         assert services["actor"].core.policy.sigma == 0.9 and services["actor"].core.loop.writer.n_step == 3
         assert services["actor"].core.default_world == "door-corridor"
+        assert services["actor"].core.loop.size == 2 and services["actor"].cfg.envs == 2
         assert services["scheduler"].core.curriculum.stages[0].worlds == ("door-corridor",)
     finally:
         services["actor"].core.loop.close()
@@ -95,6 +97,8 @@ def test_a_service_with_another_config_is_refused_naming_the_field():
     check_agreement(ours, [same])
     longer = resolve_config(overrides=["budget.minutes=60"], environ={})  # the launcher's own section
     check_agreement(ours, [RunConfig("learner", "0", service_config_hash(longer), json.dumps(config_to_dict(longer)))])
+    batched = resolve_config(overrides=["actor.envs_per_process=8"], environ={})  # each actor's own choice
+    check_agreement(ours, [RunConfig("actor", "a1", service_config_hash(batched), json.dumps(config_to_dict(batched)))])
     other = RunConfig("learner", "0", service_config_hash(theirs), json.dumps(config_to_dict(theirs)))
     with pytest.raises(ConfigMismatch) as info:
         check_agreement(ours, [same, other])

@@ -168,7 +168,7 @@ def test_the_launcher_names_both_config_hashes_and_how_they_differ(tmp_path, cap
     line = capsys.readouterr().out.splitlines()[0]
     experiment = resolve_config(overrides=["budget.minutes=7"], environ={})
     found = re.search(r"experiment config ([0-9a-f]{12}) \(config.yaml\); service-agreement hash ([0-9a-f]{12}) "
-                      r"\(the services' logs: the same config without budget and evaluation\)", line)
+                      r"\(the services' logs: the same config without budget, evaluation and actor\)", line)
     assert found, line
     assert found.groups() == (config_hash(experiment)[:12], service_config_hash(experiment)[:12])
     assert not re.search(r"(?<!experiment )config [0-9a-f]{12}", line), f"an unlabelled hash in {line!r}"

@@ -63,7 +63,7 @@ def _shared_part(config: dict) -> dict:
 
 def check_agreement(own: ExperimentConfig, replies: list[RunConfig]) -> None:
     """Raise ``ConfigMismatch`` if any reply carries another config than ``own`` (compared on
-    ``service_config_hash``: the budget and evaluation sections are the launcher's own)."""
+    ``service_config_hash``: the budget and evaluation sections are the launcher's own, actor each actor's)."""
     own_hash = service_config_hash(own)
     for reply in replies:
         if reply.config_hash == own_hash or reply.role not in CONFIG_OWNERS:

@@ -116,6 +116,7 @@ def build_service(args):
         actor_id = args.actor_id or _credentials_actor_id(args.bus_credentials) or f"{socket.gethostname()}-{os.getpid()}"
         index = args.actor_index if args.actor_index >= 0 else zlib.crc32(actor_id.encode()) % 997
         return ActorService(ActorServiceConfig(actor_id=actor_id, actor_index=index, actor_count=args.actor_count,
+                                               envs=experiment.actor.envs_per_process,
                                                deployment=deployment(f"actors/{actor_id}")), experiment)
     raise ValueError(f"no service for role {args.role!r}")
 

@@ -155,8 +155,8 @@ def hash_labels(experiment: ExperimentConfig) -> str:
     service-agreement hash the services log and compare (the same config without ``budget`` and
     ``evaluation``, which only the launcher reads, so a resume with a new budget still agrees)."""
     return (f"experiment config {config_hash(experiment)[:12]} (config.yaml); service-agreement hash "
-            f"{service_config_hash(experiment)[:12]} (the services' logs: the same config without budget and "
-            f"evaluation)")
+            f"{service_config_hash(experiment)[:12]} (the services' logs: the same config without budget, "
+            f"evaluation and actor)")
 
 
 def _print_evaluations(summary: dict, run_dir: Path) -> None:
@@ -209,7 +209,7 @@ def show_config(args: argparse.Namespace) -> int:
     experiment = experiment_from_args(args)
     print(config_to_yaml(experiment), end="")
     print(f"# experiment config hash {config_hash(experiment)}")
-    print(f"# service-agreement hash {service_config_hash(experiment)} (without budget and evaluation: "
+    print(f"# service-agreement hash {service_config_hash(experiment)} (without budget, evaluation and actor: "
           f"what the services compare)")
     return 0
 
