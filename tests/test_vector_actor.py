@@ -92,3 +92,27 @@ def test_bench_actor_prints_steps_per_second_and_the_ratio_to_the_bare_environme
     assert [r.envs for r, _ in rows] == [1, 2] and all(r.steps >= 60 and ratio > 0 for r, ratio in rows)
     assert lines[1].startswith("bare environment") and "steps/s" in lines[1]
     assert all("steps/s  ratio" in line for line in lines[2:4]) and lines[-1].startswith("best: ")
+
+
+def test_a_run_whose_actor_steps_three_environments_trains_and_loses_nothing(tmp_path):
+    import json
+
+    from curlnav.config import resolve_config
+    from curlnav.run.launch import LocalCluster
+    from tests.test_service import wait_for
+
+    experiment = resolve_config(overrides=["actor.envs_per_process=3", "replay.min_size=200",
+                                           "replay.samples_per_insert=8", "d4pg.batch_size=128"], environ={})
+    cluster = LocalCluster(tmp_path / "run", experiment, actors=1, run="vector",
+                           extra={"learner": ["--publish-every", "5"]})
+    cluster.start()
+    try:
+        status = cluster.status
+        s = wait_for("episodes from the 3-environment actor and learner version >= 2", lambda: (
+            (st := status()) and (st["learner"]["version"] or 0) >= 2 and st["replay"]["size"]
+            and sum(a.get("episodes", 0) for a in st["live_actors"].values()) >= 6 and st), timeout=300)
+        assert set(s["live_actors"]) == {"actor-0"}
+    finally:
+        cluster.stop()
+    final = json.loads((tmp_path / "run" / "actors" / "actor-0" / "actor-final.json").read_text())
+    assert final["generated"] > 0 and final["unacknowledged_transitions"] == 0, final
