@@ -129,3 +129,50 @@ def test_the_scheduler_marks_a_cut_off_actor_lost_and_takes_it_back(tmp_path):
     assert status["live_actors"]["actor-0"]["episodes"] == 3
     play(core, "actor-0")
     assert core.status()["episodes"] == 4
+
+
+def test_the_router_bounds_unacknowledged_data_on_its_links_to_other_hosts_only():
+    """``LinkAckTimeout`` (issue 30): a connection to another host gets ``TCP_USER_TIMEOUT`` (so
+    a TLS link whose lease expired cannot hang its router's close on a cut-off peer), a loopback
+    one does not; a socket it has looked at is left alone after."""
+    import socket
+
+    import pytest
+
+    from curlnav.bus.transport import LinkAckTimeout
+
+    links = LinkAckTimeout(seconds=7.0)
+    if not links.available:
+        pytest.skip("no TCP_USER_TIMEOUT or /proc here")
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.connect(("192.0.2.1", 9))  # no packet: only picks this host's outgoing address
+        address = probe.getsockname()[0]
+    except OSError:
+        address = "127.0.0.1"
+    finally:
+        probe.close()
+    if address.startswith("127."):
+        pytest.skip("no address other than loopback here")
+
+    def pair(host: str) -> tuple[socket.socket, socket.socket, socket.socket]:
+        server = socket.create_server((host, 0))
+        client = socket.create_connection((host, server.getsockname()[1]))
+        accepted, _ = server.accept()
+        return server, client, accepted
+
+    def timeout_ms(sock: socket.socket) -> int:
+        return sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT)
+
+    sockets = [*pair(address), *pair("127.0.0.1")]
+    try:
+        assert links.sweep() >= 2
+        remote_server, remote_client, remote_accepted, local_server, local_client, local_accepted = sockets
+        assert timeout_ms(remote_client) == timeout_ms(remote_accepted) == 7000
+        assert timeout_ms(local_client) == timeout_ms(local_accepted) == timeout_ms(remote_server) == 0
+        remote_client.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, 1)
+        assert links.sweep() == 0 and timeout_ms(remote_client) == 1  # set once per connection
+        remote_client.getpeername()  # the sweep's duplicates are closed, the sockets still open
+    finally:
+        for sock in sockets:
+            sock.close()

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import contextlib
 import io
+import ipaddress
 import json
 import logging
+import os
 import queue
 import re
 import selectors
@@ -83,6 +85,104 @@ def open_session(router: str, connect_timeout_s: float | None = None, user: BusU
                                 f"{exc}") from None
 
 
+LINK_ACK_TIMEOUT_S = 10.0  # Zenoh's link lease (transport/link/tx/lease, 10 s by default)
+
+
+class LinkAckTimeout:
+    """``TCP_USER_TIMEOUT`` (``seconds``) on every TCP connection of this process to another host:
+    the kernel drops a connection whose sent data stays unacknowledged that long.
+
+    Why (issue 30): Zenoh closes a link whose lease expired by flushing its TLS stream first, with
+    no time limit (zenoh-link-tls ``close``: ``flush().await``, then ``shutdown``). When a router
+    still had data queued for a host that was cut off, that flush waits on a socket whose peer
+    never acknowledges, as long as the kernel retransmits (``tcp_retries2``: about 15 minutes), so
+    the transport is never deleted: the cut-off host's tokens and subscriptions stay declared, and
+    when its router reconnects (same Zenoh id) the new link joins that stale transport while the
+    other side starts afresh. The two routers' routing state then disagree (``Unknown wire expr``
+    on the reconnected side): nothing reaches the host's actors (not the replay's credit, so they
+    resend nothing) and the scheduler never sees their tokens go or come, until a TCP
+    retransmission after the heal happens to draw a reset (tens of seconds to minutes). Zenoh has
+    no setting for this, so the router process sets the socket option itself: the stuck flush then
+    fails with the connection after a lease, the transport is deleted, and the reconnection after
+    the heal is a clean new session. Loopback connections (a host's own services) are left alone:
+    no partition happens there, and a service busy for a while must not lose its session.
+
+    A thread looks at the process's sockets (``/proc/self/fd``) every ``every_s`` and sets the
+    option once per new connection (on a duplicate of its descriptor: the socket is shared, the
+    duplicate closed). Linux only; elsewhere ``available`` is False and nothing runs."""
+
+    def __init__(self, seconds: float = LINK_ACK_TIMEOUT_S, every_s: float = 1.0) -> None:
+        self.ms = int(seconds * 1000)
+        self.every_s = every_s
+        self.available = hasattr(socket, "TCP_USER_TIMEOUT") and os.path.isdir("/proc/self/fd")
+        self.count = 0  # connections given the timeout
+        self._done: set[str] = set()  # sockets ("socket:[inode]") looked at for good
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def sweep(self) -> int:
+        """Set the timeout on the connections not seen yet; returns how many got it now."""
+        if not self.available:
+            return 0
+        try:
+            names = os.listdir("/proc/self/fd")
+        except OSError:
+            return 0
+        seen, now = set(), 0
+        for name in names:
+            try:
+                target = os.readlink(f"/proc/self/fd/{name}")
+            except OSError:  # closed meanwhile
+                continue
+            if not target.startswith("socket:"):
+                continue
+            seen.add(target)
+            if target in self._done:
+                continue
+            try:
+                sock = socket.socket(fileno=os.dup(int(name)))  # the family and type are read from it
+            except OSError:
+                continue
+            try:
+                if sock.type != socket.SOCK_STREAM or sock.family not in (socket.AF_INET, socket.AF_INET6):
+                    self._done.add(target)
+                    continue
+                try:
+                    peer = ipaddress.ip_address(sock.getpeername()[0].split("%", 1)[0])
+                except OSError:  # listening, or still connecting: looked at again next time
+                    continue
+                peer = getattr(peer, "ipv4_mapped", None) or peer
+                if not peer.is_loopback:
+                    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, self.ms)
+                    now += 1
+                self._done.add(target)
+            except (OSError, ValueError):
+                pass
+            finally:
+                sock.close()  # the duplicate only
+        self._done &= seen
+        self.count += now
+        return now
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every_s):
+            added = self.sweep()
+            if added:
+                log.debug("bus: TCP user timeout %d ms on %d more link(s) (%d in all)", self.ms, added, self.count)
+
+    def start(self) -> LinkAckTimeout:
+        if self.available:
+            self.sweep()
+            self._thread = threading.Thread(target=self._run, daemon=True, name="link-ack-timeout")
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+
+
 def run_router(listen: str | list[str], stop: threading.Event, connect: list[str] | None = None,
                credentials: str = "", audit: bool = True, tls_name: str = "") -> None:
     """A Zenoh router (a Python session in router mode) until ``stop`` is set. ``listen``: one
@@ -107,9 +207,16 @@ def run_router(listen: str | list[str], stop: threading.Event, connect: list[str
     if tls is not None:
         log.info("bus: mutual TLS on tls/ links as router %r (CA %s)", tls_name, tls.ca)
     session = zenoh.open(zenoh_config("router", connect=connect, listen=listen, guard=guard, tls=tls))
+    links = LinkAckTimeout().start()  # links to other hosts end within a lease of a partition (see there)
+    if links.available:
+        log.info("bus: TCP user timeout %g s on links to other hosts", links.ms / 1000)
+    else:
+        log.warning("bus: no TCP_USER_TIMEOUT here: after a partition longer than the link lease this router may "
+                    "keep a stale session to the cut-off host until the kernel gives up on it")
     try:
         stop.wait()
     finally:
+        links.stop()
         session.close()
         if denials is not None:
             denials.stop()
