@@ -81,8 +81,10 @@ class Hosts:
             self.made.append(f"link:{self.bridge}")
             # a Docker engine sets iptables' FORWARD policy to DROP, which also drops bridged traffic
             # between the namespaces: let this bridge's own traffic through (best effort, no iptables: fine)
-            subprocess.run(["iptables", "-I", "FORWARD", "-i", self.bridge, "-o", self.bridge, "-j", "ACCEPT"],
-                           capture_output=True, timeout=30, check=False)
+            iptables = shutil.which("iptables")
+            if iptables and subprocess.run([iptables, *self._forward("-I")], capture_output=True, timeout=30,
+                                           check=False).returncode == 0:
+                self.made.append(f"iptables:{self.bridge}")  # taken out again at teardown
             _ip("addr", "add", f"{self.subnet}.254/24", "dev", self.bridge)
             _ip("link", "set", self.bridge, "up")
             for i in range(self.count):
@@ -104,6 +106,9 @@ class Hosts:
             raise
         return self
 
+    def _forward(self, action: str) -> list[str]:
+        return [action, "FORWARD", "-i", self.bridge, "-o", self.bridge, "-j", "ACCEPT"]
+
     def cut(self, i: int) -> None:
         """Partition host ``i``: its link down (its processes keep running, nothing reaches them)."""
         _ip("link", "set", self.link(i), "down")
@@ -119,11 +124,14 @@ class Hosts:
         return None if result.returncode == 0 else (result.stderr.strip() or "tc failed")
 
     def teardown(self) -> None:
-        """Remove every namespace and link made (a namespace takes its veth end with it)."""
+        """Remove every namespace, link and forwarding rule made (a namespace takes its veth end with it)."""
         for item in reversed(self.made):
             kind, name = item.split(":", 1)
             if kind == "netns":
                 _ip("netns", "del", name, check=False)
+            elif kind == "iptables":
+                subprocess.run([shutil.which("iptables") or "iptables", *self._forward("-D")], capture_output=True,
+                               timeout=30, check=False)
             else:
                 _ip("link", "del", name, check=False)
         self.made = []
