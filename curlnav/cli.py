@@ -369,6 +369,14 @@ def _cmd_bench_faults(args: argparse.Namespace) -> int:
                     for r in rows) else 1
 
 
+def _cmd_bench_chaos(args: argparse.Namespace) -> int:
+    from curlnav.bench.chaos import run_chaos_bench
+
+    result = run_chaos_bench(args.minutes, actors=args.actors, every_s=args.every_s, seed=args.seed,
+                             run_dir=args.run_dir)  # bad input: ValueError, one line, exit 2
+    return 0 if result.ok else 1
+
+
 def _cmd_bench_hosts(args: argparse.Namespace) -> int:
     from curlnav.bench.hosts import run_hosts_bench
     from curlnav.bench.netns import unavailable
@@ -728,6 +736,17 @@ def _add_bench_commands(sub) -> None:
     p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")
     p.add_argument("--run-dir", default="runs/bench-faults")
     p.set_defaults(func=_cmd_bench_faults)
+    p = bench_sub.add_parser("chaos", help="a long local run under chaos: kill -9 of a random service (router, replay, "
+                                          "learner, scheduler, an actor) or a stall, every few tens of seconds; "
+                                          "what was lost, whether versions, curriculum and policy stayed intact")
+    p.add_argument("--minutes", type=float, required=True, metavar="M", help="minutes of chaos (after the run has started)")
+    p.add_argument("--actors", type=int, default=2, metavar="N", help="actor processes")
+    p.add_argument("--every-s", type=float, default=30.0, metavar="S",
+                   help="mean seconds between faults (each gap uniform in [S/2, 3S/2])")
+    p.add_argument("--seed", type=int, default=0, metavar="K", help="the fault schedule's and the run's seed")
+    p.add_argument("--run-dir", default="runs/bench-chaos", metavar="DIR",
+                   help="a new folder, or one this bench made (cleared)")
+    p.set_defaults(func=_cmd_bench_chaos)
     p = bench_sub.add_parser("hosts", help="a run over network namespaces (a router per host, TLS between them): "
                                           "cut an actor host off, heal, train on; what was lost (root)")
     p.add_argument("--hosts", type=int, default=3, help="namespaces: host 0 runs replay, learner and scheduler")

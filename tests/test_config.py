@@ -206,7 +206,7 @@ LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.evaluation.experiment_cli": 2, "curlnav.evaluation.plots": 2, "curlnav.evaluation.animation": 2,
     "curlnav.evaluation.compare": 2, "curlnav.evaluation.ablation": 2, "curlnav.evaluation.experiment": 2,
     "curlnav.bench.transport": 2, "curlnav.bench.faults": 2, "curlnav.bench.draws": 2, "curlnav.bench.hosts": 2,
-    "curlnav.bench.actor": 2,
+    "curlnav.bench.actor": 2, "curlnav.bench.chaos": 2,
     "curlnav.learner.bench": 2, "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2,
     "curlnav.ros2": 2,
 }
