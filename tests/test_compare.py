@@ -146,3 +146,16 @@ def test_an_agent_scores_the_same_whatever_its_place_in_the_eval_list():
     first, second = [e for e in episodes if e.agent == "first"], [e for e in episodes if e.agent == "second"]
     assert len(first) == len(second) == 1
     assert first[0].trajectory == second[0].trajectory, "the second copy of the same policy drove another path"
+
+
+def test_the_flagship_drives_namo_worlds_it_never_saw(capsys):
+    """``policies/namo-general`` is the README's flagship: on NAMO floors of a held-out seed (300,
+    never trained or tuned on) it reaches the goal pushing balls and doors, with few wall contacts
+    (seeded evaluation: the same 8 trials every time; the full 60-trial figure is in its README)."""
+    shipped = Path(__file__).resolve().parent.parent / "policies" / "namo-general"
+    assert main(["eval", str(shipped), "--world", "namo-office:300", "--world", "namo-indoor:300",
+                 "--pairs", "2", "--seeds", "2"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if " on all: " in x)
+    success = int(line.split("success ")[1].split("%")[0])
+    events = float(line.split("(")[1].split(" contact events")[0])
+    assert success >= 75 and events <= 0.5, line
