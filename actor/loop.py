@@ -32,6 +32,18 @@ class EpisodeEnd:
         return bool(self.info["is_success"])
 
 
+def draw_world(env: NamoEnv, draws: WorldDraws, options: dict | None) -> dict | None:
+    """``options`` with a world distribution's key replaced by the world ``draws`` draws for this
+    episode (``WorldDraws``: never a held-out seed); ``env`` keeps the scenes of the draws' pool
+    built. Other options are returned as they are."""
+    if options and options.get("world") is not None:
+        world = draws.resolve(options["world"])
+        if world is not options["world"]:
+            env.scene_cache = max(env.scene_cache, draws.cache)
+            return {**options, "world": world}
+    return options
+
+
 class EpisodeLoop:
     """``begin`` an episode, then ``step`` until it returns an ``EpisodeEnd``; ``flush``
     whenever the written transitions should go out (the writer keeps the n-step tail)."""
@@ -51,11 +63,7 @@ class EpisodeLoop:
         """Reset the environment (``options``: world and pair) and start a new trajectory. A
         world distribution's key as the world draws this episode's world (``WorldDraws``: never a
         held-out seed); its scenes stay built in the environment's scene cache."""
-        if options and options.get("world") is not None:
-            world = self.worlds.resolve(options["world"])
-            if world is not options["world"]:
-                options = {**options, "world": world}
-                self.env.scene_cache = max(self.env.scene_cache, self.worlds.cache)
+        options = draw_world(self.env, self.worlds, options)
         self.obs, _ = self.env.reset(seed=seed, options=options)
         self.writer.first(self.obs)
         self.episode_return = 0.0

@@ -24,7 +24,7 @@ from curlnav.layout import ObservationLayout
 from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
 
-from .loop import EpisodeEnd
+from .loop import EpisodeEnd, draw_world
 
 
 class VectorNStepWriter:
@@ -96,14 +96,9 @@ class VectorEpisodeLoop:
 
     def begin(self, k: int, seed: int, options: dict | None = None) -> np.ndarray:
         """Reset environment ``k`` (``options``: world and pair; a distribution's key draws a world)."""
-        env, draws = self.envs[k], self.worlds
-        self.drawn[k] = None
-        if options and options.get("world") is not None:
-            world = draws.resolve(options["world"])
-            if world is not options["world"]:
-                options = {**options, "world": world}
-                env.scene_cache = max(env.scene_cache, draws.cache)
-            self.drawn[k] = draws.take_last()
+        env = self.envs[k]
+        options = draw_world(env, self.worlds, options)
+        self.drawn[k] = self.worlds.take_last()  # None unless a distribution drew this episode's world
         obs, _ = env.reset(seed=seed, options=options)
         self.writer[k].first(obs)
         self.obs[k] = obs
