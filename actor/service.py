@@ -46,7 +46,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import RateMeter, reliable_publisher
-from curlnav.config import ConfigError, D4PGConfig, ExperimentConfig
+from curlnav.config import ActorConfig, ConfigError, D4PGConfig, ExperimentConfig
 
 from .resend import ResendBuffer
 
@@ -72,8 +72,7 @@ class ActorServiceConfig:
     def __post_init__(self) -> None:
         if not 0 < len(self.actor_id) <= MAX_ACTOR_ID or any(c in self.actor_id for c in "/*$?#"):
             raise ConfigError(f"actor id {self.actor_id[:40]!r}: 1..{MAX_ACTOR_ID} characters, none of / * $ ? #")
-        if isinstance(self.envs, bool) or not isinstance(self.envs, int) or not 1 <= self.envs <= 64:
-            raise ConfigError(f"envs per actor process must be a whole number in 1..64, got {self.envs!r}")
+        ActorConfig(envs_per_process=self.envs)  # the config's own check (ConfigError, one line)
 
 
 class ActorCore:
