@@ -624,11 +624,14 @@ def _add_bus_commands(sub) -> None:
         print(f"bus credentials of run {args.run!r} in {args.out}: "
               + ", ".join(f"{role} ({state})" for role, state in done.items()))
         print(f"give `--bus-credentials {args.out}` (CURLNAV_BUS_CREDENTIALS) to every `curlnav serve`, or to each "
-              f"service only its own folder {args.out}/<role> (an actor: {args.out}/actor-<n>, which it then is)")
+              f"service only its own folder {args.out}/<role> (an actor: {args.out}/actor-<n>, which it then is; given "
+              f"the folder of every actor-<n>, each actor claims a free one)")
         if tls:
+            from curlnav.bus.mesh import router_flags
+
             print(f"TLS between routers: the run's CA {args.out}/tls/ca.pem (keep {args.out}/tls/ca.key off the hosts); "
-                  f"start each router with `--tls NAME --listen tls/ADDRESS:7447` and its peers with "
-                  f"`--connect tls/ADDRESS:7447`")
+                  f"start the main host's router with `curlnav serve router {' '.join(router_flags('NAME'))}` and "
+                  f"every other host's with `curlnav serve router {' '.join(router_flags('NAME', 'MAIN_ADDRESS'))}`")
         print("access control, default deny (keys under curlnav/<run>/):\n" + acl_table())
         return 0
 
@@ -638,12 +641,13 @@ def _add_bus_commands(sub) -> None:
                                               "password, the router's dictionary and access control")
     p.add_argument("--out", required=True, help="folder to write (0700, files 0600); passwords already there are kept")
     p.add_argument("--run", default=env_default("run", "default"), help="the run (Zenoh key prefix) they are for")
-    p.add_argument("--actors", type=int, default=8,
-                   help="the declared maximum of actor replicas: one user per actor, actor-0 .. actor-<N-1>, each "
-                        "allowed to put only under its own id (more may be added later; none are removed)")
+    p.add_argument("--actors", type=int, default=env_default("max_actors", 8),
+                   help="the declared maximum of actor replicas (CURLNAV_MAX_ACTORS): one user per actor, actor-0 .. "
+                        "actor-<N-1>, each allowed to put only under its own id; a replica claims one at start "
+                        "(more may be added later; none are removed)")
     p.add_argument("--shared-actor", action="store_true",
-                   help="also one user any actor may use (it may put under any actor id): only for replicas that "
-                        "cannot be told apart (compose --scale)")
+                   help="also one user any actor may use, under any actor id (before replicas claimed an identity "
+                        "each; kept for runs that rely on it)")
     p.add_argument("--tls", default="", metavar="NAME=ADDRESS,...",
                    help="routers linked over TLS: the run's CA (tls/ca.pem) and a certificate per router name, for "
                         "the address where it listens (an IP or a DNS name)")

@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import zenoh
@@ -22,6 +23,7 @@ from curlnav.proto.messages import EpisodeReport, Weights
 from curlnav.proto.topology import Topology
 
 from curlnav.bench.faults import poll
+from curlnav.bus import identity
 from curlnav.bus.security import (
     ALLOWED,
     ROLES,
@@ -322,6 +324,41 @@ def test_an_actor_cannot_write_under_another_actors_id(bus):
                   transitions, "actor-0's own batch")
     deliver_until(lambda p: forger.put(TOPO.transitions("actor-1"), p.split(b" ", 1)[1]),
                   TOPO.transitions("actor-1").encode() + b" its own", transitions, "actor-1's batch under its own id")
+    time.sleep(0.5)
+    assert not any(b"forged" in item for item in transitions.items + episodes.items)
+
+
+def test_compose_replicas_claim_their_own_identity_and_cannot_write_under_each_others_id(bus):
+    """Compose replicas (issue 30): each claims an identity from the folder of every actor's
+    credentials (the ``bus-actors`` volume; ``curlnav serve actor`` without --actor-id) and
+    authenticates as it, as ``ServiceShell`` does; the second replica puts nothing under the
+    first's id, and each puts under its own."""
+    from curlnav.run.launch import _actor_identity
+
+    def replica() -> tuple[str, zenoh.Session]:
+        ident, _ = _actor_identity(SimpleNamespace(actor_id="", actor_slot=0, bus_credentials=str(bus.credentials)))
+        session = open_session(bus.endpoint, 10.0, user=load_user(bus.credentials, "actor", RUN, ident))
+        bus.sessions.append(session)
+        return ident, session
+
+    claims = dict(identity._HELD)
+    try:
+        (first, a), (second, b) = replica(), replica()
+    finally:
+        for key in set(identity._HELD) - set(claims):
+            identity._HELD[key].release()
+    assert first != second and {first, second} <= set(actor_ids(8))
+    transitions, episodes = Inbox(), Inbox()
+    bus.session("replay").declare_subscriber(TOPO.transitions(), lambda s: transitions.add(
+        str(s.key_expr).encode() + b" " + s.payload.to_bytes()))
+    bus.session("scheduler").declare_subscriber(TOPO.episodes(), episodes)
+    for _ in range(20):
+        b.put(TOPO.transitions(first), b"forged batch")
+        b.put(TOPO.episodes(first), b"forged report")
+    for ident, session in ((first, a), (second, b)):
+        key = TOPO.transitions(ident).encode()
+        deliver_until(lambda p, s=session, i=ident: s.put(TOPO.transitions(i), p.split(b" ", 1)[1]),
+                      key + b" own batch", transitions, f"{ident}'s batch under its own id")
     time.sleep(0.5)
     assert not any(b"forged" in item for item in transitions.items + episodes.items)
 

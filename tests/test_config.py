@@ -197,7 +197,8 @@ def test_curlnav_and_proto_plus_install_and_import_side_by_side():
 # -- layering: imports point down only ------------------------------------------------------------
 LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.sim": 0, "curlnav.worlds": 0, "curlnav.proto": 0, "curlnav.layout": 0, "curlnav.config": 0, "curlnav.files": 0,
-    "curlnav.bus": 0, "curlnav.bus.transport": 0, "curlnav.bus.security": 0, "curlnav.policy": 0,
+    "curlnav.bus": 0, "curlnav.bus.transport": 0, "curlnav.bus.security": 0, "curlnav.bus.identity": 0,
+    "curlnav.bus.mesh": 0, "curlnav.policy": 0,
     "curlnav.run": 0, "curlnav.run.record": 0, "curlnav.evaluation": 0, "curlnav.bench": 0,
     "curlnav.replay": 1, "curlnav.learner": 1, "curlnav.scheduler": 1, "curlnav.actor": 1, "curlnav.builder": 1,
     "curlnav.bus.service": 1, "curlnav.evaluation.protocol": 1, "curlnav.evaluation.baseline": 1,

@@ -46,7 +46,10 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--http-host", default=env_default("http_host", "0.0.0.0"),
                    help="HTTP bind address (containers: all interfaces; `curlnav train` passes 127.0.0.1)")
     p.add_argument("--admin-token", default=env_default("admin_token", ""), help="scheduler: admin bearer token")
-    p.add_argument("--actor-id", default=env_default("actor_id", ""), help="actor: id (default host-pid)")
+    p.add_argument("--actor-id", default=env_default("actor_id", ""),
+                   help="actor: id (default: an identity claimed from --bus-credentials' actor-<n> folders, else host-pid)")
+    p.add_argument("--actor-slot", type=int, default=env_default("actor_slot", 0),
+                   help="actor: claim identity actor-<slot-1> (Swarm: CURLNAV_ACTOR_SLOT={{.Task.Slot}}); 0: the first free")
     p.add_argument("--actor-index", type=int, default=env_default("actor_index", -1),
                    help="actor: rung of the sigma ladder and seed offset (default: from the actor id)")
     p.add_argument("--actor-count", type=int, default=env_default("actor_count", 1),
@@ -113,12 +116,33 @@ def build_service(args):
     if args.role == "actor":
         from curlnav.actor.service import ActorService, ActorServiceConfig
 
-        actor_id = args.actor_id or _credentials_actor_id(args.bus_credentials) or f"{socket.gethostname()}-{os.getpid()}"
-        index = args.actor_index if args.actor_index >= 0 else zlib.crc32(actor_id.encode()) % 997
+        actor_id, claimed = _actor_identity(args)
+        index = args.actor_index if args.actor_index >= 0 else claimed if claimed is not None \
+            else zlib.crc32(actor_id.encode()) % 997
         return ActorService(ActorServiceConfig(actor_id=actor_id, actor_index=index, actor_count=args.actor_count,
                                                envs=experiment.actor.envs_per_process,
                                                deployment=deployment(f"actors/{actor_id}")), experiment)
     raise ValueError(f"no service for role {args.role!r}")
+
+
+def _actor_identity(args) -> tuple[str, int | None]:
+    """The actor's id, and the number n of the identity ``actor-<n>`` it claimed (None if none):
+    ``--actor-id``; else the one actor of a folder of one actor's credentials; else, from a folder
+    of actor identities (compose's ``bus-actors`` volume, Swarm's secrets), one claimed for this
+    process's life (``--actor-slot``'s, or the first free: ``curlnav.bus.identity``); else host-pid
+    (no credentials, or only the shared actor user of ``--shared-actor``)."""
+    from curlnav.bus.identity import actor_identities, claim_actor_identity
+
+    own = args.actor_id or _credentials_actor_id(args.bus_credentials)
+    if own:
+        return own, None
+    if args.bus_credentials and (args.actor_slot or actor_identities(args.bus_credentials)):
+        claim = claim_actor_identity(args.bus_credentials, args.actor_slot or None)
+        logging.info("actor: claimed bus identity %s in %s", claim.name, claim.folder.parent)
+        return claim.name, claim.index
+    if args.actor_slot:
+        return f"actor-{args.actor_slot - 1}", args.actor_slot - 1
+    return f"{socket.gethostname()}-{os.getpid()}", None
 
 
 def _credentials_actor_id(credentials: str) -> str:
