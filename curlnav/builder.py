@@ -35,6 +35,19 @@ class D4PGBuilder:
         limiter.check_batch(batch)
         return limiter
 
+    def batches_per_request(self, wanted: int) -> int:
+        """The most batches (at most ``wanted``) one sample request may ask for: the rate limiter
+        must be able to admit a request of that many transitions (``check_batch``), else the
+        learner would wait on it for ever."""
+        limiter, batch = self.make_rate_limiter(), self.config.d4pg.batch_size
+        for k in range(max(1, wanted), 1, -1):
+            try:
+                limiter.check_batch(k * batch)
+                return k
+            except ValueError:
+                continue
+        return 1
+
     def make_replay_table(self) -> ReplayTable:
         replay = self.config.replay
         return ReplayTable(self.layout, replay.capacity, self.make_rate_limiter(),

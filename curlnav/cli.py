@@ -335,7 +335,8 @@ def _cmd_bench_transport(args: argparse.Namespace) -> int:
     from curlnav.bench.transport import run_transport_bench
 
     run_transport_bench(publishers=args.publishers, batches=args.batches, paths=tuple(args.paths.split(",")),
-                        in_flight=args.in_flight)
+                        in_flight=args.in_flight, insert_rates=tuple(float(r) for r in args.insert_rates.split(",")),
+                        per_request=args.per_request)
     return 0
 
 
@@ -716,6 +717,10 @@ def _add_bench_commands(sub) -> None:
     p.add_argument("--paths", default="plain,shm", help="sampling paths to measure: plain (sockets), shm (Zenoh "
                                                        "shared memory), comma-separated")
     p.add_argument("--in-flight", type=int, default=4, help="sample requests the learner keeps outstanding")
+    p.add_argument("--per-request", type=int, default=4, help="batches of 256 in one sample request (the learner "
+                                                              "service's batches_per_request)")
+    p.add_argument("--insert-rates", default="0,12500", help="insert rates to measure sampling beside, transitions/s in all, "
+                                                       "comma-separated; 0: the publishers as fast as they go")
     p.set_defaults(func=_cmd_bench_transport)
     p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
     p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")

@@ -120,6 +120,11 @@ class SampleFeed:
     """Batches from the replay's ``replay/sample`` queryable, ``in_flight`` queries outstanding,
     up to ``depth`` decoded batches waiting in the queue.
 
+    ``batches_per_request`` (k): each query asks for ``k * batch_size`` transitions and the reply
+    is split into k batches (views of it), so the per-query costs (the query's routing, the
+    replay's locking and message header, the reply's allocation) are paid once per k batches; the
+    k batches are independent draws like any others (uniform or by priority, with replacement).
+
     ``get(timeout)`` -> ``(SampledBatch, TensorBatch | None)`` (the tensor batch when an
     ``assembler`` was given), or ``None`` on timeout. ``rejected`` counts refused replies by
     reason (``ProtoError`` reasons); ``errors`` counts error replies (rate limited, not ready).
@@ -127,12 +132,16 @@ class SampleFeed:
 
     def __init__(self, session, key: str, batch_size: int, layout, in_flight: int = 4, depth: int = 4,
                  assembler: BatchAssembler | None = None, request_timeout_s: float = 0.1,
-                 on_reject=None) -> None:
+                 on_reject=None, batches_per_request: int = 1) -> None:
         self.session, self.key, self.layout = session, key, layout
         self.batch_size = batch_size
         self.in_flight = max(1, in_flight)
         self.assembler = assembler
-        self.request = SampleRequest(batch_size, timeout_s=request_timeout_s).encode()
+        if not 1 <= batches_per_request * batch_size <= SampledBatch.MAX_BATCH:
+            raise ValueError(f"batches_per_request x batch_size = {batches_per_request * batch_size}: must be "
+                             f"1..{SampledBatch.MAX_BATCH} transitions per request")
+        self.per_request = batches_per_request
+        self.request = SampleRequest(batch_size * batches_per_request, timeout_s=request_timeout_s).encode()
         self.ready: queue.Queue = queue.Queue(maxsize=max(1, depth))
         self.rejected: dict[str, int] = {}
         self.errors = 0
@@ -162,8 +171,9 @@ class SampleFeed:
         self.requested += 1
         return self.session.get(self.key, payload=self.request, timeout=5.0)
 
-    def decode(self, payload) -> tuple[SampledBatch, TensorBatch | None] | None:
-        """One reply's payload (a ``ZBytes``) into a checked batch; ``None`` when refused."""
+    def decode(self, payload) -> list[tuple[SampledBatch, TensorBatch | None]] | None:
+        """One reply's payload (a ``ZBytes``) into checked batches (``batches_per_request`` of
+        them); ``None`` when refused."""
         shm = payload.as_shm() if hasattr(payload, "as_shm") else None
         try:
             if shm is not None:
@@ -172,13 +182,17 @@ class SampleFeed:
             else:
                 data = payload.to_bytes() if hasattr(payload, "to_bytes") else payload
             batch = SampledBatch.decode(data, self.layout)
+            if len(batch.keys) != self.batch_size * self.per_request:
+                raise ProtoError("shape", f"a reply of {len(batch.keys)} transitions to a request for "
+                                          f"{self.batch_size * self.per_request}")
         except ProtoError as exc:
             self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
             if self.on_reject is not None:
                 self.on_reject(exc.reason)
             return None
         self.received += 1
-        return batch, (self.assembler(batch) if self.assembler is not None else None)
+        parts = batch.split(self.per_request) if self.per_request > 1 else [batch]
+        return [(part, self.assembler(part) if self.assembler is not None else None) for part in parts]
 
     def _run(self) -> None:
         pending: deque = deque(self._ask() for _ in range(self.in_flight))
@@ -190,13 +204,13 @@ class SampleFeed:
                 if reply.ok is None:  # rate limited or not ready: ask again
                     self.errors += 1
                     continue
-                item = self.decode(reply.ok.payload)
-                while item is not None and not self.stop.is_set():
-                    try:
-                        self.ready.put(item, timeout=0.2)
-                        break
-                    except queue.Full:
-                        continue
+                for item in self.decode(reply.ok.payload) or ():
+                    while not self.stop.is_set():
+                        try:
+                            self.ready.put(item, timeout=0.2)
+                            break
+                        except queue.Full:
+                            continue
             self.unanswered += replies == 0
             if not self.stop.is_set():
                 pending.append(self._ask())

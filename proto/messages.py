@@ -189,6 +189,16 @@ class SampledBatch:
         out[:, r + lab:] = goal.reshape(b, -1)
         return out
 
+    def split(self, parts: int) -> list[SampledBatch]:
+        """``parts`` batches of equal size (views, no copy): one reply that carried several of the
+        learner's batches (``SampleFeed``'s ``batches_per_request``)."""
+        size = len(self.keys)
+        if parts < 1 or size % parts:
+            raise ValueError(f"a batch of {size} items does not split into {parts} equal parts")
+        step = size // parts
+        return [SampledBatch(**{n: getattr(self, n)[i * step:(i + 1) * step] for n in self.FIELDS})
+                for i in range(parts)]
+
     def obs(self) -> np.ndarray:
         return self.stack(self.obs_ranges, self.obs_labels, self.obs_goal)
 

@@ -243,6 +243,11 @@ class ReplayService:
         except ProtoError as exc:
             self.m_rejected.labels(exc.reason).inc()
             raise
+        try:  # a request the rate limiter could never admit would wait for ever: refuse it now
+            self.table.rate_limiter.check_batch(request.batch_size)
+        except ValueError as exc:
+            self.m_rejected.labels("range").inc()
+            raise ProtoError("range", f"a sample request of {request.batch_size} transitions: {exc}") from None
         # gathered straight into the reply's raw buffers (frames, not stacked observations)
         writer = SampledBatch.writer(request.batch_size, self.layout, self.table.action_size)
         self.table.sample_frames(request.batch_size, timeout=request.timeout_s,

@@ -113,3 +113,51 @@ def test_the_learner_names_its_device_and_runs_on_cpu_without_a_gpu():
         assert "no CUDA device present" in line
         with pytest.raises(ValueError, match="no CUDA device"):
             resolve_device("cuda")
+
+
+def test_one_reply_carrying_several_batches_splits_into_the_learners_batches():
+    """``batches_per_request``: one query for 4 x 8 transitions gives the learner 4 batches of 8,
+    each rebuilding the observations the environment stacked; a reply of another size is refused."""
+    table = filled_table()
+    feed = SampleFeed(session=None, key="k", batch_size=8, layout=LAYOUT, batches_per_request=4,
+                      assembler=BatchAssembler(torch.device("cpu")))
+    parts = feed.decode(bytes(sampled_message(table, 32)))
+    assert len(parts) == 4 and feed.received == 1
+    for batch, tensors in parts:
+        assert batch.obs().shape == (8, LAYOUT.size) and tensors.obs.shape == (8, LAYOUT.size)
+        for i in range(8):
+            step = int(batch.action[i, 0])
+            assert np.allclose(batch.obs()[i], expected_stack(list(range(step + 1)), 1), atol=1e-2)
+        assert torch.equal(tensors.obs, torch.from_numpy(batch.obs()))
+    keys = np.concatenate([b.keys for b, _ in parts])
+    assert len(keys) == 32
+    assert feed.decode(bytes(sampled_message(table, 8))) is None and feed.rejected == {"shape": 1}
+    with pytest.raises(ValueError, match="1..8192"):
+        SampleFeed(session=None, key="k", batch_size=4096, layout=LAYOUT, batches_per_request=4)
+
+
+def test_the_learner_asks_only_for_requests_the_replays_rate_limiter_can_admit(tmp_path):
+    """A request larger than the limiter's slack would wait for ever: the learner asks for fewer
+    batches per request, and a replay refuses such a request at once instead of hanging."""
+    from curlnav.builder import D4PGBuilder
+    from curlnav.config import ExperimentConfig
+
+    from curlnav.bus.service import Deployment
+    from curlnav.config import apply_overrides
+    from curlnav.proto.messages import SampleRequest
+    from curlnav.replay.service import ReplayService, ReplayServiceConfig
+
+    base = ExperimentConfig()
+    assert D4PGBuilder(base).batches_per_request(4) == 4  # the default config's slack admits 4 x 256
+    tight = apply_overrides(base, ["replay.samples_per_insert=1", "replay.min_size=256", "replay.insert_batch=256"])
+    builder = D4PGBuilder(tight)
+    k = builder.batches_per_request(8)
+    limiter = builder.make_rate_limiter()
+    limiter.check_batch(k * 256)  # admitted
+    with pytest.raises(ValueError):
+        limiter.check_batch((k + 1) * 256)
+    assert 1 <= k < 8
+    service = ReplayService(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))), tight)
+    with pytest.raises(ProtoError, match="range"):
+        service.handle_sample(SampleRequest((k + 1) * 256, 0.1).encode())
+    assert service.rejected().get("range") == 1

@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 
 
-def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: int) -> None:
+def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: int, rate: float = 0.0) -> None:
+    """``batches`` batches of ``per_batch`` transitions, as fast as the bus takes them (``rate``
+    0) or paced at ``rate`` transitions/s."""
     from curlnav.bus.transport import open_session, reliable_publisher
     from curlnav.layout import ObservationLayout
     from curlnav.proto.messages import TransitionBatch
@@ -31,14 +33,22 @@ def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: in
     rng = np.random.default_rng(abs(hash(actor_id)) % (1 << 31))
     writer = NStepWriter(layout, 5, 0.99)
     writer.first(rng.uniform(0, 10, layout.size).astype(np.float32))
-    session = open_session(router)
-    pub = reliable_publisher(session, Topology(run).transitions(actor_id))
     obs = rng.uniform(0, 10, layout.size).astype(np.float32)
-    time.sleep(1.0)  # let the subscription propagate
+    # the messages are made before the clock starts: what is timed is the bus and the replay, not
+    # this process's n-step writer (an actor runs on a core or a host of its own)
+    messages = []
     for seq in range(batches):
         for _ in range(per_batch):
             writer.step(np.array([0.5, 0.0, 0.5], np.float32), 0.1, obs, False, False)
-        pub.put(TransitionBatch(actor_id, seq, 1, writer.flush()).encode())
+        messages.append(TransitionBatch(actor_id, seq, 1, writer.flush()).encode())
+    session = open_session(router)
+    pub = reliable_publisher(session, Topology(run).transitions(actor_id))
+    time.sleep(1.0)  # let the subscription propagate
+    start = time.monotonic()
+    for i, message in enumerate(messages):
+        if rate > 0 and (wait := start + i * per_batch / rate - time.monotonic()) > 0:
+            time.sleep(wait)
+        pub.put(message)
     time.sleep(0.5)
     session.close()
 
@@ -68,9 +78,10 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 
 def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, per_batch: int, in_flight: int,
-                       weights: bool) -> dict:
-    """One measurement: ``publishers`` processes insert while a ``SampleFeed`` (the learner's
-    sampler) samples batches of 256 over the same window; ``path`` is plain or shm."""
+                       weights: bool, insert_rate: float = 0.0, per_request: int = 1) -> dict:
+    """One measurement: ``publishers`` processes insert (as fast as they can, or paced at
+    ``insert_rate`` transitions/s in all) while a ``SampleFeed`` (the learner's sampler) samples
+    batches of 256 over the same window; ``path`` is plain or shm."""
     from curlnav.bus.transport import open_session
     from curlnav.layout import ObservationLayout
     from curlnav.learner.feed import SampleFeed
@@ -90,11 +101,14 @@ def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, 
         topo = Topology(run)
         # each publisher's n-step writer (n = 5) holds its last 4 steps back: they never complete
         sent = publishers * (batches * per_batch - 4)
-        print(f"[{path}] {publishers} publisher processes x {batches} batches x {per_batch} steps = {sent:,} "
-              f"transitions; the learner's sampler: batches of 256, {in_flight} requests in flight")
+        tag = f"{path}, inserts {'as fast as they go' if insert_rate <= 0 else f'paced at {insert_rate:,.0f}/s'}"
+        print(f"[{tag}] {publishers} publisher processes x {batches} batches x {per_batch} steps = {sent:,} "
+              f"transitions; the learner's sampler: batches of 256, {per_request} per request, {in_flight} requests "
+              f"in flight")
         pubs = [subprocess.Popen([sys.executable, "-m", "curlnav.bench.transport", router, run, f"pub-{i}", str(batches),
-                                  str(per_batch)]) for i in range(publishers)]
-        feed = SampleFeed(session, topo.sample, 256, ObservationLayout(), in_flight=in_flight, depth=in_flight)
+                                  str(per_batch), str(insert_rate / publishers)]) for i in range(publishers)]
+        feed = SampleFeed(session, topo.sample, 256, ObservationLayout(), in_flight=in_flight,
+                          depth=in_flight * per_request, batches_per_request=per_request)
         sampled = [0]
         sample_stop = threading.Event()
 
@@ -127,14 +141,14 @@ def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, 
         rate = info["inserted"] / elapsed
         sample_rate = got / elapsed
         refused = sum(feed.rejected.values())
-        print(f"[{path}] inserting: {rate:,.0f} transitions/s; accepted {info['inserted']:,} of {sent:,} in "
+        print(f"[{tag}] inserting: {rate:,.0f} transitions/s; accepted {info['inserted']:,} of {sent:,} in "
               f"{elapsed:.2f} s; lost {sent - info['inserted']}, sequence gaps {info['seq_gaps']}, rejected "
               f"{info['rejected']:.0f}{' ' + str(reasons) if reasons else ''}")
-        shm_note = (f", {feed.payload_shm} of {feed.received} replies through shared memory" if path == "shm" else "")
-        print(f"[{path}] sampling:  {sample_rate:,.0f} transitions/s; {sample_rate / 256:,.1f} batches of 256 per "
+        shm_note = f", {feed.payload_shm} of {feed.received} replies through shared memory"
+        print(f"[{tag}] sampling:  {sample_rate:,.0f} transitions/s; {sample_rate / 256:,.1f} batches of 256 per "
               f"second over the same {elapsed:.2f} s; lost {feed.unanswered + refused} (unanswered "
               f"{feed.unanswered}, refused {refused}), error replies {feed.errors}{shm_note}")
-        out = {"path": path, "transitions_per_s": rate, "lost": sent - info["inserted"], "seq_gaps": info["seq_gaps"],
+        out = {"path": path, "insert_rate": insert_rate, "per_request": per_request, "transitions_per_s": rate, "lost": sent - info["inserted"], "seq_gaps": info["seq_gaps"],
                "sampled_per_s": sample_rate, "sample_lost": feed.unanswered + refused,
                "shm_replies": feed.payload_shm, "replies": feed.received}
         if weights:
@@ -205,21 +219,24 @@ def shm_support() -> str | None:
 
 def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64,
                         run_dir: str = "runs/bench-transport", paths: tuple[str, ...] = ("plain", "shm"),
-                        in_flight: int = 4) -> dict:
-    """Inserting and sampling side by side, once per sampling path (plain: the reply's bytes
-    through the router's sockets; shm: the replay answers from Zenoh shared memory), then the
-    weights broadcast latency."""
+                        in_flight: int = 4, insert_rates: tuple[float, ...] = (0.0,), per_request: int = 1) -> dict:
+    """Inserting and sampling side by side, once per sampling path (plain: the replay replies
+    with an ordinary buffer; shm: from a Zenoh shared-memory buffer) and insert rate (0: the
+    publishers as fast as they go; else paced, in transitions/s in all), then the weights
+    broadcast latency."""
     print(f"machine: {platform.machine()} cpus={os.cpu_count()} python={platform.python_version()} "
           f"load average {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if "shm" in paths and (why := shm_support()) is not None:
         print(f"shm: not measured, this zenoh wheel cannot allocate shared memory ({why})")
         paths = tuple(p for p in paths if p != "shm")
     results = {}
-    for i, path in enumerate(paths):
-        results[path] = _insert_and_sample(Path(run_dir), path, publishers, batches, per_batch, in_flight,
-                                           weights=i == len(paths) - 1)
+    runs = [(path, rate) for path in paths for rate in insert_rates]
+    for i, (path, rate) in enumerate(runs):
+        results[f"{path}@{rate:g}"] = _insert_and_sample(Path(run_dir), path, publishers, batches, per_batch, in_flight,
+                                                         weights=i == len(runs) - 1, insert_rate=rate,
+                                                         per_request=per_request)
     return results
 
 
 if __name__ == "__main__":
-    _publisher(sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
+    _publisher(sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]), float(sys.argv[6]))
