@@ -139,13 +139,12 @@ def test_one_reply_carrying_several_batches_splits_into_the_learners_batches():
 def test_the_learner_asks_only_for_requests_the_replays_rate_limiter_can_admit(tmp_path):
     """A request larger than the limiter's slack would wait for ever: the learner asks for fewer
     batches per request, and a replay refuses such a request at once instead of hanging."""
-    from curlnav.builder import D4PGBuilder
-    from curlnav.config import ExperimentConfig
-
-    from curlnav.bus.service import Deployment
-    from curlnav.config import apply_overrides
     from curlnav.proto.messages import SampleRequest
     from curlnav.replay.service import ReplayService, ReplayServiceConfig
+
+    from curlnav.builder import D4PGBuilder
+    from curlnav.bus.service import Deployment
+    from curlnav.config import ExperimentConfig, apply_overrides
 
     base = ExperimentConfig()
     assert D4PGBuilder(base).batches_per_request(4) == 4  # the default config's slack admits 4 x 256

@@ -148,7 +148,8 @@ def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, 
         print(f"[{tag}] sampling:  {sample_rate:,.0f} transitions/s; {sample_rate / 256:,.1f} batches of 256 per "
               f"second over the same {elapsed:.2f} s; lost {feed.unanswered + refused} (unanswered "
               f"{feed.unanswered}, refused {refused}), error replies {feed.errors}{shm_note}")
-        out = {"path": path, "insert_rate": insert_rate, "per_request": per_request, "transitions_per_s": rate, "lost": sent - info["inserted"], "seq_gaps": info["seq_gaps"],
+        out = {"path": path, "insert_rate": insert_rate, "per_request": per_request,
+               "transitions_per_s": rate, "lost": sent - info["inserted"], "seq_gaps": info["seq_gaps"],
                "sampled_per_s": sample_rate, "sample_lost": feed.unanswered + refused,
                "shm_replies": feed.payload_shm, "replies": feed.received}
         if weights:
