@@ -9,13 +9,17 @@ trained at different batch sizes, warm-ups and exploration scales).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from curlnav.config import ExperimentConfig
 from curlnav.layout import ObservationLayout
 from curlnav.learner.networks import BehaviourPolicy
 from curlnav.replay import NStepWriter, ReplayTable, SampleToInsertRatio
-from curlnav.sim import NamoEnv
+
+if TYPE_CHECKING:
+    from curlnav.sim import NamoEnv
 
 
 class D4PGBuilder:
@@ -104,6 +108,8 @@ class D4PGBuilder:
         from curlnav.worlds.heldout import check_training_world
 
         check_training_world(world if world is not None else self.config.curriculum.world)  # never a held-out seed
+        from curlnav.sim import NamoEnv  # here: the learner and the replay need no simulator
+
         env = NamoEnv(world if world is not None else self.config.curriculum.world, self.config.env)
         if world is None or world == self.config.curriculum.world:
             if excluded_pairs is None:
@@ -116,6 +122,8 @@ class D4PGBuilder:
 
     def make_eval_env(self, world=None) -> NamoEnv:
         """The evaluation environment (collisions counted, the trial goes on)."""
+        from curlnav.sim import NamoEnv
+
         return NamoEnv(world if world is not None else self.config.curriculum.world, self.config.eval_env)
 
     # -- learning ------------------------------------------------------------------------------

@@ -202,7 +202,9 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
 def _cmd_bench_learner(args: argparse.Namespace) -> int:
     from curlnav.learner.bench import run_learner_bench
 
-    run_learner_bench(presets=args.presets.split(","), seconds=args.seconds, batch_size=args.batch, threads=args.threads)
+    run_learner_bench(presets=args.presets.split(","), seconds=args.seconds, batch_size=args.batch, threads=args.threads,
+                      device=args.device, variants=args.variants.split(","), check_amp=args.check_amp,
+                      check_steps=args.check_steps)
     return 0
 
 
@@ -336,7 +338,8 @@ def _cmd_bench_transport(args: argparse.Namespace) -> int:
 
     run_transport_bench(publishers=args.publishers, batches=args.batches, paths=tuple(args.paths.split(",")),
                         in_flight=args.in_flight, insert_rates=tuple(float(r) for r in args.insert_rates.split(",")),
-                        per_request=args.per_request)
+                        per_request=args.per_request, learner_device=args.learner_device,
+                        learner_variant=args.learner_variant)
     return 0
 
 
@@ -710,6 +713,12 @@ def _add_bench_commands(sub) -> None:
     p.add_argument("--seconds", type=float, default=20.0, help="timed seconds per preset")
     p.add_argument("--batch", type=int, default=256, help="batch size")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: cuda when present)")
+    p.add_argument("--variants", default="eager", help="how the update runs, comma-separated: eager, async, compile, "
+                                                      "cudagraphs, bf16, bf16+compile (see curlnav.learner.bench)")
+    p.add_argument("--check-amp", action="store_true", help="also train float32 and bf16 side by side and compare "
+                                                           "their critic losses")
+    p.add_argument("--check-steps", type=int, default=500, help="updates of the amp check")
     p.set_defaults(func=_cmd_bench_learner)
     p = bench_sub.add_parser("transport", help="replay service throughput from 4 publishers, sampling, weight latency")
     p.add_argument("--publishers", type=int, default=4, help="publishing processes")
@@ -719,6 +728,9 @@ def _add_bench_commands(sub) -> None:
     p.add_argument("--in-flight", type=int, default=4, help="sample requests the learner keeps outstanding")
     p.add_argument("--per-request", type=int, default=4, help="batches of 256 in one sample request (the learner "
                                                               "service's batches_per_request)")
+    p.add_argument("--learner-device", default=None, help="also step a D4PG learner on each sampled batch, on this "
+                                                         "device (cpu, cuda)")
+    p.add_argument("--learner-variant", default="async", help="how that learner runs (curlnav bench learner --variants)")
     p.add_argument("--insert-rates", default="0,12500", help="insert rates to measure sampling beside, transitions/s in all, "
                                                        "comma-separated; 0: the publishers as fast as they go")
     p.set_defaults(func=_cmd_bench_transport)

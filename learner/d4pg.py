@@ -59,10 +59,42 @@ class D4PGState:
     actor_opt: torch.optim.Optimizer
     critic_opt: torch.optim.Optimizer
     steps: int = 0
+    #: "bf16": the forward passes under bfloat16 autocast (CUDA; the losses, softmaxes and the
+    #: optimiser stay float32); "off": float32 throughout. How it trains, not what it holds: not saved.
+    amp: str = "off"
+    #: ``torch.compile``d callables of the four networks (same parameters), or None: eager
+    compiled: dict | None = None
 
     @property
     def device(self) -> torch.device:
         return next(self.actor.parameters()).device
+
+    def net(self, name: str):
+        """The network ``name`` as called in an update: compiled when ``compile_networks`` ran."""
+        return self.compiled[name] if self.compiled else getattr(self, name)
+
+
+AMP_MODES = ("off", "bf16")
+COMPILE_MODES = ("off", "default", "reduce-overhead", "max-autotune-no-cudagraphs")
+
+
+def compile_networks(state: D4PGState, mode: str = "default") -> D4PGState:
+    """Have ``sgd_step`` call ``torch.compile``d networks (``mode`` one of ``COMPILE_MODES``;
+    ``off``: eager). The modules, their parameters and checkpoints are unchanged."""
+    if mode not in COMPILE_MODES:
+        raise ValueError(f"compile mode {mode!r}: one of {', '.join(COMPILE_MODES)}")
+    state.compiled = None if mode == "off" else {
+        name: torch.compile(getattr(state, name), mode=mode) for name in ("actor", "critic", "target_actor", "target_critic")}
+    return state
+
+
+def set_amp(state: D4PGState, amp: str) -> D4PGState:
+    """``amp`` one of ``AMP_MODES``; bf16 needs a device with bfloat16 kernels (any CUDA GPU
+    since Ampere runs them natively; on CPU it runs, usually slower)."""
+    if amp not in AMP_MODES:
+        raise ValueError(f"amp {amp!r}: one of {', '.join(AMP_MODES)}")
+    state.amp = amp
+    return state
 
 
 def default_device() -> torch.device:
@@ -76,9 +108,10 @@ def init_state(config: D4PGConfig, layout: ObservationLayout, device: torch.devi
     critic = DistributionalCritic(layout, config).to(device)
     target_actor = copy.deepcopy(actor).requires_grad_(False)
     target_critic = copy.deepcopy(critic).requires_grad_(False)
+    fused = device.type == "cuda"  # one kernel for all parameters instead of several per tensor
     return D4PGState(config, layout, actor, critic, target_actor, target_critic,
-                     torch.optim.Adam(actor.parameters(), lr=config.actor_lr),
-                     torch.optim.Adam(critic.parameters(), lr=config.critic_lr))
+                     torch.optim.Adam(actor.parameters(), lr=config.actor_lr, fused=fused),
+                     torch.optim.Adam(critic.parameters(), lr=config.critic_lr, fused=fused))
 
 
 # The D4PG fields that shape the networks' weights (encoder, widths, the return support): a
@@ -127,18 +160,27 @@ class TensorBatch:
                            None if weights is None else t(weights))
 
 
-def sgd_step(state: D4PGState, batch: TensorBatch) -> tuple[D4PGState, dict[str, float], np.ndarray]:
-    """One critic and one actor update. Returns (state, metrics, per-item critic loss)."""
+def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D4PGState, dict, np.ndarray]:
+    """One critic and one actor update. Returns (state, metrics, per-item critic loss).
+
+    ``sync`` False: the metrics are 0-d tensors and the per-item loss a tensor, all still on the
+    device, so a GPU is never waited for; read them (``float``, ``.cpu()``) only when needed.
+    True: floats and a numpy array (one wait for the device per update)."""
     cfg = state.config
     critic, actor = state.critic, state.actor
+    run_critic, run_actor = state.net("critic"), state.net("actor")
     support = critic.support
+    amp = torch.autocast(state.device.type, dtype=torch.bfloat16, enabled=state.amp == "bf16")
+    with torch.no_grad(), amp:
+        next_action = state.net("target_actor")(batch.next_obs)
+        next_logits = state.net("target_critic")(batch.next_obs, next_action)
     with torch.no_grad():
-        next_action = state.target_actor(batch.next_obs)
-        next_probs = torch.softmax(state.target_critic(batch.next_obs, next_action), dim=-1)
+        next_probs = torch.softmax(next_logits.float(), dim=-1)
         target = categorical_projection(next_probs, batch.reward, batch.discount, support)
 
-    logits = critic(batch.obs, batch.action)
-    item_loss = -(target * torch.log_softmax(logits, dim=-1)).sum(-1)
+    with amp:
+        logits = run_critic(batch.obs, batch.action)
+    item_loss = -(target * torch.log_softmax(logits.float(), dim=-1)).sum(-1)
     critic_loss = (item_loss * batch.weights).mean() if batch.weights is not None else item_loss.mean()
     state.critic_opt.zero_grad(set_to_none=True)
     critic_loss.backward()
@@ -146,7 +188,9 @@ def sgd_step(state: D4PGState, batch: TensorBatch) -> tuple[D4PGState, dict[str,
     state.critic_opt.step()
 
     critic.requires_grad_(False)  # the actor's gradient flows through the critic, not into it
-    q = critic.mean(critic(batch.obs, actor(batch.obs)))
+    with amp:
+        q_logits = run_critic(batch.obs, run_actor(batch.obs))
+    q = critic.mean(q_logits.float())
     actor_loss = -q.mean()
     state.actor_opt.zero_grad(set_to_none=True)
     actor_loss.backward()
@@ -158,9 +202,19 @@ def sgd_step(state: D4PGState, batch: TensorBatch) -> tuple[D4PGState, dict[str,
     if state.steps % cfg.target_update_period == 0:
         state.target_actor.load_state_dict(actor.state_dict())
         state.target_critic.load_state_dict(critic.state_dict())
-    metrics = {"losses/critic": critic_loss.item(), "losses/actor": actor_loss.item(), "values/q_mean": -actor_loss.item(),
-               "grads/critic_norm": float(critic_norm), "grads/actor_norm": float(actor_norm)}
-    return state, metrics, item_loss.detach().cpu().numpy()
+    metrics = {"losses/critic": critic_loss.detach(), "losses/actor": actor_loss.detach(), "values/q_mean": -actor_loss.detach(),
+               "grads/critic_norm": critic_norm.detach(), "grads/actor_norm": actor_norm.detach()}
+    if not sync:
+        return state, metrics, item_loss.detach()
+    return state, read_metrics(metrics), item_loss.detach().cpu().numpy()
+
+
+def read_metrics(metrics: dict) -> dict[str, float]:
+    """``sgd_step``'s metrics as floats (one wait for the device when they are tensors)."""
+    if not metrics or not isinstance(next(iter(metrics.values())), torch.Tensor):
+        return dict(metrics)
+    values = torch.stack([v.float() for v in metrics.values()]).cpu().tolist()
+    return dict(zip(metrics, values))
 
 
 # -- checkpoints (safetensors + JSON, no pickle) -----------------------------------------------

@@ -33,7 +33,7 @@ from curlnav.bus.transport import RateMeter, json_response, reliable_publisher
 from curlnav.config import ConfigError, ExperimentConfig, config_differences, config_to_dict
 
 from .artefact import export_policy, training_worlds
-from .d4pg import TensorBatch, load_checkpoint, save_checkpoint, sgd_step
+from .d4pg import TensorBatch, compile_networks, load_checkpoint, read_metrics, save_checkpoint, set_amp, sgd_step
 from .feed import BatchAssembler, SampleFeed, describe_device, resolve_device
 
 log = logging.getLogger("curlnav.learner")
@@ -55,6 +55,8 @@ class LearnerServiceConfig:
     #: batches in one sample request: 4 took sampling beside inserts at full speed from 31k to 70-86k
     #: transitions/s on 2 cores (`curlnav bench transport --per-request`)
     batches_per_request: int = 4
+    compile: str = "off"  # torch.compile of the networks: off | default | reduce-overhead (CUDA graphs)
+    amp: str = "off"  # off | bf16: forward passes under bfloat16 autocast (measure first: `curlnav bench learner --check-amp`)
     priority_every: int = 4  # updates whose new priorities travel in one PriorityUpdate
 
 
@@ -118,6 +120,9 @@ class LearnerService:
             # no checkpoint, but a crash may have come after versions went out: go on above them
             published = max(self.version_mark.read(), *self.artefact_versions(), 0)
             self.version = published + 1 if published else 0
+        set_amp(compile_networks(self.state, cfg.compile), cfg.amp)
+        # on a GPU an update never waits for the device: metrics are read once per status period
+        self.sync_every_update = self.device.type != "cuda"
         self.registry = CollectorRegistry()
         self.m_updates = Counter("learner_updates", "SGD steps", registry=self.registry)
         self.m_version = Gauge("learner_weights_version", "latest published weights version", registry=self.registry)
@@ -143,12 +148,14 @@ class LearnerService:
         weights = self.builder.importance_weights(batch.probabilities, self.replay_size)
         if weights is not None:
             tensors.weights = torch.as_tensor(weights, dtype=torch.float32).to(self.device)
-        self.state, self.metrics, item_loss = sgd_step(self.state, tensors)
+        self.state, self.metrics, item_loss = sgd_step(self.state, tensors, sync=self.sync_every_update)
         if self.experiment.replay.prioritized:
-            self.pending_priorities.append(PriorityUpdate(batch.keys.copy(), (item_loss + 1e-6).astype(np.float32)))
+            loss = item_loss if isinstance(item_loss, np.ndarray) else item_loss.float().cpu().numpy()
+            self.pending_priorities.append(PriorityUpdate(batch.keys.copy(), (loss + 1e-6).astype(np.float32)))
         self.m_updates.inc()
         self.update_rate.add()
-        self.m_loss.set(self.metrics["losses/critic"])
+        if self.sync_every_update:
+            self.m_loss.set(self.metrics["losses/critic"])
         return self.metrics
 
     replay_size = 1  # transitions in the replay, from its status (importance weights)
@@ -181,6 +188,9 @@ class LearnerService:
         return out
 
     def status(self) -> dict:
+        self.metrics = read_metrics(self.metrics)  # tensors on the device until now (CUDA)
+        if "losses/critic" in self.metrics:
+            self.m_loss.set(self.metrics["losses/critic"])
         losses = {name: float(self.metrics[key]) for name, key in (("critic_loss", "losses/critic"),
                                                                    ("actor_loss", "losses/actor"),
                                                                    ("q_mean", "values/q_mean")) if key in self.metrics}

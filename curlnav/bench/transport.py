@@ -78,7 +78,8 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 
 def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, per_batch: int, in_flight: int,
-                       weights: bool, insert_rate: float = 0.0, per_request: int = 1) -> dict:
+                       weights: bool, insert_rate: float = 0.0, per_request: int = 1,
+                       learner_device: str | None = None, learner_variant: str = "async") -> dict:
     """One measurement: ``publishers`` processes insert (as fast as they can, or paced at
     ``insert_rate`` transitions/s in all) while a ``SampleFeed`` (the learner's sampler) samples
     batches of 256 over the same window; ``path`` is plain or shm."""
@@ -107,14 +108,19 @@ def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, 
               f"in flight")
         pubs = [subprocess.Popen([sys.executable, "-m", "curlnav.bench.transport", router, run, f"pub-{i}", str(batches),
                                   str(per_batch), str(insert_rate / publishers)]) for i in range(publishers)]
+        learner = _bench_learner(learner_device, learner_variant) if learner_device else None
         feed = SampleFeed(session, topo.sample, 256, ObservationLayout(), in_flight=in_flight,
-                          depth=in_flight * per_request, batches_per_request=per_request)
+                          depth=in_flight * per_request, batches_per_request=per_request,
+                          assembler=learner[1] if learner else None)
         sampled = [0]
         sample_stop = threading.Event()
 
-        def consume():  # what the learner's loop does with a batch: take it
+        def consume():  # what the learner's loop does with a batch: take it (and, with a learner, step on it)
             while not sample_stop.is_set():
-                if feed.get(timeout=0.2) is not None:
+                item = feed.get(timeout=0.2)
+                if item is not None:
+                    if learner is not None:
+                        learner[2](item[1])
                     sampled[0] += 256
 
         consumer = threading.Thread(target=consume, daemon=True)
@@ -145,6 +151,10 @@ def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, 
               f"{elapsed:.2f} s; lost {sent - info['inserted']}, sequence gaps {info['seq_gaps']}, rejected "
               f"{info['rejected']:.0f}{' ' + str(reasons) if reasons else ''}")
         shm_note = f", {feed.payload_shm} of {feed.received} replies through shared memory"
+        if learner is not None:
+            learner[3]()
+            print(f"[{tag}] learner on {learner_device} ({learner_variant}): {sample_rate / 256:,.1f} updates/s of "
+                  f"batches sampled from the replay over the bus")
         print(f"[{tag}] sampling:  {sample_rate:,.0f} transitions/s; {sample_rate / 256:,.1f} batches of 256 per "
               f"second over the same {elapsed:.2f} s; lost {feed.unanswered + refused} (unanswered "
               f"{feed.unanswered}, refused {refused}), error replies {feed.errors}{shm_note}")
@@ -158,6 +168,34 @@ def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, 
         return out
     finally:
         _stop(procs)
+
+
+def _bench_learner(device: str, variant: str):
+    """(state, assembler, step(tensors), finish()) of a D4PG learner on ``device`` run as
+    ``variant`` (``curlnav.learner.bench.VARIANTS``)."""
+    import torch
+
+    from curlnav.config import D4PGConfig
+    from curlnav.layout import ObservationLayout
+    from curlnav.learner.bench import VARIANTS
+    from curlnav.learner.d4pg import compile_networks, init_state, read_metrics, set_amp, sgd_step
+    from curlnav.learner.feed import BatchAssembler, resolve_device
+
+    compile_mode, amp, sync = VARIANTS[variant]
+    dev = resolve_device(device)
+    state = set_amp(compile_networks(init_state(D4PGConfig(), ObservationLayout(), dev), compile_mode), amp)
+    last: list = [None]
+
+    def step(tensors) -> None:
+        last[0] = sgd_step(state, tensors, sync=sync)[1]
+
+    def finish() -> None:
+        if last[0] is not None:
+            read_metrics(last[0])
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    return state, BatchAssembler(dev), step, finish
 
 
 def _rejection_reasons(url: str) -> dict[str, int]:
@@ -220,11 +258,14 @@ def shm_support() -> str | None:
 
 def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64,
                         run_dir: str = "runs/bench-transport", paths: tuple[str, ...] = ("plain", "shm"),
-                        in_flight: int = 4, insert_rates: tuple[float, ...] = (0.0,), per_request: int = 1) -> dict:
+                        in_flight: int = 4, insert_rates: tuple[float, ...] = (0.0,), per_request: int = 1,
+                        learner_device: str | None = None, learner_variant: str = "async") -> dict:
     """Inserting and sampling side by side, once per sampling path (plain: the replay replies
     with an ordinary buffer; shm: from a Zenoh shared-memory buffer) and insert rate (0: the
     publishers as fast as they go; else paced, in transitions/s in all), then the weights
-    broadcast latency."""
+    broadcast latency. ``learner_device``: the sampler's batches also go through a D4PG update
+    there (``learner_variant``), as the learner service does, so the figure is what a learner on
+    that device takes from the bus."""
     print(f"machine: {platform.machine()} cpus={os.cpu_count()} python={platform.python_version()} "
           f"load average {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if "shm" in paths and (why := shm_support()) is not None:
@@ -235,7 +276,8 @@ def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int 
     for i, (path, rate) in enumerate(runs):
         results[f"{path}@{rate:g}"] = _insert_and_sample(Path(run_dir), path, publishers, batches, per_batch, in_flight,
                                                          weights=i == len(runs) - 1, insert_rate=rate,
-                                                         per_request=per_request)
+                                                         per_request=per_request, learner_device=learner_device,
+                                                         learner_variant=learner_variant)
     return results
 
 

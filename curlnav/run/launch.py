@@ -61,6 +61,9 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
     p.add_argument("--device", default=env_default("device", "auto"),
                    help="learner: auto (cuda when a GPU is present, else cpu), cuda, cuda:N or cpu")
+    p.add_argument("--compile", default=env_default("compile", "off"),
+                   help="learner: torch.compile of the networks: off, default, reduce-overhead (CUDA graphs)")
+    p.add_argument("--amp", default=env_default("amp", "off"), help="learner: off or bf16 (bfloat16 autocast)")
     p.add_argument("--shm", action="store_true", default=bool(env_default("shm", "")),
                    help="replay: answer samples through Zenoh shared memory (a learner on the same host)")
     p.add_argument("--bus-credentials", default=env_default("bus_credentials", ""),
@@ -103,7 +106,8 @@ def build_service(args):
         return LearnerService(LearnerServiceConfig(deployment("learner"), publish_every=args.publish_every,
                                                    export_every_s=args.export_every_s,
                                                    checkpoint_every_s=args.checkpoint_every_s,
-                                                   torch_threads=args.threads, device=args.device), experiment)
+                                                   torch_threads=args.threads, device=args.device,
+                                                   compile=args.compile, amp=args.amp), experiment)
     if args.role == "scheduler":
         from curlnav.scheduler.service import SchedulerService, SchedulerServiceConfig
 

@@ -1,0 +1,51 @@
+"""The learner for a GPU (issue 31), on the parts a CPU can check: an update that never waits for
+the device computes what the waiting one does; bf16 autocast and compiled networks train the same
+networks; a learner or replay host needs no simulator installed."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import torch
+from curlnav.learner.d4pg import compile_networks, init_state, read_metrics, set_amp, sgd_step
+from test_d4pg import LAYOUT, random_batch
+
+from curlnav.config import D4PGConfig
+
+
+def test_an_update_that_leaves_its_metrics_on_the_device_computes_the_same_update():
+    cfg = D4PGConfig(seed=3, hidden=(64, 64))
+    waiting, not_waiting = init_state(cfg, LAYOUT, "cpu"), init_state(cfg, LAYOUT, "cpu")
+    for i in range(5):
+        _, m_sync, loss_sync = sgd_step(waiting, random_batch(32, seed=i))
+        _, m_async, loss_async = sgd_step(not_waiting, random_batch(32, seed=i), sync=False)
+    assert isinstance(m_sync["losses/critic"], float) and isinstance(m_async["losses/critic"], torch.Tensor)
+    assert read_metrics(m_async) == pytest.approx(m_sync, rel=1e-5)
+    assert torch.allclose(loss_async, torch.from_numpy(loss_sync))
+    for a, b in zip(waiting.actor.parameters(), not_waiting.actor.parameters()):
+        assert torch.equal(a, b)
+
+
+def test_bf16_autocast_keeps_the_critic_loss_of_float32_training_within_a_few_percent():
+    cfg = D4PGConfig(seed=4, hidden=(64, 64), critic_lr=1e-3)
+    losses = {}
+    for amp in ("off", "bf16"):
+        state = set_amp(init_state(cfg, LAYOUT, "cpu"), amp)
+        trace = [sgd_step(state, random_batch(32, seed=i % 4))[1]["losses/critic"] for i in range(40)]
+        losses[amp] = sum(trace[-10:]) / 10
+        assert trace[-1] < trace[0]  # it learns
+    assert abs(losses["bf16"] - losses["off"]) / losses["off"] < 0.05, losses
+    with pytest.raises(ValueError, match="amp 'fp8'"):
+        set_amp(init_state(cfg, LAYOUT, "cpu"), "fp8")
+    with pytest.raises(ValueError, match="compile mode 'fast'"):
+        compile_networks(init_state(cfg, LAYOUT, "cpu"), "fast")
+
+
+def test_a_learner_or_replay_host_imports_its_service_without_the_simulator():
+    code = ("import sys; import curlnav.learner.service, curlnav.replay.service, curlnav.learner.bench, "
+            "curlnav.bench.transport; print('pybullet' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
