@@ -2,12 +2,14 @@
 # The container smoke test, step by step; a user can run it too (needs a Docker engine, Compose
 # 1.29 `docker-compose` or v2 `docker compose`, and curl; CURLNAV_CLI: a host curlnav command).
 #
-#   build -> up with 3 actors -> /status shows 3 actors with episodes and learner version >= 1
-#   -> stop one actor container, it leaves /status -> restart the learner, its version goes on
+#   build -> up with 3 actors -> /status shows 3 actors with episodes and learner version >= 1,
+#   each its own bus identity (actor-<n>), no shared actor user -> stop one actor container, it
+#   leaves /status; start it again, it claims a free identity -> restart the learner, its version goes on
 #   above -> kill -9 replay, learner, scheduler (Docker SDK): nothing accepted lost -> pull the latest policy and run it -> bad configuration exits with one line
 #   -> the bus refuses a service without credentials -> down -v -> the same services on a
-#   single-node swarm (docker stack deploy, bus credentials as Docker secrets) -> stack rm and its
-#   volumes -> clean up (the trap removes the stack's volumes too when a step fails).
+#   single-node swarm (docker stack deploy of docker-stack.yml: the main node's router with TLS,
+#   services on the node's network, bus credentials as Docker secrets, actors by task slot)
+#   -> stack rm and its volumes -> clean up (the trap removes the stack's volumes too when a step fails).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export COMPOSE_PROJECT_NAME=${COMPOSE_PROJECT_NAME:-curlnavsmoke}
@@ -21,11 +23,11 @@ LEARNER=http://127.0.0.1:$CURLNAV_LEARNER_PORT
 if docker compose version >/dev/null 2>&1; then DC=(docker compose); else DC=(docker-compose); fi
 start=$(date +%s)
 step() { printf '\n[smoke %4ss] %s\n' "$(( $(date +%s) - start ))" "$*"; }
-# wait_for DESCRIPTION SECONDS PYTHON-EXPRESSION-ON-status
+# wait_for DESCRIPTION SECONDS PYTHON-EXPRESSION-ON-status [ARG...] (sys.argv[3:] in the expression)
 wait_for() {
   local what=$1 limit=$2 expr=$3 deadline=$(( $(date +%s) + $2 ))
   while true; do
-    if "$PY" - "$STATUS" "$expr" <<'EOF' 2>/dev/null; then return 0; fi
+    if "$PY" - "$STATUS" "$expr" "${@:4}" <<'EOF' 2>/dev/null; then return 0; fi
 import json, sys, urllib.request
 status = json.load(urllib.request.urlopen(sys.argv[1], timeout=3))
 actors = status["live_actors"]
@@ -64,10 +66,20 @@ wait_for "3 live actors, each with episodes, learner version >= 1" 420 \
   'len(actors) == 3 and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'
 curl -s "$STATUS" | "$PY" -c 'import json,sys; s=json.load(sys.stdin); print("status:", {k: s[k] for k in ("stage", "episodes", "learner", "replay")}, "actors:", sorted(s["live_actors"]))'
 
-step "stop one actor container; it leaves /status"
+step "one bus identity per replica: 3 distinct actor-<n>, each a user of the router; no shared actor user"
+users=$("${DC[@]}" exec -T router cut -d: -f1 /bus/users.txt)
+echo "router's users:" $users
+if echo "$users" | grep -qx actor; then echo "the shared actor user is still there"; exit 1; fi
+wait_for "the live actors are 3 distinct identities the router knows" 30 \
+  "len(actors) == 3 and all(a in sys.argv[3].split() and a.startswith('actor-') for a in actors)" "$users"
+"${DC[@]}" logs actor | grep -o "claimed bus identity actor-[0-9]*" | sort | uniq -c
+
+step "stop one actor container; it leaves /status; started again, it claims a free identity"
 victim=$("${DC[@]}" ps -q actor | sed -n 1p)  # sed reads all: no SIGPIPE under pipefail
 docker stop "$victim" >/dev/null
 wait_for "2 live actors" 60 'len(actors) == 2'
+docker start "$victim" >/dev/null
+wait_for "3 live actors again, distinct identities" 180 'len(actors) == 3 and all(a.startswith("actor-") for a in actors)'
 
 step "restart the learner; training resumes from its checkpoint"
 before=$(curl -s "$LEARNER/healthz" | "$PY" -c 'import json,sys; print(json.load(sys.stdin)["version"])')
@@ -114,12 +126,15 @@ step "down -v"
 
 step "the same services on a single-node swarm (docker stack deploy -c docker-stack.yml)"
 docker swarm init --advertise-addr 127.0.0.1 >/dev/null
+docker node update --label-add curlnav=main "$(docker node ls -q)" >/dev/null  # the main node
 bus_tmp=$(mktemp -d)
-export CURLNAV_BUS=$bus_tmp/bus  # the stack's secrets are read from here
-"$CLI" bus credentials --run compose --out "$CURLNAV_BUS" --shared-actor | sed -n 1p
+export CURLNAV_BUS=$bus_tmp/bus CURLNAV_MAIN_ADDRESS=127.0.0.1  # the stack's secrets are read from CURLNAV_BUS
+# the header's command: 16 actor identities, the run's CA and the main and node routers' certificates
+"$CLI" bus credentials --run compose --out "$CURLNAV_BUS" --actors 16 --tls main=127.0.0.1,node | sed -n 1p
 CURLNAV_CURRICULA=$PWD/scheduler/curricula docker stack deploy -c docker-stack.yml curlnav
-wait_for "swarm: 2 live actors with episodes, learner version >= 1" 420 \
-  'len(actors) == 2 and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'
+wait_for "swarm: 2 live actors with episodes (actor-0 and actor-1: task slots 1 and 2), learner version >= 1" 420 \
+  'sorted(actors) == ["actor-0", "actor-1"] and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'
+docker service logs curlnav_router 2>&1 | grep -m1 "mutual TLS" || { echo "the main router did not start with TLS"; exit 1; }
 step "docker stack rm, then its volumes (stack rm keeps them)"
 remove_stack curlnav
 left=$(docker volume ls -q | grep -E '^curlnav_(learner|replay|scheduler)$' || true)

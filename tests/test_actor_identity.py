@@ -173,3 +173,15 @@ def test_the_compose_file_mints_an_identity_per_replica_and_no_shared_actor_user
     assert actor_identities(out) == [f"actor-{n}" for n in range(int(max_actors.group(1)))]
     users = [line.split(":", 1)[0] for line in (out / "router" / "users.txt").read_text().splitlines()]
     assert SHARED_ACTOR not in users and not (out / SHARED_ACTOR).exists()
+
+
+def test_a_replica_beyond_the_identities_stops_with_one_line_and_exit_2(tmp_path):
+    make_credentials(tmp_path, RUN, actors=1)
+    held = claim_actor_identity(tmp_path)  # the one replica there is
+    result = subprocess.run([sys.executable, "-m", "curlnav.cli", "serve", "actor", "--run", RUN, "--bus-credentials",
+                             str(tmp_path), "--router-timeout-s", "1"], capture_output=True, text=True, timeout=120)
+    held.release()
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert result.stderr.strip().splitlines() == [
+        "curlnav: error: all 1 actor identities are in use; raise CURLNAV_MAX_ACTORS and re-run the credentials "
+        "service (or `curlnav bus credentials --actors N`)"]

@@ -29,13 +29,13 @@ def engine_running() -> bool:
 
 @pytest.mark.timeout(1500)
 @pytest.mark.skipif(not engine_running(), reason="no Docker engine running (scripts/start-docker.sh starts one)")
-def test_compose_smoke_train_scale_status_restart_pull_and_swarm():
+def test_compose_smoke_train_scale_identities_status_restart_pull_and_swarm():
     result = subprocess.run(["bash", "scripts/compose-smoke.sh"], capture_output=True, text=True, timeout=1500)
     out = "\n".join(line for line in result.stdout.splitlines() if not line.startswith("WARNING: Location"))
     print(out[-20000:])
     assert result.returncode == 0, out[-6000:] + result.stderr[-3000:]
-    for step in ("up with 3 actors", "stop one actor container", "restart the learner", "pull the latest policy",
-                 "down -v", "single-node swarm", "smoke test passed"):
+    for step in ("up with 3 actors", "one bus identity per replica", "stop one actor container", "restart the learner",
+                 "pull the latest policy", "down -v", "single-node swarm", "smoke test passed"):
         assert step in out, step
     assert "reached the goal" in out or "did not reach" in out or "timed out" in out or "stopped" in out
     volumes = subprocess.run(["docker", "volume", "ls", "-q"], capture_output=True, text=True, timeout=60).stdout.split()

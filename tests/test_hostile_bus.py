@@ -240,9 +240,9 @@ class Run:
                                     extra={"learner": ["--publish-every", "5"]})
         from curlnav.bus.security import make_credentials
 
-        # the attacker holds the shared actor user (``--shared-actor``, compose replicas), which may
-        # put under any actor id: what the services refuse must hold even then (an identity per
-        # actor refuses these ids at the router already: test_bus_auth)
+        # the attacker holds the shared actor user (``--shared-actor``, older runs), which may put
+        # under any actor id: what the services refuse must hold even then (an identity per actor,
+        # as compose replicas claim, refuses these ids at the router already: test_bus_auth)
         make_credentials(self.cluster.bus_dir, RUN, actors=1, shared_actor=True)
         self.dir = self.cluster.run_dir
         self.sessions = []

@@ -13,6 +13,7 @@ import textwrap
 import pytest
 
 from curlnav.bench.netns import Hosts, unavailable
+from curlnav.bus.mesh import LOCAL_ROUTER, MESH_PORT, router_flags
 from curlnav.bus.security import make_credentials, make_tls
 
 WHY = unavailable()
@@ -80,10 +81,11 @@ def test_a_plain_tcp_or_wrong_ca_router_cannot_join_the_mesh(tmp_path):
 
         try:
             a0 = net.address(0)
-            router(0, bus, "--tls", "h0", "--listen", f"tls/{a0}:7447,tcp/127.0.0.1:7448")
-            router(1, bus, "--tls", "h1", "--listen", "tcp/127.0.0.1:7448", "--connect", f"tls/{a0}:7447")
-            router(2, evil, "--tls", "h2", "--listen", "tcp/127.0.0.1:7448", "--connect", f"tls/{a0}:7447")
-            router(3, bus, "--listen", "tcp/127.0.0.1:7448", "--connect", f"tcp/{a0}:7447")  # plain TCP
+            # the routers of the bench and the stack file (router_flags), and one that links plain TCP
+            router(0, bus, *router_flags("h0"))
+            router(1, bus, *router_flags("h1", a0))
+            router(2, evil, *router_flags("h2", a0))
+            router(3, bus, "--listen", LOCAL_ROUTER, "--connect", f"tcp/{a0}:{MESH_PORT}")  # plain TCP
             listeners = {i: start(i, str(script), "actor", str(bus), "25", out=subprocess.PIPE) for i in (1, 2, 3)}
             start(0, str(script), "learner", str(bus), "25")
             received = {}

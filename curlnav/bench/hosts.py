@@ -5,6 +5,7 @@ Zenoh router; the actor hosts' routers connect to host 0's over **mutual TLS** w
 and one certificate per router, made by ``curlnav bus credentials --tls`` (``make_credentials``).
 Every service is a client of its own host's router (plain TCP on the host's loopback); host 0
 runs the replay, learner and scheduler, the others the actors, each with its own bus identity.
+The routers run with ``curlnav.bus.mesh.router_flags``, as the Swarm stack file's do.
 
 Phases: train, cut one actor host off (its link down) for the partition, heal it, train on; then
 the actors stop, send what they still hold and wait for its acknowledgement (the final flush),
@@ -30,10 +31,9 @@ from pathlib import Path
 
 from curlnav.bench.faults import poll
 from curlnav.bench.netns import Hosts
+from curlnav.bus.mesh import LOCAL_ROUTER, router_flags
 from curlnav.run.launch import LocalCluster, http_json_or_none
 
-ROUTER_PORT = 7447  # every router listens on tls/<host address>:7447 (other routers) ...
-LOCAL_PORT = 7448  # ... and tcp/127.0.0.1:7448 (its host's services)
 SCHEDULER_PORT, LEARNER_PORT = 8080, 8081  # on host 0's address (each host has its own ports)
 
 
@@ -50,7 +50,7 @@ class HostsCluster(LocalCluster):
         self.net, self.actors_per_host = net, actors_per_host
         make_credentials(self.bus_dir, run, actors=self.actors,
                          tls_hosts={self.host_name(i): net.address(i) for i in range(net.count)})
-        self.router = f"tcp/127.0.0.1:{LOCAL_PORT}"
+        self.router = LOCAL_ROUTER
 
     @staticmethod
     def host_name(i: int) -> str:
@@ -66,11 +66,11 @@ class HostsCluster(LocalCluster):
                 "--http-host", self.net.address(i), "--config", str(self.config_path),
                 "--bus-credentials", str(self.bus_dir), *self.extra.get(role, []), *more]
 
-    def router_command(self, i: int, tls_name: str | None = None, connect: str | None = None) -> list[str]:
-        """Host ``i``'s router: TLS to the other hosts (as ``tls_name``), TCP on its loopback."""
-        listen = f"tls/{self.net.address(i)}:{ROUTER_PORT},tcp/127.0.0.1:{LOCAL_PORT}"
-        peers = [] if i == 0 else ["--connect", connect or f"tls/{self.net.address(0)}:{ROUTER_PORT}"]
-        return self.host_command(i, "router", "--tls", tls_name or self.host_name(i), "--listen", listen, *peers)
+    def router_command(self, i: int, tls_name: str | None = None) -> list[str]:
+        """Host ``i``'s router (``router_flags``): TLS to the other hosts (as ``tls_name``), TCP on its
+        loopback; host 0's is the main one, the others join it."""
+        main = None if i == 0 else self.net.address(0)
+        return self.host_command(i, "router", *router_flags(tls_name or self.host_name(i), main))
 
     def start(self) -> None:
         for i in range(self.net.count):
