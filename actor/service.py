@@ -61,7 +61,9 @@ class ActorServiceConfig:
     actor_index: int = 0  # rung of the sigma ladder and seed offset
     actor_count: int = 1  # actors in the run: each takes this share of the warm-up
     deployment: Deployment = Deployment(data_dir="")
-    batch_steps: int = 32  # environment steps per transition batch on the bus (all environments together)
+    #: environment steps per transition batch on the bus (all environments together); 24 so that 8
+    #: environments' n-step tails (8 x 5) still fit the default replay.insert_batch of 64
+    batch_steps: int = 24
     envs: int = 1  # environments this process steps together (one batched policy call per step)
     resend_memory_bytes: int = 64 << 20  # unacknowledged batches kept in memory ...
     resend_disk_bytes: int = 1 << 30  # ... then in a spill file in data_dir; beyond both the actor pauses
@@ -96,7 +98,7 @@ class ActorCore:
         if cfg.batch_steps + cfg.envs * experiment.d4pg.n_step > max_batch:
             raise ConfigError(f"actor batches of {cfg.batch_steps} steps (plus the n-step tails of {cfg.envs} "
                               f"environment(s) of {experiment.d4pg.n_step}) may exceed replay.insert_batch = "
-                              f"{max_batch}, the most one batch may carry: lower --batch-steps or --envs, or raise "
+                              f"{max_batch}, the most one batch may carry: lower actor.envs_per_process or raise "
                               f"replay.insert_batch")
 
     @property

@@ -92,7 +92,8 @@ class D4PGBuilder:
         exploration = self.config.exploration
         return BehaviourPolicy(self.layout, self.config.d4pg, sigma=exploration.sigma(actor_index),
                                warmup_steps=exploration.warmup_share(actor_count),
-                               rng=np.random.default_rng([self.config.seed, actor_index, stream]))
+                               rng=np.random.default_rng([self.config.seed, actor_index, stream]),
+                               inference=self.config.actor.inference)
 
     def make_world_draws(self, actor_index: int = 0, stream: int = 0):
         """Actor ``actor_index``'s draws of worlds from distributions (``stream``: another

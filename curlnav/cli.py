@@ -361,7 +361,11 @@ def _cmd_bench_actor(args: argparse.Namespace) -> int:
         raise SystemExit(f"curlnav: error: --envs takes whole numbers separated by commas, got {args.envs[:40]!r}") from None
     if not envs or min(envs) < 1 or args.steps < 1 or args.episode_steps < 1 or args.repeats < 1:
         raise SystemExit("curlnav: error: --envs, --steps, --episode-steps and --repeats must be at least 1")
-    run_actor_bench(args.world, envs=envs, steps=args.steps, episode_steps=args.episode_steps, repeats=args.repeats)
+    backends = tuple(args.inference.split(","))
+    if not set(backends) <= {"onnx", "torch"}:
+        raise SystemExit(f"curlnav: error: --inference takes onnx and/or torch, got {args.inference[:40]!r}")
+    run_actor_bench(args.world, envs=envs, steps=args.steps, episode_steps=args.episode_steps, repeats=args.repeats,
+                    inference=backends)
     return 0
 
 
@@ -751,6 +755,8 @@ def _add_bench_commands(sub) -> None:
     p.add_argument("--steps", type=int, default=4000, help="timed environment steps per row")
     p.add_argument("--episode-steps", type=int, default=200, help="steps per episode")
     p.add_argument("--repeats", type=int, default=1, help="runs per row; the fastest is shown")
+    p.add_argument("--inference", default="onnx", help="the policy network's backend(s), comma-separated: onnx (the "
+                                                       "actors' default, actor.inference), torch")
     p.set_defaults(func=_cmd_bench_actor)
     p = bench_sub.add_parser("faults", help="kill -9 replay, learner and scheduler of a local run: what was lost")
     p.add_argument("--actors", type=int, default=2)

@@ -6,6 +6,8 @@ go through an encoder, the goal history is concatenated, then an ELU MLP.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -113,27 +115,82 @@ def act(actor: Actor, obs: np.ndarray, sigma: float = 0.0, rng: np.random.Genera
     return action.astype(np.float32)
 
 
+class OnnxActorRunner:
+    """The actor network on ONNX Runtime, one thread, for an actor process (issue 31): on one core
+    beside PyBullet a batched call took 2.5-3x less time than PyTorch's (barn-3x3, 8
+    environments: 78 us against 190-280 us per call).
+
+    The graph is exported once from ``Actor`` (the one definition of the network; no constant
+    folding, so its initializers keep the state-dict names), and ``load`` writes new weights into
+    its initializers and opens a new session (about 5 ms; weights arrive about once a second)."""
+
+    def __init__(self, network: Actor) -> None:
+        import io
+
+        import onnx
+
+        buffer = io.BytesIO()
+        example = torch.zeros(2, network.encoder.layout.size)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(network.cpu(), (example,), buffer, input_names=["observation"], output_names=["action"],
+                              dynamic_axes={"observation": {0: "batch"}, "action": {0: "batch"}},
+                              do_constant_folding=False, dynamo=False)
+        self.model = onnx.load_from_string(buffer.getvalue())
+        names = {init.name for init in self.model.graph.initializer}
+        missing = names - set(network.state_dict())
+        if missing:
+            raise RuntimeError(f"the exported actor's initializers {sorted(missing)} are not in its state dict")
+        self.session = None
+        self.load(network.state_dict())
+
+    def load(self, state_dict: dict[str, torch.Tensor]) -> None:
+        import onnxruntime as ort
+        from onnx import numpy_helper
+
+        for init in self.model.graph.initializer:
+            init.CopyFrom(numpy_helper.from_array(state_dict[init.name].detach().cpu().numpy(), init.name))
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        options.log_severity_level = 3
+        self.session = ort.InferenceSession(self.model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Actions ``(K, 3)`` for float32 observations ``(K, size)``."""
+        return self.session.run(None, {"observation": obs})[0]
+
+
+INFERENCE_BACKENDS = ("onnx", "torch")
+
+
 class BehaviourPolicy:
     """What an actor runs (as Acme keeps the behaviour policy with the networks): uniformly
     random actions for its first ``warmup_steps`` steps or until it has weights, then the actor
     network plus Gaussian noise of ``sigma`` (a fraction of each action's half-range), clipped.
 
-    The network is either shared (``use_network``: the serial trainer's live actor) or loaded
-    from safetensors bytes (``load_weights``: the actor service). Actions are float32 ``(3,)``.
+    The network is either shared (``use_network``: the serial trainer's live actor, run by
+    PyTorch) or loaded from safetensors bytes (``load_weights``: the actor service), then run by
+    ``inference``: ``onnx`` (``OnnxActorRunner``) or ``torch``. Actions are float32 ``(3,)``.
     """
 
     def __init__(self, layout: ObservationLayout, d4pg: D4PGConfig, sigma: float, warmup_steps: int,
-                 rng: np.random.Generator) -> None:
+                 rng: np.random.Generator, inference: str = "torch") -> None:
+        if inference not in INFERENCE_BACKENDS:
+            raise ValueError(f"inference {inference!r}: one of {', '.join(INFERENCE_BACKENDS)}")
         self.layout = layout
         self.d4pg = d4pg
         self.sigma = float(sigma)
         self.warmup_steps = int(warmup_steps)
         self.rng = rng
+        self.inference = inference
         self.network: Actor | None = None
+        self.runner: OnnxActorRunner | None = None  # the loaded weights on ONNX Runtime (inference onnx)
         self.steps = 0  # actions taken
 
     def use_network(self, network: Actor) -> None:
         self.network = network
+        self.runner = None  # a live network changes under us: PyTorch runs it
 
     def load_weights(self, safetensors: bytes, d4pg: D4PGConfig | None = None) -> None:
         """Load actor weights (safetensors bytes); a network of ``d4pg``'s shape is made on
@@ -141,13 +198,26 @@ class BehaviourPolicy:
         if self.network is None:
             self.network = Actor(self.layout, d4pg or self.d4pg)
             self.network.eval()
-        self.network.load_state_dict(safetensors_load(safetensors))
+        self.network.load_state_dict(safetensors_load(safetensors))  # checks every name and shape
+        if self.inference == "onnx":
+            if self.runner is None:
+                self.runner = OnnxActorRunner(self.network)
+            else:
+                self.runner.load(self.network.state_dict())
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         self.steps += 1
         if self.network is None or self.steps <= self.warmup_steps:
             return self.rng.uniform(ACTION_LOW, ACTION_HIGH).astype(np.float32)
+        if self.runner is not None:
+            return self._noisy(self.runner(np.asarray(obs, dtype=np.float32)[None]))[0]
         return act(self.network, obs, self.sigma, self.rng)
+
+    def _noisy(self, actions: np.ndarray) -> np.ndarray:
+        if self.sigma > 0:
+            low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
+            actions = np.clip(actions + self.rng.normal(0.0, self.sigma * (high - low) / 2, size=actions.shape), low, high)
+        return actions.astype(np.float32)
 
     def batch(self, obs: np.ndarray) -> np.ndarray:
         """Actions ``(K, 3)`` for observations ``(K, size)``: one forward pass for all K (the
@@ -157,10 +227,9 @@ class BehaviourPolicy:
         self.steps += k
         if self.network is None or self.steps <= self.warmup_steps:
             return self.rng.uniform(ACTION_LOW, ACTION_HIGH, size=(k, len(ACTION_LOW))).astype(np.float32)
+        if self.runner is not None:
+            return self._noisy(self.runner(obs))
         device = next(self.network.parameters()).device
         with torch.no_grad():
             actions = self.network(torch.as_tensor(obs, device=device)).cpu().numpy()
-        if self.sigma > 0:
-            low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
-            actions = np.clip(actions + self.rng.normal(0.0, self.sigma * (high - low) / 2, size=actions.shape), low, high)
-        return actions.astype(np.float32)
+        return self._noisy(actions)

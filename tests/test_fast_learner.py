@@ -49,3 +49,30 @@ def test_a_learner_or_replay_host_imports_its_service_without_the_simulator():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
+
+
+def test_an_actor_on_onnx_runtime_acts_as_pytorch_does_and_follows_each_new_weights_broadcast():
+    import numpy as np
+    from curlnav.learner.networks import Actor, BehaviourPolicy
+    from safetensors.torch import save
+
+    cfg = D4PGConfig()
+    obs = np.random.default_rng(0).uniform(0, 5, (8, LAYOUT.size)).astype(np.float32)
+    policies = {b: BehaviourPolicy(LAYOUT, cfg, sigma=0.0, warmup_steps=0, rng=np.random.default_rng(1), inference=b)
+                for b in ("onnx", "torch")}
+    for seed in (1, 2):  # a first broadcast, then a second with other weights
+        torch.manual_seed(seed)
+        weights = save({k: v.contiguous() for k, v in Actor(LAYOUT, cfg).state_dict().items()})
+        for policy in policies.values():
+            policy.load_weights(weights)
+        assert policies["onnx"].runner is not None and policies["torch"].runner is None
+        batch = {b: p.batch(obs) for b, p in policies.items()}
+        single = {b: p(obs[3]) for b, p in policies.items()}
+        assert np.allclose(batch["onnx"], batch["torch"], atol=1e-5)
+        assert np.allclose(single["onnx"], single["torch"], atol=1e-5)
+        assert np.allclose(single["onnx"], batch["onnx"][3], atol=1e-5)
+        if seed == 1:
+            first = batch["onnx"]
+    assert not np.allclose(first, batch["onnx"], atol=1e-3)  # the runner took the second weights
+    with pytest.raises(ValueError, match="inference 'tf'"):
+        BehaviourPolicy(LAYOUT, cfg, sigma=0.0, warmup_steps=0, rng=np.random.default_rng(1), inference="tf")

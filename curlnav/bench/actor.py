@@ -5,9 +5,11 @@ Rows, each the same number of environment steps after a warm-up episode, episode
 
 - ``bare environment``: ``NamoEnv.step`` with uniformly random actions, nothing else (the ceiling);
 - ``actor process, K envs``: what an actor process does per step: ``VectorEpisodeLoop`` with the
-  default network (random weights, past the warm-up, exploration noise), one batched policy call
-  for the K environments, the n-step writer, and a ``TransitionBatch`` encoded every
-  ``batch_steps`` environment steps, as it goes on the wire (the Zenoh put is not timed).
+  default network (random weights loaded from safetensors bytes as the actor service loads a
+  broadcast, past the warm-up, exploration noise), one batched policy call for the K
+  environments on the actor's inference backend (``actor.inference``: ONNX Runtime by default,
+  or PyTorch), the n-step writer, and a ``TransitionBatch`` encoded every ``batch_steps``
+  environment steps, as it goes on the wire (the Zenoh put is not timed).
 
 ``ratio`` is a row's steps/s over the bare environment's. Run it pinned to one core (``taskset -c
 0 curlnav bench actor``) with nothing else running: actors run one per core.
@@ -20,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from safetensors.torch import save as safetensors_save
 
 from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
 from curlnav.config import D4PGConfig
@@ -62,15 +65,15 @@ def bare_env(world: str, steps: int, episode_steps: int, seed: int = 0) -> Actor
         env.close()
 
 
-def actor_process(world: str, envs: int, steps: int, episode_steps: int, batch_steps: int = 32,
-                  seed: int = 0) -> ActorBenchRow:
+def actor_process(world: str, envs: int, steps: int, episode_steps: int, batch_steps: int = 24,
+                  seed: int = 0, inference: str = "onnx") -> ActorBenchRow:
     cfg = EnvConfig(max_episode_steps=episode_steps, end_on_base_collision=False)
     layout = ObservationLayout.from_env_config(cfg)
     d4pg = D4PGConfig()
-    policy = BehaviourPolicy(layout, d4pg, sigma=0.3, warmup_steps=0, rng=np.random.default_rng(seed))
+    policy = BehaviourPolicy(layout, d4pg, sigma=0.3, warmup_steps=0, rng=np.random.default_rng(seed),
+                             inference=inference)
     network = Actor(layout, d4pg)
-    network.eval()
-    policy.use_network(network)
+    policy.load_weights(safetensors_save({k: v.contiguous() for k, v in network.state_dict().items()}))
     loop = VectorEpisodeLoop([NamoEnv(world, cfg) for _ in range(envs)], policy.batch,
                              VectorNStepWriter(layout, envs, d4pg.n_step, d4pg.discount))
     seq = 0
@@ -97,14 +100,15 @@ def actor_process(world: str, envs: int, steps: int, episode_steps: int, batch_s
         start = time.perf_counter()
         before = loop.steps
         run(steps)
-        return ActorBenchRow(f"actor process, {envs} env{'s' if envs > 1 else ''}", envs, loop.steps - before,
+        return ActorBenchRow(f"actor, {envs} env{'s' if envs > 1 else ''}, {inference}", envs, loop.steps - before,
                              time.perf_counter() - start)
     finally:
         loop.close()
 
 
 def run_actor_bench(world: str = "barn-3x3:0", envs: tuple[int, ...] = (1, 2, 4, 8), steps: int = 4000,
-                    episode_steps: int = 200, repeats: int = 1, say=print) -> list[tuple[ActorBenchRow, float]]:
+                    episode_steps: int = 200, repeats: int = 1, say=print,
+                    inference: tuple[str, ...] = ("onnx",)) -> list[tuple[ActorBenchRow, float]]:
     """Print the bare environment's steps/s, then each K's, with its ratio; return the rows."""
     torch.set_num_threads(1)
     say(f"# curlnav bench actor: {world}, {steps} timed environment steps per row, episodes of {episode_steps} "
@@ -112,12 +116,13 @@ def run_actor_bench(world: str = "barn-3x3:0", envs: tuple[int, ...] = (1, 2, 4,
     bare = max((bare_env(world, steps, episode_steps) for _ in range(repeats)), key=lambda r: r.steps_per_second)
     say(f"{bare.name:<28} {bare.steps_per_second:8.0f} steps/s")
     rows = []
-    for k in envs:
-        row = max((actor_process(world, k, steps, episode_steps) for _ in range(repeats)),
-                  key=lambda r: r.steps_per_second)
-        ratio = row.steps_per_second / bare.steps_per_second
-        rows.append((row, ratio))
-        say(f"{row.name:<28} {row.steps_per_second:8.0f} steps/s  ratio {ratio:.2f}")
+    for backend in inference:
+        for k in envs:
+            row = max((actor_process(world, k, steps, episode_steps, inference=backend) for _ in range(repeats)),
+                      key=lambda r: r.steps_per_second)
+            ratio = row.steps_per_second / bare.steps_per_second
+            rows.append((row, ratio))
+            say(f"{row.name:<28} {row.steps_per_second:8.0f} steps/s  ratio {ratio:.2f}")
     best_row, best_ratio = max(rows, key=lambda r: r[1])
-    say(f"best: {best_row.envs} environments per process, ratio {best_ratio:.2f} of the bare environment")
+    say(f"best: {best_row.name}, ratio {best_ratio:.2f} of the bare environment")
     return rows
