@@ -4,7 +4,7 @@ Weights arrive on ``weights`` (and ``weights/latest`` when joining); the subscri
 the newest message and the loop loads it between steps, so weight traffic never stalls the
 simulation. The environments, behaviour policy (actor ``actor_index``'s rung of the sigma ladder,
 its share of the warm-up) and n-step writer come from ``D4PGBuilder``: ``envs`` environments
-(``--envs``, default 1) stepped together with one batched policy call (``VectorEpisodeLoop``;
+(``actor.envs_per_process``, default 8) stepped together with one batched policy call (``VectorEpisodeLoop``;
 with one environment it acts exactly as the serial trainer's ``EpisodeLoop``). Transitions go out
 in batches every ``batch_steps`` environment steps and at every episode end (reliable, BLOCK);
 each episode is reported to the scheduler, which is asked for the next world and pair at every
@@ -94,8 +94,15 @@ class ActorCore:
         self.seq = time.time_ns() // 1000
         self.generated = 0  # transitions put into batches by this process
         max_batch = experiment.replay.insert_batch
-        # a batch holds up to batch_steps + envs - 1 steps' transitions plus each environment's n-step tail
-        if cfg.batch_steps + cfg.envs * experiment.d4pg.n_step > max_batch:
+        # a batch holds up to batch_steps + envs - 1 steps' transitions plus each environment's n-step
+        # tail: fewer steps per batch where the tails need the room (a longer n-step, a smaller insert_batch)
+        tails = cfg.envs * experiment.d4pg.n_step
+        if cfg.batch_steps + tails > max_batch and max_batch - tails >= 1:
+            log.info("actor batches of %d steps instead of %d: %d environments' n-step tails of %d fit "
+                     "replay.insert_batch %d", max_batch - tails, cfg.batch_steps, cfg.envs, experiment.d4pg.n_step,
+                     max_batch)
+            cfg = self.cfg = dataclasses.replace(cfg, batch_steps=max_batch - tails)
+        if cfg.batch_steps + tails > max_batch:
             raise ConfigError(f"actor batches of {cfg.batch_steps} steps (plus the n-step tails of {cfg.envs} "
                               f"environment(s) of {experiment.d4pg.n_step}) may exceed replay.insert_batch = "
                               f"{max_batch}, the most one batch may carry: lower actor.envs_per_process or raise "
@@ -126,6 +133,7 @@ class ActorService:
         self.experiment = experiment
         torch.set_num_threads(1)
         self.core = ActorCore(cfg, experiment)
+        self.cfg = self.core.cfg  # batch_steps as the core fitted it to replay.insert_batch
         self.registry = CollectorRegistry()
         self.m_steps = Counter("actor_env_steps", "environment steps", registry=self.registry)
         self.m_episodes = Counter("actor_episodes", "episodes", ["world", "outcome"], registry=self.registry)

@@ -36,17 +36,20 @@ class D4PGBuilder:
         if replay.samples_per_insert == 0:  # no rate limit (benchmarks): sample once min_size is in
             return SampleToInsertRatio.unlimited(replay.min_size)
         limiter = SampleToInsertRatio(replay.samples_per_insert, replay.min_size, replay.error_buffer(batch))
-        limiter.check_batch(batch)
+        limiter.check_batch(batch, insert=replay.insert_batch)
         return limiter
 
     def batches_per_request(self, wanted: int) -> int:
         """The most batches (at most ``wanted``) one sample request may ask for: the rate limiter
-        must be able to admit a request of that many transitions (``check_batch``), else the
-        learner would wait on it for ever."""
+        must be able to admit a request of that many transitions beside inserts of
+        ``replay.insert_batch`` (``check_batch``), else inserts and samples could both wait for
+        ever; and a request holds at most ``SampledBatch.MAX_BATCH`` transitions."""
+        from curlnav.proto.messages import SampledBatch
+
         limiter, batch = self.make_rate_limiter(), self.config.d4pg.batch_size
-        for k in range(max(1, wanted), 1, -1):
+        for k in range(min(max(1, wanted), max(1, SampledBatch.MAX_BATCH // batch)), 1, -1):
             try:
-                limiter.check_batch(k * batch)
+                limiter.check_batch(k * batch, insert=self.config.replay.insert_batch)
                 return k
             except ValueError:
                 continue

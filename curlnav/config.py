@@ -107,7 +107,7 @@ class ReplayConfig:
     min_size: int = 2000  # transitions inserted before the first sample (the learner's warm-up)
     samples_per_insert: float = 64.0  # transitions sampled per transition inserted, on average; 0: no rate limit
     tolerance: float = 0.1  # how far the ratio may drift: see ``error_buffer``
-    insert_batch: int = 64  # most transitions one insert brings (an actor's batch of 32 steps plus the n-step tail)
+    insert_batch: int = 64  # most transitions one insert brings (an actor's batch: 24 steps plus its environments' n-step tails)
     prioritized: bool = False  # sample by priority (critic loss) instead of uniformly
     priority_exponent: float = 0.6  # alpha: sampling probability ~ priority ** alpha
     importance_exponent: float = 0.4  # beta: importance weights (N P(i)) ** -beta, max-normalised
@@ -239,6 +239,11 @@ class ExperimentConfig:
                  f"d4pg.pool ({self.d4pg.pool}) must not exceed env.lidar_beams ({self.env.lidar_beams})")
         _require(self.replay.min_size >= self.d4pg.batch_size,
                  f"replay.min_size ({self.replay.min_size}) must be at least d4pg.batch_size ({self.d4pg.batch_size})")
+        tails = self.actor.envs_per_process * self.d4pg.n_step
+        _require(tails < self.replay.insert_batch,
+                 f"actor.envs_per_process x d4pg.n_step ({self.actor.envs_per_process} x {self.d4pg.n_step} = {tails}) "
+                 f"must be below replay.insert_batch ({self.replay.insert_batch}): an actor's batch carries each "
+                 f"environment's n-step tail; lower actor.envs_per_process or raise replay.insert_batch")
 
     @property
     def eval_env(self) -> EnvConfig:

@@ -164,7 +164,8 @@ def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D
     """One critic and one actor update. Returns (state, metrics, per-item critic loss).
 
     ``sync`` False: the metrics are 0-d tensors and the per-item loss a tensor, all still on the
-    device, so a GPU is never waited for; read them (``float``, ``.cpu()``) only when needed.
+    device, so the update itself never waits for a GPU; read them (``read_metrics``, ``.cpu()``)
+    only when needed (a prioritized replay needs the per-item losses of every update).
     True: floats and a numpy array (one wait for the device per update)."""
     cfg = state.config
     critic, actor = state.critic, state.actor
@@ -269,6 +270,10 @@ def load_checkpoint(path: str | Path, device: torch.device | str | None = None) 
         raise ValueError(f"{path}: not a curlnav D4PG checkpoint")
     tensors = load_file(str(path))
     state = init_state(D4PGConfig.from_dict(meta["config"]), ObservationLayout(**meta["layout"]), device)
+    for key in ("actor_opt", "critic_opt"):  # fused Adam on the device it resumes on, wherever it was saved
+        for group in meta[key]["param_groups"]:
+            group["fused"] = state.device.type == "cuda"
+            group["foreach"] = None
     for name in ("actor", "critic", "target_actor", "target_critic"):
         module = getattr(state, name)
         module.load_state_dict({k[len(name) + 1:]: v for k, v in tensors.items() if k.startswith(name + ".")})

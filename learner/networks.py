@@ -138,9 +138,10 @@ class OnnxActorRunner:
                               do_constant_folding=False, dynamo=False)
         self.model = onnx.load_from_string(buffer.getvalue())
         names = {init.name for init in self.model.graph.initializer}
-        missing = names - set(network.state_dict())
-        if missing:
-            raise RuntimeError(f"the exported actor's initializers {sorted(missing)} are not in its state dict")
+        keys = set(network.state_dict())
+        if names != keys:  # a weight folded into a constant would never follow a broadcast
+            raise RuntimeError(f"the exported actor's initializers differ from its state dict: only in the graph "
+                               f"{sorted(names - keys)}, only in the state dict {sorted(keys - names)}")
         self.session = None
         self.load(network.state_dict())
 
@@ -200,10 +201,14 @@ class BehaviourPolicy:
             self.network.eval()
         self.network.load_state_dict(safetensors_load(safetensors))  # checks every name and shape
         if self.inference == "onnx":
-            if self.runner is None:
-                self.runner = OnnxActorRunner(self.network)
-            else:
-                self.runner.load(self.network.state_dict())
+            try:
+                if self.runner is None:
+                    self.runner = OnnxActorRunner(self.network)
+                else:
+                    self.runner.load(self.network.state_dict())
+            except Exception:
+                self.runner = None  # never act with other weights than the network holds: PyTorch runs it
+                raise
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         self.steps += 1

@@ -131,7 +131,7 @@ class LearnerService:
         self.m_version.set_function(lambda: self.version)
         self.update_rate = RateMeter()
         self.latest_weights: bytes = weights_message(self.state, self.version).encode()
-        self.metrics: dict[str, float] = {}
+        self.metrics: dict = {}  # the last update's metrics (on CUDA: tensors on the device)
         self.pending_priorities: list[PriorityUpdate] = []  # for the replay, when prioritized
         self.stop = threading.Event()
         self.started = time.monotonic()
@@ -139,9 +139,10 @@ class LearnerService:
         self.artefact_training = training_worlds(self.experiment.curriculum.world, self.experiment.curriculum.file)
 
     # -- pure parts ----------------------------------------------------------------------------
-    def learn_from(self, payload: bytes | SampledBatch, tensors: TensorBatch | None = None) -> dict[str, float]:
+    def learn_from(self, payload: bytes | SampledBatch, tensors: TensorBatch | None = None) -> dict:
         """One update from a sampled batch (a raw ``SampledBatch`` message, checked against the
-        layout, or one the feed decoded, with its tensors)."""
+        layout, or one the feed decoded, with its tensors). Returns its metrics: floats on CPU,
+        0-d tensors on the device on CUDA (``read_metrics`` turns them into floats)."""
         batch = payload if isinstance(payload, SampledBatch) else SampledBatch.decode(payload, self.layout)
         if tensors is None:
             tensors = self.assembler(batch)
@@ -155,7 +156,7 @@ class LearnerService:
         self.m_updates.inc()
         self.update_rate.add()
         if self.sync_every_update:
-            self.m_loss.set(self.metrics["losses/critic"])
+            self.read_losses()
         return self.metrics
 
     replay_size = 1  # transitions in the replay, from its status (importance weights)
@@ -187,13 +188,21 @@ class LearnerService:
                 out.append(int(p.name[1:]))
         return out
 
+    def read_losses(self) -> None:
+        """The last update's metrics as floats, for ``status`` and the loss gauge: called by the
+        learner's loop (on CUDA the metrics are tensors on the device until then), never from the
+        HTTP thread, which only reads ``last_metrics``."""
+        self.last_metrics = read_metrics(self.metrics)
+        if "losses/critic" in self.last_metrics:
+            self.m_loss.set(self.last_metrics["losses/critic"])
+
+    last_metrics: dict[str, float] = {}  # the metrics as floats at the last read_losses
+
     def status(self) -> dict:
-        self.metrics = read_metrics(self.metrics)  # tensors on the device until now (CUDA)
-        if "losses/critic" in self.metrics:
-            self.m_loss.set(self.metrics["losses/critic"])
-        losses = {name: float(self.metrics[key]) for name, key in (("critic_loss", "losses/critic"),
-                                                                   ("actor_loss", "losses/actor"),
-                                                                   ("q_mean", "values/q_mean")) if key in self.metrics}
+        metrics = self.last_metrics
+        losses = {name: float(metrics[key]) for name, key in (("critic_loss", "losses/critic"),
+                                                              ("actor_loss", "losses/actor"),
+                                                              ("q_mean", "values/q_mean")) if key in metrics}
         return {"version": self.version, "updates": self.state.steps, "updates_per_s": self.update_rate.rate(),
                 "env_steps": self.env_steps, "uptime_s": time.monotonic() - self.started, **losses}
 
@@ -279,6 +288,7 @@ class LearnerService:
                         weights_pub.put(self.publish_version())
                     now = time.monotonic()
                     if now - last_status >= 1.0:
+                        self.read_losses()
                         status_pub.put(ServiceStatus("learner", self.status()).encode())
                         last_status = now
                     if now - last_ckpt >= cfg.checkpoint_every_s:

@@ -82,7 +82,7 @@ class ReplayServiceConfig:
     prune_every_s: float = 30.0  # s between deletions of log segments that left the table
     fsync: bool = True  # fsync the log before a batch counts as accepted (off: only for benchmarks)
     shm: bool = False  # answer samples from Zenoh shared memory (a learner on this host reads them without a socket)
-    shm_pool_mib: int = 64  # the shared-memory pool (MiB): a few sampled batches of 1.5 MB each
+    shm_pool_mib: int = 64  # the shared-memory pool (MiB): a few sampled replies of 6 MB (4 batches of 256) each
 
 
 class ReplayService:
@@ -244,7 +244,7 @@ class ReplayService:
             self.m_rejected.labels(exc.reason).inc()
             raise
         try:  # a request the rate limiter could never admit would wait for ever: refuse it now
-            self.table.rate_limiter.check_batch(request.batch_size)
+            self.table.rate_limiter.check_batch(request.batch_size, insert=self.experiment.replay.insert_batch)
         except ValueError as exc:
             self.m_rejected.labels("range").inc()
             raise ProtoError("range", f"a sample request of {request.batch_size} transitions: {exc}") from None

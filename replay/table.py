@@ -57,9 +57,9 @@ class SampleToInsertRatio:
     samples``, a call is allowed only if it keeps ``error`` inside
     ``[min_size_to_sample * spi - error_buffer, min_size_to_sample * spi + error_buffer]``.
 
-    No deadlock: when neither an insert of one item nor a sample of ``batch`` items is allowed,
-    ``error > hi - spi`` and ``error < lo + batch``, impossible when
-    ``2 * error_buffer >= spi + batch``; ``check_batch`` enforces that.
+    No deadlock: when neither an insert of ``insert`` items nor a sample of ``batch`` items is
+    allowed, ``error > hi - spi * insert`` and ``error < lo + batch``, impossible when
+    ``2 * error_buffer >= spi * insert + batch``; ``check_batch`` enforces that.
 
     Restore: the counters are not restored as saved (Reverb's known trap: a restored limiter can
     block sampling forever); ``recentre(size)`` sets ``error`` to the middle of the window.
@@ -91,10 +91,13 @@ class SampleToInsertRatio:
     def error(self) -> float:
         return self.inserts * self.samples_per_insert - self.samples
 
-    def check_batch(self, batch: int) -> None:
-        if 2 * self.error_buffer < self.samples_per_insert + batch:
-            raise ValueError(f"error_buffer {self.error_buffer} too small for batches of {batch} at "
-                             f"{self.samples_per_insert} samples per insert: inserts and samples could both block")
+    def check_batch(self, batch: int, insert: int = 1) -> None:
+        """Raise unless samples of ``batch`` items and inserts of up to ``insert`` items can never
+        both be refused."""
+        if 2 * self.error_buffer < self.samples_per_insert * insert + batch:
+            raise ValueError(f"error_buffer {self.error_buffer} too small for samples of {batch} beside inserts of "
+                             f"{insert} at {self.samples_per_insert} samples per insert: inserts and samples could "
+                             f"both block")
 
     def can_insert(self, size: int, n: int = 1) -> bool:
         if size < self.min_size_to_sample:

@@ -76,3 +76,21 @@ def test_an_actor_on_onnx_runtime_acts_as_pytorch_does_and_follows_each_new_weig
     assert not np.allclose(first, batch["onnx"], atol=1e-3)  # the runner took the second weights
     with pytest.raises(ValueError, match="inference 'tf'"):
         BehaviourPolicy(LAYOUT, cfg, sigma=0.0, warmup_steps=0, rng=np.random.default_rng(1), inference="tf")
+
+
+def test_eight_environments_per_actor_fit_their_batches_to_the_replays_insert_batch():
+    """With the default 8 environments an actor's batch carries 8 n-step tails: a longer n-step
+    makes the batches shorter instead of refusing to start; one that cannot fit is refused when
+    the config is read, naming the fields."""
+    from curlnav.actor.service import ActorCore, ActorServiceConfig
+
+    from curlnav.config import ConfigError, ExperimentConfig, apply_overrides
+
+    longer = apply_overrides(ExperimentConfig(), ["d4pg.n_step=6"])
+    core = ActorCore(ActorServiceConfig(envs=longer.actor.envs_per_process), longer)
+    try:
+        assert core.cfg.envs == 8 and core.cfg.batch_steps == 64 - 8 * 6
+    finally:
+        core.loop.close()
+    with pytest.raises(ConfigError, match="actor.envs_per_process x d4pg.n_step"):
+        apply_overrides(ExperimentConfig(), ["d4pg.n_step=8"])

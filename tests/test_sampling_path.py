@@ -160,3 +160,22 @@ def test_the_learner_asks_only_for_requests_the_replays_rate_limiter_can_admit(t
     with pytest.raises(ProtoError, match="range"):
         service.handle_sample(SampleRequest((k + 1) * 256, 0.1).encode())
     assert service.rejected().get("range") == 1
+
+
+def test_requests_are_admitted_only_beside_inserts_of_a_whole_actor_batch():
+    """A sample of k batches must never be refused while an actor's insert of ``insert_batch`` is
+    refused too (both would wait for ever): the learner's k accounts for the insert's size."""
+    from curlnav.builder import D4PGBuilder
+    from curlnav.config import ExperimentConfig, apply_overrides
+
+    cfg = apply_overrides(ExperimentConfig(), ["replay.samples_per_insert=6", "replay.min_size=1000"])
+    builder = D4PGBuilder(cfg)
+    k = builder.batches_per_request(4)
+    limiter = builder.make_rate_limiter()
+    lo, hi = limiter.window
+    request, insert = k * 256, cfg.replay.insert_batch
+    for error in np.linspace(lo, hi, 401):  # wherever the error stands, one of the two may go on
+        limiter.inserts, limiter.samples = 0, -error
+        assert limiter.can_insert(10**6, insert) or limiter.can_sample(10**6, request), (k, error)
+    big = apply_overrides(ExperimentConfig(), ["d4pg.batch_size=4096", "replay.min_size=4096"])
+    assert D4PGBuilder(big).batches_per_request(4) * 4096 <= SampledBatch.MAX_BATCH

@@ -258,7 +258,7 @@ def shm_support() -> str | None:
 
 def run_transport_bench(publishers: int = 4, batches: int = 400, per_batch: int = 64,
                         run_dir: str = "runs/bench-transport", paths: tuple[str, ...] = ("plain", "shm"),
-                        in_flight: int = 4, insert_rates: tuple[float, ...] = (0.0,), per_request: int = 1,
+                        in_flight: int = 4, insert_rates: tuple[float, ...] = (0.0, 12500.0), per_request: int = 4,
                         learner_device: str | None = None, learner_variant: str = "async") -> dict:
     """Inserting and sampling side by side, once per sampling path (plain: the replay replies
     with an ordinary buffer; shm: from a Zenoh shared-memory buffer) and insert rate (0: the

@@ -61,9 +61,10 @@ def add_serve_arguments(p) -> None:
     p.add_argument("--threads", type=int, default=env_default("threads", 1), help="learner: torch threads")
     p.add_argument("--device", default=env_default("device", "auto"),
                    help="learner: auto (cuda when a GPU is present, else cpu), cuda, cuda:N or cpu")
-    p.add_argument("--compile", default=env_default("compile", "off"),
+    p.add_argument("--compile", default=env_default("compile", "off"), choices=("off", "default", "reduce-overhead"),
                    help="learner: torch.compile of the networks: off, default, reduce-overhead (CUDA graphs)")
-    p.add_argument("--amp", default=env_default("amp", "off"), help="learner: off or bf16 (bfloat16 autocast)")
+    p.add_argument("--amp", default=env_default("amp", "off"), choices=("off", "bf16"),
+                   help="learner: off or bf16 (bfloat16 autocast)")
     p.add_argument("--shm", action="store_true", default=bool(env_default("shm", "")),
                    help="replay: answer samples through Zenoh shared memory (a learner on the same host)")
     p.add_argument("--bus-credentials", default=env_default("bus_credentials", ""),
