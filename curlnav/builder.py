@@ -59,7 +59,8 @@ class D4PGBuilder:
         replay = self.config.replay
         return ReplayTable(self.layout, replay.capacity, self.make_rate_limiter(),
                            "prioritized" if replay.prioritized else "uniform",
-                           priority_exponent=replay.priority_exponent, seed=self.config.seed)
+                           priority_exponent=replay.priority_exponent, seed=self.config.seed,
+                           insert_batch=replay.insert_batch)
 
     def restore_replay_table(self, path) -> ReplayTable:
         """A saved table under this config's rate limiter (its own capacity and contents)."""

@@ -141,7 +141,7 @@ class ReplayTable:
 
     def __init__(self, layout: ObservationLayout, max_size: int, rate_limiter: SampleToInsertRatio | None = None,
                  sampler: str = "uniform", priority_exponent: float = 0.6, frame_capacity: int | None = None,
-                 seed: int = 0, action_size: int = 3) -> None:
+                 seed: int = 0, action_size: int = 3, insert_batch: int = 64) -> None:
         if max_size < 1:
             raise ValueError("max_size must be at least 1")
         if sampler not in ("uniform", "prioritized"):
@@ -174,7 +174,12 @@ class ReplayTable:
         self._next_key = 0  # key of the next transition; slot = key % max_size
         self._max_priority = 1.0
         self._streams: dict[str, OrderedDict[int, int]] = {}
-        self._stream_window = layout.history + 64
+        # writer-local frame ids remembered per stream (an actor): a transition names frames up to
+        # n-step steps back in each of the actor's environments, interleaved; with K environments
+        # that is K x (n + 1) frames plus a batch, K x n below insert_batch (the config's check):
+        # at most 2 x insert_batch + 64 frames back. 74 had been enough for one environment and
+        # dropped transitions as unknown_frame with 8 (issue 31).
+        self._stream_window = layout.history + 64 + 2 * int(insert_batch)
         self.rejected: dict[str, int] = {}
         self.total_inserted = 0
         self.total_sampled = 0

@@ -116,3 +116,44 @@ def test_a_run_whose_actor_steps_three_environments_trains_and_loses_nothing(tmp
         cluster.stop()
     final = json.loads((tmp_path / "run" / "actors" / "actor-0" / "actor-final.json").read_text())
     assert final["generated"] > 0 and final["unacknowledged_transitions"] == 0, final
+
+
+def test_eight_environments_with_five_step_returns_lose_no_transition_and_keep_their_frame_stacks():
+    """The default actor (8 environments, n-step 5, a batch every 24 environment steps, episodes
+    ending at different times): the replay holds every transition the writer made, none dropped
+    for a frame it no longer knows, and each observation is its own environment's frame stack."""
+    from test_replay import LAYOUT as L
+    from test_replay import expected_stack, obs_for
+
+    k, rng = 8, np.random.default_rng(5)
+    writer = VectorNStepWriter(L, k, n_step=5, discount=0.99)
+    table = ReplayTable(L, max_size=50_000)
+    episode, step, length = [0] * k, [0] * k, [int(rng.integers(3, 40)) for _ in range(k)]
+    for e in range(k):
+        writer[e].first(obs_for(0, episode=100 * e))
+    made = since_batch = 0
+    for _ in range(600):
+        for e in range(k):
+            step[e] += 1
+            done = step[e] == length[e]
+            # the action names (environment, episode, step of the observation it was taken at)
+            writer[e].step(np.array([e, episode[e], step[e] - 1], np.float32), 1.0,
+                           obs_for(step[e], episode=100 * e + episode[e]), done, False)
+            since_batch += 1
+            if done:
+                episode[e] += 1
+                step[e], length[e] = 0, int(rng.integers(3, 40))
+                writer[e].first(obs_for(0, episode=100 * e + episode[e]))
+            if since_batch >= 24:
+                batch = writer.flush()
+                made += batch.num_transitions
+                table.insert(batch, stream="actor-0")
+                since_batch = 0
+    batch = writer.flush()
+    made += batch.num_transitions
+    table.insert(batch, stream="actor-0")
+    assert table.rejected.get("unknown_frame", 0) == 0 and table.size == made > 3000
+    sample = table.sample(200)
+    for i in range(200):
+        e, ep, t = (int(x) for x in sample.action[i])
+        assert np.allclose(sample.obs[i], expected_stack(list(range(t + 1)), 100 * e + ep), atol=1e-2)
