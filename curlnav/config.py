@@ -155,6 +155,9 @@ class ExplorationConfig:
         return -(-self.warmup_steps // max(actor_count, 1))
 
 
+INFERENCE_BACKENDS = ("onnx", "torch")  # how an actor runs its policy network: ONNX Runtime or PyTorch
+
+
 @dataclass(frozen=True)
 class ActorConfig:
     """How each actor process runs. Each actor may choose its own (a host with more cores per
@@ -166,7 +169,8 @@ class ActorConfig:
     inference: str = "onnx"  # the policy network on ONNX Runtime (onnx) or PyTorch (torch); `curlnav bench actor`
 
     def __post_init__(self) -> None:
-        _require(self.inference in ("onnx", "torch"), f"actor.inference must be onnx or torch, got {self.inference!r}")
+        _require(self.inference in INFERENCE_BACKENDS,
+                 f"actor.inference must be one of {', '.join(INFERENCE_BACKENDS)}, got {self.inference!r}")
         _require(isinstance(self.envs_per_process, int) and not isinstance(self.envs_per_process, bool)
                  and 1 <= self.envs_per_process <= 64,
                  f"actor.envs_per_process must be a whole number in 1..64, got {self.envs_per_process!r}")

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from safetensors.torch import load as safetensors_load
 from torch import nn
 
-from curlnav.config import D4PGConfig
+from curlnav.config import INFERENCE_BACKENDS, D4PGConfig
 from curlnav.layout import ObservationLayout
 
 # Action bounds of NamoEnv: v in [0, 1], w in [-1, 1], L in [0, 1].
@@ -108,11 +108,16 @@ def act(actor: Actor, obs: np.ndarray, sigma: float = 0.0, rng: np.random.Genera
     device = next(actor.parameters()).device
     with torch.no_grad():
         action = actor(torch.as_tensor(obs, dtype=torch.float32, device=device)[None])[0].cpu().numpy()
+    return explore(action, sigma, rng or np.random.default_rng())
+
+
+def explore(actions: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """``actions`` (any shape ending in 3) plus Gaussian noise of ``sigma`` times each action's
+    half-range, clipped to the action bounds, as float32."""
     if sigma > 0:
         low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
-        rng = rng or np.random.default_rng()
-        action = np.clip(action + rng.normal(0.0, sigma * (high - low) / 2), low, high)
-    return action.astype(np.float32)
+        actions = np.clip(actions + rng.normal(0.0, sigma * (high - low) / 2, size=actions.shape), low, high)
+    return actions.astype(np.float32)
 
 
 class OnnxActorRunner:
@@ -160,9 +165,6 @@ class OnnxActorRunner:
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """Actions ``(K, 3)`` for float32 observations ``(K, size)``."""
         return self.session.run(None, {"observation": obs})[0]
-
-
-INFERENCE_BACKENDS = ("onnx", "torch")
 
 
 class BehaviourPolicy:
@@ -215,14 +217,8 @@ class BehaviourPolicy:
         if self.network is None or self.steps <= self.warmup_steps:
             return self.rng.uniform(ACTION_LOW, ACTION_HIGH).astype(np.float32)
         if self.runner is not None:
-            return self._noisy(self.runner(np.asarray(obs, dtype=np.float32)[None]))[0]
+            return explore(self.runner(np.asarray(obs, dtype=np.float32)[None]), self.sigma, self.rng)[0]
         return act(self.network, obs, self.sigma, self.rng)
-
-    def _noisy(self, actions: np.ndarray) -> np.ndarray:
-        if self.sigma > 0:
-            low, high = np.asarray(ACTION_LOW), np.asarray(ACTION_HIGH)
-            actions = np.clip(actions + self.rng.normal(0.0, self.sigma * (high - low) / 2, size=actions.shape), low, high)
-        return actions.astype(np.float32)
 
     def batch(self, obs: np.ndarray) -> np.ndarray:
         """Actions ``(K, 3)`` for observations ``(K, size)``: one forward pass for all K (the
@@ -233,8 +229,8 @@ class BehaviourPolicy:
         if self.network is None or self.steps <= self.warmup_steps:
             return self.rng.uniform(ACTION_LOW, ACTION_HIGH, size=(k, len(ACTION_LOW))).astype(np.float32)
         if self.runner is not None:
-            return self._noisy(self.runner(obs))
+            return explore(self.runner(obs), self.sigma, self.rng)
         device = next(self.network.parameters()).device
         with torch.no_grad():
             actions = self.network(torch.as_tensor(obs, device=device)).cpu().numpy()
-        return self._noisy(actions)
+        return explore(actions, self.sigma, self.rng)
