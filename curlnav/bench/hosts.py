@@ -5,6 +5,10 @@ Zenoh router; the actor hosts' routers connect to host 0's over **mutual TLS** w
 and one certificate per router, made by ``curlnav bus credentials --tls`` (``make_credentials``).
 Every service is a client of its own host's router (plain TCP on the host's loopback); host 0
 runs the replay, learner and scheduler, the others the actors, each with its own bus identity.
+Each host is given only its own credentials (``h<i>/bus``, ``host_credentials``): its router's
+dictionary, access control, the CA's certificate and its own certificate and key (``router/``); its
+services' own folders (an actor: its ``user.json`` alone). The CA's key and the other routers' keys stay
+in the folder where the launcher (the main host) minted them.
 The routers run with ``curlnav.bus.mesh.router_flags``, as the Swarm stack file's do.
 
 Phases: train, cut one actor host off (its link down) for the partition, heal it, train on; then
@@ -60,11 +64,24 @@ class HostsCluster(LocalCluster):
         """The host of actor ``actor-<n>``."""
         return 1 + int(actor.rsplit("-", 1)[1]) // self.actors_per_host
 
-    def host_command(self, i: int, role: str, *more: str) -> list[str]:
+    def host_credentials(self, i: int) -> Path:
+        """Host ``i``'s own credentials, ``h<i>/bus``: its router's (with its TLS pair), and the
+        replay's, learner's and scheduler's (host 0) or its actors' (the others)."""
+        from curlnav.bus.security import host_credentials
+
+        users = ["router", *(("replay", "learner", "scheduler") if i == 0 else
+                             (f"actor-{n}" for n in range(self.actors) if self.host_of(f"actor-{n}") == i))]
+        return host_credentials(self.bus_dir, self.run_dir / self.host_name(i) / "bus", users,
+                                router=self.host_name(i))
+
+    def host_command(self, i: int, role: str, *more: str, identity: str = "") -> list[str]:
+        """``curlnav serve role`` on host ``i``, given only ``identity``'s credentials (default: the
+        role's; the router's holds its TLS pair too)."""
+        credentials = self.run_dir / self.host_name(i) / "bus" / (identity or role)
         return [*self.net.exec(i), sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run,
                 "--router", self.router, "--data-dir", str(self.run_dir / self.host_name(i)),
                 "--http-host", self.net.address(i), "--config", str(self.config_path),
-                "--bus-credentials", str(self.bus_dir), *self.extra.get(role, []), *more]
+                "--bus-credentials", str(credentials), *self.extra.get(role, []), *more]
 
     def router_command(self, i: int, tls_name: str | None = None) -> list[str]:
         """Host ``i``'s router (``router_flags``): TLS to the other hosts (as ``tls_name``), TCP on its
@@ -73,6 +90,8 @@ class HostsCluster(LocalCluster):
         return self.host_command(i, "router", *router_flags(tls_name or self.host_name(i), main))
 
     def start(self) -> None:
+        for i in range(self.net.count):
+            self.host_credentials(i)
         for i in range(self.net.count):
             self.spawn(f"router-{self.host_name(i)}", self.router_command(i))
         self.spawn("replay", self.host_command(0, "replay"))
@@ -84,7 +103,7 @@ class HostsCluster(LocalCluster):
     def start_actor(self, n: int):
         return self.spawn(f"actor-{n}", self.host_command(self.host_of(f"actor-{n}"), "actor", "--actor-id",
                                                           f"actor-{n}", "--actor-index", str(n),
-                                                          "--actor-count", str(self.actors)))
+                                                          "--actor-count", str(self.actors), identity=f"actor-{n}"))
 
     @property
     def status_url(self) -> str:

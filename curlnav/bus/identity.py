@@ -10,6 +10,9 @@ replicas), each a bus user the router lets put only under its own id. Replicas m
   (or its container) dies, so a restarted replica takes a free identity again; no lock file is
   written, so the folder may be mounted read-only. Locks are seen by every process of one kernel:
   the identities of one host's replicas, not across hosts.
+* **An explicit id** (``--actor-id actor-<n>``, or an actor given only the folder ``actor-<n>``) takes
+  the same lock (``hold_actor_identity``): an identity never runs twice at once, whichever way it
+  was named, and a claim never takes one an explicit id holds.
 * **Swarm (several hosts)**: ``slot`` (``CURLNAV_ACTOR_SLOT={{.Task.Slot}}``, 1-based, unique in the
   service and kept when Swarm replaces a task) names the identity, ``actor-<slot-1>``; it is locked
   as well, so two processes of one container cannot both use it.
@@ -21,14 +24,13 @@ to mint more (``IdentitiesExhausted``).
 from __future__ import annotations
 
 import fcntl
+import json
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from curlnav.bus.security import BusCredentialsError
+from curlnav.bus.security import BusCredentialsError, is_actor_name
 
-ACTOR_NAME = re.compile(r"actor-(\d+)")
 #: what a user does when the identities run out (compose; elsewhere ``curlnav bus credentials --actors N``)
 MORE = "raise CURLNAV_MAX_ACTORS and re-run the credentials service (or `curlnav bus credentials --actors N`)"
 
@@ -62,7 +64,7 @@ _HELD: dict[str, ActorIdentity] = {}
 def actor_identities(folder: str | Path) -> list[str]:
     """The ``actor-<n>`` identities minted in ``folder`` (those with a ``user.json``), by number."""
     folder = Path(folder)
-    names = [p.name for p in folder.glob("actor-*") if ACTOR_NAME.fullmatch(p.name) and (p / "user.json").is_file()]
+    names = [p.name for p in folder.glob("actor-*") if is_actor_name(p.name) and (p / "user.json").is_file()]
     return sorted(names, key=lambda name: int(name.split("-")[1]))
 
 
@@ -106,3 +108,34 @@ def claim_actor_identity(folder: str | Path, slot: int | None = None) -> ActorId
     if slot is not None:
         raise IdentitiesExhausted(f"actor identity {candidates[0]} (slot {slot}) is in use by another process")
     raise IdentitiesExhausted(f"all {len(names)} actor identities are in use; {MORE}")
+
+
+def hold_actor_identity(folder: str | Path, name: str) -> ActorIdentity | None:
+    """Take the lock of actor identity ``name``, named explicitly (``--actor-id``): ``folder/name``
+    (a folder of identities) or ``folder`` itself (that actor's own folder), as a claim takes it.
+    None when ``folder`` holds no such identity (an id never minted, the shared actor user): there
+    is nothing to lock. Raises ``IdentitiesExhausted`` when another process holds it; one this
+    process holds already is returned."""
+    folder = Path(folder)
+    if (folder / name / "user.json").is_file():
+        target, hint = folder / name, "give this actor another --actor-id, or none to claim a free one"
+    elif (folder / "user.json").is_file() and _user_of(folder) == name:
+        target, hint = folder, "give this actor another identity's folder"
+    else:
+        return None
+    if str(target) in _HELD:
+        return _HELD[str(target)]
+    fd = _try_lock(target)
+    if fd is None:
+        raise IdentitiesExhausted(f"actor identity {name} is in use by another process ({target}): each identity "
+                                  f"runs once; {hint}")
+    index = int(name.split("-")[1]) if is_actor_name(name) else -1
+    _HELD[str(target)] = identity = ActorIdentity(name, index, target, fd)
+    return identity
+
+
+def _user_of(folder: Path) -> str:
+    try:
+        return str(json.loads((folder / "user.json").read_text()).get("user", ""))
+    except (OSError, ValueError, AttributeError):
+        return ""

@@ -23,14 +23,23 @@ Layout (``curlnav bus credentials --out DIR``; folders 0700, files 0600)::
     DIR/tls/               with --tls: the run's CA (ca.pem, ca.key) and <router>.pem/.key per router
 
 A service is given DIR (it reads ``DIR/<role>/``) or only its own folder: containers mount only
-their own, so an actor never holds the learner's password. The evaluator uses HTTP only.
+their own, so an actor never holds the learner's password; ``host_credentials`` writes what one
+host needs and nothing more (``curlnav bench hosts``). The evaluator uses HTTP only.
+
+What ``make_credentials`` keeps from an earlier call is checked first: actor identities are
+``actor-<n>`` only (n a number, no wildcard that would become an access-control rule for many
+ids), and it never reads or writes through a symbolic link (a link planted in DIR would make it
+write and chmod elsewhere): anything else is refused with one line that names it.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import secrets
+import stat
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,9 +72,19 @@ DEFAULT_MAX_ACTORS = 8
 SHARED_ACTOR = "actor"
 
 
+#: an actor identity's name: ``actor-<n>``, n a number as ``str(int)`` writes it (no sign, no leading zero,
+#: ASCII digits): Zenoh would read any other character of a user name (``$*``, ``*``) into its ACL rule
+ACTOR_NAME = re.compile(r"actor-(0|[1-9][0-9]{0,8})")
+
+
 def actor_ids(count: int) -> list[str]:
     """The actor identities minted for ``count`` replicas: ``actor-0`` .. ``actor-<count-1>``."""
     return [f"actor-{i}" for i in range(count)]
+
+
+def is_actor_name(name: str) -> bool:
+    """Whether ``name`` is an actor identity, ``actor-<n>`` (``ACTOR_NAME``)."""
+    return ACTOR_NAME.fullmatch(name) is not None
 #: the roles whose answers make the run's config (``ServiceShell``'s agreement): an actor joins
 #: a run on their config and never answers for it, so no actor can veto another service
 CONFIG_OWNERS = ("replay", "learner", "scheduler")
@@ -107,6 +126,9 @@ def identities(actors: list[str] | tuple[str, ...] = (), shared_actor: bool = Fa
     """bus user -> (role, the id it may act under): the services (any id of their own role), each
     actor of ``actors`` (only its own id) and, with ``shared_actor``, the shared actor user."""
     out = {role: (role, "*") for role in SERVICE_ROLES if role != "actor"}
+    bad = [actor for actor in actors if not is_actor_name(actor)]
+    if bad:  # its name would become the key of its rule: "actor-$*" may put under every actor's id
+        raise BusCredentialsError(f"{bad[0][:60]!r} is not an actor identity (actor-<n>, n a number)")
     out.update({actor: ("actor", actor) for actor in actors})
     if shared_actor:
         out[SHARED_ACTOR] = ("actor", "*")
@@ -185,17 +207,49 @@ def access_control(run: str, actors: list[str] | tuple[str, ...] = ("actor-0",),
             "policies": policies}
 
 
-def _write_private(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` (mode 0600, atomically), unless it already holds it."""
+def _not_a_link(path: Path) -> None:
+    """Refuse ``path`` if it is a symbolic link (one planted in DIR would redirect a write or a chmod)."""
+    if path.is_symlink():
+        raise BusCredentialsError(f"{path} is a symbolic link: bus credentials are never read or written through "
+                                  f"a link; remove it")
+
+
+def _open_private(path: Path, flags: int, mode: int = 0o600) -> int:
+    """``os.open`` that never follows a symbolic link at ``path`` itself (``O_NOFOLLOW``)."""
     try:
-        if path.read_text() == text:
-            os.chmod(path, 0o600)
-            return
-    except OSError:
-        pass
+        return os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.ENOTDIR) and path.is_symlink():
+            _not_a_link(path)
+        raise
+
+
+def _read_private(path: Path) -> str:
+    """The text of the regular file ``path``, never through a link (missing: ``FileNotFoundError``)."""
+    fd = _open_private(path, os.O_RDONLY)
+    with os.fdopen(fd) as f:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise BusCredentialsError(f"{path} is not a regular file; remove it")
+        return f.read()
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` (mode 0600, atomically), unless it already holds it; never
+    through a link (a link at ``path`` is refused, the new file replaces only the name)."""
+    try:
+        fd = _open_private(path, os.O_RDONLY)
+    except FileNotFoundError:
+        fd = -1
+    if fd >= 0:
+        with os.fdopen(fd) as f:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise BusCredentialsError(f"{path} is not a regular file; remove it")
+            if f.read() == text:
+                os.fchmod(fd, 0o600)
+                return
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.unlink(missing_ok=True)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    tmp.unlink(missing_ok=True)  # a link there is removed, not followed
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
     with os.fdopen(fd, "w") as f:
         os.fchmod(f.fileno(), 0o600)
         f.write(text)
@@ -205,22 +259,47 @@ def _write_private(path: Path, text: str) -> None:
 
 
 def _private_dir(path: Path) -> Path:
+    """``path`` as a real folder, mode 0700 (made if missing; a link there is refused, never chmodded)."""
+    _not_a_link(path)
     path.mkdir(mode=0o700, parents=True, exist_ok=True)
-    os.chmod(path, 0o700)
+    fd = _open_private(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fchmod(fd, 0o700)
+    finally:
+        os.close(fd)
     return path
 
 
-def _read_user(path: Path) -> BusUser:
+def _read_user(path: Path, follow: bool = True) -> BusUser:
+    """The user of ``path``; ``follow=False`` (``make_credentials``): never through a link."""
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(path.read_text() if follow else _read_private(path))
         return BusUser(str(d["role"]), str(d["user"]), str(d["password"]), str(d["run"]))
     except (OSError, ValueError, KeyError, TypeError) as exc:
+        if isinstance(exc, BusCredentialsError):
+            raise
         raise BusCredentialsError(f"unreadable bus credentials {path}: {exc}") from None
 
 
 def _actor_folders(out: Path) -> list[str]:
-    return sorted((p.name for p in out.glob("actor-*") if (p / "user.json").is_file()),
-                  key=lambda name: (len(name), name))
+    """The actor identities already in ``out``: every entry named ``actor-...`` must be a real
+    folder named ``actor-<n>`` (those without a ``user.json`` are not identities yet)."""
+    names = []
+    for entry in sorted(os.scandir(out), key=lambda e: e.name):
+        if not entry.name.startswith("actor-"):
+            continue
+        path = out / entry.name
+        if not is_actor_name(entry.name):
+            raise BusCredentialsError(f"{path} is not an actor identity (actor-<n>, n a number): bus credentials "
+                                      f"never mint it; remove it")
+        _not_a_link(path)
+        if not entry.is_dir(follow_symlinks=False):
+            raise BusCredentialsError(f"{path} is not a folder; remove it")
+        user = path / "user.json"
+        _not_a_link(user)
+        if user.exists():
+            names.append(entry.name)
+    return sorted(names, key=lambda name: int(name.split("-")[1]))
 
 
 def make_credentials(out: str | Path, run: str, actors: int = DEFAULT_MAX_ACTORS, shared_actor: bool = False,
@@ -234,15 +313,21 @@ def make_credentials(out: str | Path, run: str, actors: int = DEFAULT_MAX_ACTORS
     (``--resume``, a compose restart); the access control is rewritten for ``run``. Returns
     user -> "created" or "kept"."""
     Topology(run)  # a bad run name fails here
-    out = _private_dir(Path(out))
-    actor_names = sorted(set(actor_ids(actors)) | set(_actor_folders(out)), key=lambda name: (len(name), name))
+    out = Path(out)  # DIR itself is the user's choice (it may be a link); nothing below it may be
+    out.mkdir(mode=0o700, parents=True, exist_ok=True)
+    os.chmod(out, 0o700)
+    for name in (*ROLES, SHARED_ACTOR, "tls"):  # what is kept from before is checked before anything is written
+        _not_a_link(out / name)
+    kept = _actor_folders(out)
+    actor_names = sorted(set(actor_ids(actors)) | set(kept), key=lambda name: int(name.split("-")[1]))
     names = [*ROLES, *actor_names, *([SHARED_ACTOR] if shared_actor else [])]
     users, done = {}, {}
     for name in names:
         role = "actor" if name in actor_names or name == SHARED_ACTOR else name
         path = _private_dir(out / name) / "user.json"
+        _not_a_link(path)
         try:
-            user = _read_user(path)
+            user = _read_user(path, follow=False)
             done[name] = "kept"
         except BusCredentialsError:
             user, done[name] = BusUser(role, name, secrets.token_urlsafe(24), run), "created"
@@ -255,7 +340,7 @@ def make_credentials(out: str | Path, run: str, actors: int = DEFAULT_MAX_ACTORS
         router_names = make_tls(out / "tls", tls_hosts)
         done.update({f"tls/{name}": "written" for name in tls_hosts})
     _write_private(out / "router" / "users.txt", "".join(f"{u.user}:{u.password}\n" for u in users.values()))
-    acl = access_control(run, actor_names, shared_actor or (out / SHARED_ACTOR / "user.json").is_file(),
+    acl = access_control(run, actor_names, shared_actor or (out / SHARED_ACTOR / "user.json").exists(),
                          router_names)
     _write_private(out / "router" / "acl.json", json.dumps(acl, indent=1) + "\n")
     return done
@@ -283,10 +368,14 @@ def make_tls(folder: str | Path, hosts: dict[str, str], days: int = 3650) -> lis
     def key_text(key) -> str:
         return key.private_bytes(pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()).decode()
 
+    for path in folder.iterdir():  # the CA's key and every certificate: never read or written through a link
+        _not_a_link(path)
     try:
-        ca_key = serialization.load_pem_private_key((folder / "ca.key").read_bytes(), None)
-        ca = x509.load_pem_x509_certificate((folder / "ca.pem").read_bytes())
-    except (OSError, ValueError):
+        ca_key = serialization.load_pem_private_key(_read_private(folder / "ca.key").encode(), None)
+        ca = x509.load_pem_x509_certificate(_read_private(folder / "ca.pem").encode())
+    except (OSError, ValueError) as exc:
+        if isinstance(exc, BusCredentialsError):
+            raise
         ca_key = ec.generate_private_key(ec.SECP256R1())
         name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"curlnav run CA {secrets.token_hex(4)}")])
         ca = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(ca_key.public_key())
@@ -328,6 +417,28 @@ class TlsFiles:
     ca: Path
     certificate: Path
     key: Path
+
+
+def host_credentials(source: str | Path, dest: str | Path, users: list[str] | tuple[str, ...],
+                     router: str = "") -> Path:
+    """Write into ``dest`` what one host needs of the run's credentials ``source`` and nothing
+    more: the folder of each of ``users`` (the ``router``'s holds its dictionary and access control
+    too) and, with ``router`` (its name in ``source/tls``), ``dest/router/tls/`` with the CA's
+    certificate and that router's own certificate and key, never the CA's key nor another
+    router's. Each service is then given its own ``dest/<user>`` (``load_router`` and ``load_tls``
+    read ``dest/router``). Returns ``dest``."""
+    source, dest = Path(source), _private_dir(Path(dest))
+    for user in users:
+        folder = source / user
+        _not_a_link(folder)
+        for path in sorted(folder.iterdir()):
+            if path.name.startswith("."):
+                continue  # an interrupted write's temporary file
+            _write_private(_private_dir(dest / user) / path.name, _read_private(path))
+    if router:
+        for name in ("ca.pem", f"{router}.pem", f"{router}.key"):
+            _write_private(_private_dir(dest / "router" / "tls") / name, _read_private(source / "tls" / name))
+    return dest
 
 
 def load_tls(path: str | Path, name: str) -> TlsFiles:

@@ -135,11 +135,14 @@ def _actor_identity(args) -> tuple[str, int | None]:
     ``--actor-id``; else the one actor of a folder of one actor's credentials; else, from a folder
     of actor identities (compose's ``bus-actors`` volume, Swarm's secrets), one claimed for this
     process's life (``--actor-slot``'s, or the first free: ``curlnav.bus.identity``); else host-pid
-    (no credentials, or only the shared actor user of ``--shared-actor``)."""
-    from curlnav.bus.identity import actor_identities, claim_actor_identity
+    (no credentials, or only the shared actor user of ``--shared-actor``). An id named either way
+    takes the lock a claim takes (``hold_actor_identity``): refused while another process holds it."""
+    from curlnav.bus.identity import actor_identities, claim_actor_identity, hold_actor_identity
 
     own = args.actor_id or _credentials_actor_id(args.bus_credentials)
     if own:
+        if args.bus_credentials:
+            hold_actor_identity(args.bus_credentials, own)
         return own, None
     if args.bus_credentials and (args.actor_slot or actor_identities(args.bus_credentials)):
         claim = claim_actor_identity(args.bus_credentials, args.actor_slot or None)
@@ -279,7 +282,8 @@ class LocalCluster:
         self.scheduler_port = scheduler_port or free_port()
         self.learner_http_port = learner_port or free_port()
         self.router = f"tcp/127.0.0.1:{self.router_port}"
-        # the bus credentials of the run: made once, kept across --resume, given to every service
+        # the bus credentials of the run: made once, kept across --resume; each service is given
+        # only its own folder (``credentials``), so an actor holds its own password alone
         from curlnav.bus.security import make_credentials
 
         self.bus_dir = self.run_dir / "bus"
@@ -294,11 +298,20 @@ class LocalCluster:
         self.commands: dict[str, list[str]] = {}  # name -> command line (a restart runs the same)
         self.pgid: int | None = None  # the services' process group
 
-    def service_command(self, role: str, *more: str) -> list[str]:
+    def credentials(self, name: str) -> Path:
+        """The credentials service ``name`` (a role, or an actor's ``actor-<n>``) is given: its own
+        folder of the run's, ``bus/<name>`` (the router's: its dictionary and access control; an
+        actor's: its ``user.json`` alone)."""
+        return self.bus_dir / name
+
+    def service_command(self, role: str, *more: str, identity: str = "") -> list[str]:
+        """``curlnav serve role`` for this cluster; ``identity``: whose credentials it is given
+        (an actor's ``actor-<n>``; default: the role's own, for an actor ``actor-0``'s)."""
+        identity = identity or ("actor-0" if role == "actor" else role)
         return [sys.executable, "-m", "curlnav.cli", "serve", role, "--run", self.run, "--router", self.router,
                 "--listen", f"tcp/127.0.0.1:{self.router_port}", "--data-dir", str(self.run_dir),
-                "--http-host", "127.0.0.1", "--config", str(self.config_path), "--bus-credentials", str(self.bus_dir),
-                *self.extra.get(role, []), *more]
+                "--http-host", "127.0.0.1", "--config", str(self.config_path),
+                "--bus-credentials", str(self.credentials(identity)), *self.extra.get(role, []), *more]
 
     def bus_session(self, role: str, connect_timeout_s: float = 10.0, ident: str = "actor-0"):
         """A Zenoh session to this cluster's router, authenticated as ``role`` (an actor: as
@@ -310,7 +323,7 @@ class LocalCluster:
         return open_session(self.router, connect_timeout_s, user=user)
 
     def _spawn(self, name: str, role: str, *more: str) -> subprocess.Popen:
-        return self.spawn(name, self.service_command(role, *more))
+        return self.spawn(name, self.service_command(role, *more, identity=name))
 
     def spawn(self, name: str, cmd: list[str]) -> subprocess.Popen:
         """Start ``cmd`` as service ``name`` in the services' process group, its output appended
