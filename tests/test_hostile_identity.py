@@ -31,6 +31,7 @@ from curlnav.proto.topology import Topology
 from test_stack_file import Namespaces
 
 from curlnav.bench.faults import poll
+from curlnav.bench.netns import Hosts, unavailable
 from curlnav.bus import identity
 from curlnav.bus.identity import claim_actor_identity
 from curlnav.bus.security import BusCredentialsError, BusUser, load_router, load_tls, load_user, make_credentials
@@ -349,3 +350,64 @@ def test_the_hosts_bench_gives_each_actor_only_its_identity_and_no_actor_host_th
         if host > 0:  # an actor host: only its actors' passwords, besides its router's dictionary
             users = {Path(p).parent.name for p in held if Path(p).name == "user.json"} - {"router"}
             assert users == {f"actor-{n}" for n in range(4) if cluster.host_of(f"actor-{n}") == host}, host
+
+
+BUS_CLIENT = textwrap.dedent('''
+    import os, sys, time
+    from curlnav.bus.security import load_user
+    from curlnav.bus.transport import open_session
+    role, folder, run, seconds = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+    user = load_user(folder, "actor" if role.startswith("actor-") else role, run,
+                     role if role.startswith("actor-") else None)
+    s = open_session("tcp/127.0.0.1:7448", 20, user=user)
+    got = []
+    if role == "replay":
+        s.declare_subscriber(f"curlnav/{run}/transitions/*", lambda x: got.append(str(x.key_expr)))
+    end = time.time() + seconds
+    while time.time() < end:
+        if role != "replay":
+            s.put(f"curlnav/{run}/transitions/{role}", b"batch")
+        time.sleep(0.2)
+    print("received", sorted(set(got)), len(got), flush=True)
+    os._exit(0)  # a zenoh session may hang at interpreter exit
+''')
+
+
+@pytest.mark.skipif(unavailable() is not None, reason=f"no network namespaces here: {unavailable()}")
+def test_the_hosts_bench_credentials_link_two_hosts_without_the_ca_key(tmp_path):
+    """A short real run of what the bench gives each host: two namespaces, each router with only
+    its own folder (no CA key), an actor on host 1 with only its ``user.json``; its batches reach
+    the replay on host 0 through the routers' mutual-TLS link."""
+    from curlnav.bench.hosts import HostsCluster
+
+    with Hosts(2, tag=f"i{os.getpid() % 10000}") as net:
+        cluster = HostsCluster(tmp_path / "run", net, actors_per_host=1, run=RUN)
+        commands = started(cluster)  # the bench's command lines; only the routers run here
+        procs: list[subprocess.Popen] = []
+        try:
+            for i in range(2):
+                assert not any(p.name == "ca.key" for p in (tmp_path / "run" / f"h{i}").rglob("*"))
+                procs.append(subprocess.Popen(commands[f"router-h{i}"], stdout=subprocess.DEVNULL,
+                                              stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL))
+            actor = Path(flag(commands["actor-0"], "--bus-credentials"))
+            assert files_under(actor) == {"user.json"}
+            script = tmp_path / "client.py"
+            script.write_text(BUS_CLIENT)
+            replay_folder = tmp_path / "run" / "h0" / "bus" / "replay"
+            replay = subprocess.Popen([*net.exec(0), sys.executable, str(script), "replay", str(replay_folder), RUN,
+                                       "25"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            procs.append(replay)
+            procs.append(subprocess.Popen([*net.exec(1), sys.executable, str(script), "actor-0", str(actor), RUN, "25"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT))
+            out, _ = replay.communicate(timeout=90)
+            assert f"received ['curlnav/{RUN}/transitions/actor-0']" in out, out[-2000:]
+        finally:
+            for proc in procs:
+                if proc.poll() is None:
+                    proc.terminate()
+            for proc in procs:
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
