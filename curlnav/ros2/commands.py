@@ -13,15 +13,20 @@ def add_ros2_commands(sub) -> None:
     ros2 = sub.add_parser("ros2", help="the policy as a ROS 2 node and the simulator as a ROS 2 robot, over DDS "
                                        "(ROS 2 type names, rt/ topics, ROS_DOMAIN_ID; no ROS install needed)")
     ros2_sub = ros2.add_subparsers(dest="ros2_command", required=True)
-    p = ros2_sub.add_parser("run", help="POLICY as a node: /scan, /odom, /goal_pose (/plan) in; /cmd_vel, /arm_cmd, "
-                                        "/goal_state out")
+    p = ros2_sub.add_parser("run", help="POLICY as a node: /scan, /odom, /goal_pose, /goal_cancel (/plan) in; "
+                                        "/cmd_vel, /arm_cmd, /goal_state out")
     p.add_argument("policy", help="policy artefact folder (metadata.json + actor.onnx)")
     p.add_argument("--global-plan", action="store_true", help="follow /plan (nav_msgs/Path) waypoint by waypoint")
     p.add_argument("--rate-hz", type=float, default=None, help="control rate (default: the policy's, 5 Hz)")
-    p.add_argument("--silence-s", type=float, default=0.5, help="stop when /scan or /odom is older than this (s)")
+    p.add_argument("--silence-s", type=float, default=0.5,
+                   help="stop when /scan or /odom is older than this, or no /cmd_vel went out for this long (s)")
     p.add_argument("--scan-frame", default="base_link", help="the frame_id /scan must carry")
     p.add_argument("--odom-frame", default="odom", help="the frame_id of /odom, /goal_pose and /plan")
     p.add_argument("--goal-tolerance", type=float, default=0.8, help="goal reached within this distance (m)")
+    p.add_argument("--give-up-s", type=float, default=30.0,
+                   help="give a goal up after this long without 0.25 m of progress (s; /goal_state gave_up)")
+    p.add_argument("--max-goal-m", type=float, default=10_000.0,
+                   help="refuse goals with |x| or |y| beyond this in the odometry frame (m; /goal_state refused)")
     p.add_argument("--stats-every-s", type=float, default=10.0, help="log counts and loop latency this often (s)")
     _common(p)
     p.set_defaults(func=_cmd_run)
@@ -68,11 +73,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     policy = PolicyArtefact(args.policy)
     layout = ScanLayout.of(policy.metadata)
+    if layout.limits_problem():
+        raise ValueError(f"{args.policy}: {layout.limits_problem()}: the node cannot bound its commands")
     if layout.observation_size != policy.observation_size:
         raise ValueError(f"{args.policy}: the metadata's layout gives {layout.observation_size} values, the policy "
                          f"takes {policy.observation_size}")
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
-                        scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance)
+                        scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
+                        give_up_s=args.give_up_s, max_goal_m=args.max_goal_m)
     topics = remap(NODE_TOPICS, args.remap)
     node = PolicyNode(policy, layout, config, follow_plan=args.global_plan)
     bus, domain = _bus(args)

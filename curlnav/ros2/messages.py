@@ -20,6 +20,8 @@ MSG = {
     "std_msgs/msg/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
     "std_msgs/msg/Float64": "float64 data\n",
     "std_msgs/msg/String": "string data\n",
+    # Empty.msg has no field; rosidl gives every empty struct this one (on the wire and in IDL)
+    "std_msgs/msg/Empty": "uint8 structure_needs_at_least_one_member\n",
     "std_msgs/msg/ColorRGBA": "float32 r\nfloat32 g\nfloat32 b\nfloat32 a\n",
     "geometry_msgs/msg/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
     "geometry_msgs/msg/Point": "float64 x\nfloat64 y\nfloat64 z\n",

@@ -9,12 +9,21 @@ movable object, 0.0: static), as a movable-object segmenter writes them; any oth
 is resampled to the policy's (241 beams over -120..+120 deg by default; per policy beam the
 nearest return of the input beams in its 1-degree bin, the bin's beams uncovered by the input
 read as no return). The scanner is taken to sit at ``base_link``'s origin, facing forward.
+
+Safe at the edges (issue 35): every command goes through ``guard`` (finite, within the artefact's
+speed limits, else a counted stop); goals beyond ``max_goal_m`` and odometry beyond
+``ODOM_BOUND_M`` are refused, so the transform to the robot frame cannot overflow; a scan of more
+than ``MAX_SCAN_RANGES`` ranges is refused and the resampler is linear in the ranges; the shell
+runs a watchdog thread that sends a stop when no ``/cmd_vel`` went out for ``silence_s``; a goal
+ends (``reached``, ``gave_up``, ``cancelled``, ``odometry_reset``, ``refused``) and is never
+resumed by itself: only a new ``/goal_pose`` starts one.
 """
 
 from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -22,6 +31,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from curlnav.evaluation.baseline import GlobalPlan, WaypointConfig
+
+#: A scan of more ranges is refused as malformed (work per message bounded; 2-D scanners give
+#: a few thousand: 3,600 at 0.1 degree over 360)
+MAX_SCAN_RANGES = 16_384
+#: A ``/plan`` of more poses is refused
+MAX_PLAN_POSES = 20_000
+#: Odometry farther than this from its origin (m) is refused (no overflow in the goal transform)
+ODOM_BOUND_M = 1e6
+#: Odometry that moves more than this (m) plus twice the top speed times the time between the two
+#: stamps has jumped: the robot or its odometry restarted
+ODOM_JUMP_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -33,14 +53,22 @@ class NodeConfig:
     scan_frame: str = "base_link"  # the frame /scan must come in
     odom_frame: str = "odom"  # the frame /odom (and /goal_pose, /plan) must come in
     goal_tolerance_m: float = 0.8  # the goal is reached within this distance (m)
+    max_goal_m: float = 10_000.0  # a goal with |x| or |y| beyond this (m, odom frame) is refused
+    give_up_s: float = 30.0  # give the goal up after this long without progress (s)
+    progress_m: float = 0.25  # progress: the distance to go falls this much below its best so far (m)
     # /plan following (--global-plan); the node has no map, so no line-of-sight check against one
     waypoints: WaypointConfig = field(default_factory=lambda: WaypointConfig(line_of_sight=False))
 
     def __post_init__(self) -> None:
-        for name in ("rate_hz", "silence_s", "goal_tolerance_m"):
+        for name in ("rate_hz", "silence_s", "goal_tolerance_m", "max_goal_m", "give_up_s", "progress_m"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if self.silence_s < 1.0 / self.rate_hz:
+            raise ValueError(f"silence_s ({self.silence_s:g} s) must be at least one control period "
+                             f"({1.0 / self.rate_hz:g} s at {self.rate_hz:g} Hz): the watchdog would stop every command")
+        if self.max_goal_m > ODOM_BOUND_M:
+            raise ValueError(f"max_goal_m must be at most {ODOM_BOUND_M:g} m, got {self.max_goal_m:g}")
 
 
 @dataclass(frozen=True)
@@ -63,11 +91,27 @@ class ScanLayout:
         obs = metadata.get("observation", {})
         layout = obs.get("layout", {})
         scale = metadata.get("action", {}).get("scale", [1.0, 1.0, 0.5])
-        return cls(beams=int(layout.get("beams", 241)), fov_rad=float(obs.get("lidar_fov_rad", math.radians(240.0))),
-                   max_range_m=float(layout.get("max_range", 10.0)), range_frames=int(layout.get("range_frames", 4)),
-                   label_frames=int(layout.get("label_frames", 4)), goal_frames=int(layout.get("goal_frames", 10)),
-                   max_linear_speed=float(scale[0]), max_angular_speed=float(scale[1]), arm_reach=float(scale[2]),
-                   control_period_s=float(obs.get("control_period_s", 0.2)))
+        try:
+            return cls(beams=int(layout.get("beams", 241)),
+                       fov_rad=float(obs.get("lidar_fov_rad", math.radians(240.0))),
+                       max_range_m=float(layout.get("max_range", 10.0)),
+                       range_frames=int(layout.get("range_frames", 4)), label_frames=int(layout.get("label_frames", 4)),
+                       goal_frames=int(layout.get("goal_frames", 10)), max_linear_speed=float(scale[0]),
+                       max_angular_speed=float(scale[1]), arm_reach=float(scale[2]),
+                       control_period_s=float(obs.get("control_period_s", 0.2)))
+        except (AttributeError, IndexError, KeyError, TypeError, ValueError, OverflowError) as exc:
+            raise ValueError(f"metadata: the observation layout or action.scale cannot be read ({exc})") from None
+
+    @property
+    def limits(self) -> tuple[float, float, float]:
+        """(m/s, rad/s, m): the largest forward speed, turn rate and stick extension it may command."""
+        return self.max_linear_speed, self.max_angular_speed, self.arm_reach
+
+    def limits_problem(self) -> str | None:
+        """Why the limits (``action.scale``) cannot bound a command, or None."""
+        if not all(math.isfinite(v) and v > 0 for v in self.limits):
+            return f"speed limits not finite and positive (action.scale {list(self.limits)})"
+        return None
 
     @property
     def observation_size(self) -> int:
@@ -93,6 +137,27 @@ class Command:
         return self.linear == 0.0 and self.angular == 0.0
 
 
+def guard(command: Command, layout: ScanLayout) -> tuple[Command, str | None]:
+    """The last check on what goes out: ``(command, None)`` when it is finite and within the
+    layout's limits (0..max_linear_speed m/s, |angular| <= max_angular_speed rad/s,
+    0..arm_reach m), else ``(a stop, why)``. A stop always passes."""
+    if command.linear == 0.0 and command.angular == 0.0 and command.arm == 0.0:
+        return command, None
+    lin, ang, arm = layout.limits
+    why = layout.limits_problem()
+    slack = 1.0 + 1e-9
+    if why is None:
+        if not (math.isfinite(command.linear) and 0.0 <= command.linear <= lin * slack):
+            why = f"linear {command.linear:g} m/s not in 0..{lin:g}"
+        elif not (math.isfinite(command.angular) and abs(command.angular) <= ang * slack):
+            why = f"angular {command.angular:g} rad/s not in -{ang:g}..{ang:g}"
+        elif not (math.isfinite(command.arm) and 0.0 <= command.arm <= arm * slack):
+            why = f"arm {command.arm:g} m not in 0..{arm:g}"
+    if why is None:
+        return command, None
+    return Command(0.0, 0.0, 0.0, f"stopped: unsafe command ({why})"), why
+
+
 class ScanRefused(ValueError):
     """A scan the node will not act on (NaN, wrong length, wrong frame, labels not 0..1)."""
 
@@ -100,14 +165,17 @@ class ScanRefused(ValueError):
 def resample_scan(scan, layout: ScanLayout) -> tuple[np.ndarray, np.ndarray]:
     """``(ranges, labels)``, each ``(layout.beams,)`` float32, of a ``sensor_msgs/LaserScan``
     (any object with its fields), or ``ScanRefused`` naming what is wrong. +Inf and ranges
-    beyond ``range_max`` read ``layout.max_range_m`` (no return), -Inf reads 0 (too close)."""
-    ranges = np.asarray(scan.ranges, dtype=np.float64)
-    labels = np.asarray(scan.intensities, dtype=np.float64)
-    n = len(ranges)
+    beyond ``range_max`` read ``layout.max_range_m`` (no return), -Inf reads 0 (too close).
+    At most ``MAX_SCAN_RANGES`` ranges; the work is O(n log n) in the ranges."""
+    n, n_labels = len(scan.ranges), len(scan.intensities)
     if n == 0:
         raise ScanRefused("no ranges")
-    if len(labels) != n:
-        raise ScanRefused(f"{len(labels)} intensities for {n} ranges: one movable label per beam expected")
+    if n > MAX_SCAN_RANGES:
+        raise ScanRefused(f"too many ranges: {n:,} (at most {MAX_SCAN_RANGES:,})")
+    if n_labels != n:
+        raise ScanRefused(f"{n_labels} intensities for {n} ranges: one movable label per beam expected")
+    ranges = np.asarray(scan.ranges, dtype=np.float64)
+    labels = np.asarray(scan.intensities, dtype=np.float64)
     a0, a1, inc = float(scan.angle_min), float(scan.angle_max), float(scan.angle_increment)
     if not (math.isfinite(a0) and math.isfinite(a1) and math.isfinite(inc)) or inc == 0.0:
         raise ScanRefused(f"bad angles: angle_min {a0}, angle_max {a1}, angle_increment {inc}")
@@ -132,21 +200,40 @@ def resample_scan(scan, layout: ScanLayout) -> tuple[np.ndarray, np.ndarray]:
     out_labels = np.zeros(layout.beams)
     hit = inside & (r == out[np.clip(index, 0, layout.beams - 1)])
     np.maximum.at(out_labels, index[hit], labels[hit])  # the label of the bin's nearest return
-    empty = ~np.isfinite(out)
-    if empty.any():  # a coarser input: the nearest input beam within its own increment
-        policy_angles = layout.angles[empty]
-        diff = np.abs((policy_angles[:, None] - angles[None, :] + math.pi) % (2 * math.pi) - math.pi)
-        nearest = np.argmin(diff, axis=1)
-        near = diff[np.arange(len(nearest)), nearest] <= abs(inc) / 2 + 1e-9
-        out[np.flatnonzero(empty)[near]] = r[nearest[near]]
-        out_labels[np.flatnonzero(empty)[near]] = labels[nearest[near]]
+    empty = np.flatnonzero(~np.isfinite(out))
+    if len(empty):  # a coarser input: the nearest input beam within its own increment
+        nearest, diff = _nearest_beam(angles, layout.angles[empty])
+        near = diff <= abs(inc) / 2 + 1e-9
+        out[empty[near]] = r[nearest[near]]
+        out_labels[empty[near]] = labels[nearest[near]]
         out[~np.isfinite(out)] = max_range
     return out.astype(np.float32), (out_labels >= 0.5).astype(np.float32)
 
 
+def _nearest_beam(angles: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each target angle (rad), the index of the input beam nearest to it round the circle
+    (the lowest index among equals) and the angle between them: ``(k,) int, (k,) rad``. Sorted
+    once and searched, O((n + k) log n), never a k x n array."""
+    n = len(angles)
+    order = np.argsort(angles, kind="stable")
+    ordered = angles[order]
+    after = np.searchsorted(ordered, targets, side="left")  # the first beam at or after the target
+    before = (after - 1) % n  # the last before it, round the circle
+    before = np.searchsorted(ordered, ordered[before], side="left")  # the first of equal angles
+    candidates = np.stack([order[before], order[after % n]])  # (2, k) input indices
+    diff = np.abs((targets[None, :] - angles[candidates] + math.pi) % (2 * math.pi) - math.pi)
+    pick = ((diff[1] < diff[0]) | ((diff[1] == diff[0]) & (candidates[1] < candidates[0]))).astype(np.int64)
+    k = np.arange(len(targets))
+    return candidates[pick, k], diff[pick, k]
+
+
 def goal_frame(x: float, y: float, yaw: float, gx: float, gy: float) -> np.ndarray:
     """The policy's goal frame ``[sign(dx) log(1+|dx|), sign(dy) log(1+|dy|), atan2(dy, dx)]`` of
-    ``(gx, gy)`` seen from the pose ``(x, y, yaw)`` (robot frame, m and rad), as ``NamoEnv``."""
+    ``(gx, gy)`` seen from the pose ``(x, y, yaw)`` (robot frame, m and rad), as ``NamoEnv``.
+    Finite for the coordinates the node takes (goals within ``max_goal_m``, odometry within
+    ``ODOM_BOUND_M``); ``ValueError`` rather than a non-finite frame."""
+    if not all(math.isfinite(v) and abs(v) <= 2 * ODOM_BOUND_M for v in (x, y, gx, gy)) or not math.isfinite(yaw):
+        raise ValueError(f"goal frame of ({gx:g}, {gy:g}) from ({x:g}, {y:g}, {yaw:g}): beyond the bounds")
     c, s = math.cos(yaw), math.sin(yaw)
     dx, dy = c * (gx - x) + s * (gy - y), -s * (gx - x) + c * (gy - y)
     return np.array([math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy),
@@ -166,13 +253,20 @@ class _GivenPath:
 
 
 class PolicyNode:
-    """The node's core. Feed it ``on_scan``, ``on_odom``, ``on_goal``, ``on_plan`` (message
-    objects with the ROS 2 fields, times in s of one clock) and call ``act(now)`` at the control
-    rate; it returns the ``Command`` to publish (a stop when a safety rule holds).
+    """The node's core. Feed it ``on_scan``, ``on_odom``, ``on_goal``, ``on_plan``, ``on_cancel``
+    (message objects with the ROS 2 fields, times in s of one clock) and call ``act(now)`` at the
+    control rate; it returns the ``Command`` to publish (a stop when a safety rule holds).
 
     Safety: a stop (zero twist) when the last good scan or odometry is older than
-    ``silence_s``, and at once when a scan is refused (until a good one comes). ``counts`` tells
-    how many scans, odometry messages and goals were taken and refused, by reason."""
+    ``silence_s``, at once when a scan is refused (until a good one comes), and whenever the
+    policy's command fails ``guard``. ``counts`` tells how many scans, odometry messages and
+    goals were taken and refused, by reason, and how many stops were made.
+
+    A goal ends ``reached``, ``gave_up`` (no progress of ``progress_m`` for ``give_up_s``),
+    ``cancelled``, ``odometry_reset`` (the odometry jumped, its time went back, or another
+    publisher took over: the robot restarted) or ``refused`` (a bad goal in its place); ``state``
+    (``/goal_state``) says which and why, the robot gets one stop, and nothing resumes the goal
+    but a new ``/goal_pose``."""
 
     def __init__(self, policy, layout: ScanLayout | None = None, config: NodeConfig | None = None,
                  follow_plan: bool = False) -> None:
@@ -189,7 +283,12 @@ class PolicyNode:
         self._scan_refused: str | None = None
         self._pose: tuple[float, float, float] | None = None
         self._odom_t = -math.inf
+        self._odom_last: tuple[float, float, float | None, float, object] | None = None  # x, y, stamp, t, source
         self._stacks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # ranges, labels, goals
+        self._best: float | None = None  # the least distance to go so far (m), and when it was made
+        self._best_t = -math.inf
+        self._ended_goal: tuple[float, float] | None = None
+        self._stop_pending = False
 
     # -- inputs -------------------------------------------------------------------------------------
     def on_scan(self, scan, now: float) -> bool:
@@ -208,45 +307,119 @@ class PolicyNode:
         self._scan_t, self._scan_refused = now, None
         return True
 
-    def on_odom(self, odom, now: float) -> bool:
-        """Take a ``nav_msgs/Odometry``; False (and counted) when not in ``odom_frame`` or not finite."""
+    def on_odom(self, odom, now: float, source=None) -> bool:
+        """Take a ``nav_msgs/Odometry`` (``source``: the publication it came from, when known);
+        False (and counted) when not in ``odom_frame``, not finite or beyond ``ODOM_BOUND_M``.
+        A jump, time going back or a new source ends the goal (``odometry_reset``)."""
         p = odom.pose.pose
         x, y, yaw = float(p.position.x), float(p.position.y), _yaw(p.orientation)
-        if odom.header.frame_id != self.config.odom_frame or not all(map(math.isfinite, (x, y, yaw))):
+        if odom.header.frame_id != self.config.odom_frame or not all(map(math.isfinite, (x, y, yaw))) \
+                or max(abs(x), abs(y)) > ODOM_BOUND_M:
             self.counts["odom_refused"] += 1
             return False
         self.counts["odom"] += 1
+        stamp = _stamp_s(odom.header)
+        why = self._odometry_restart(x, y, stamp, now, source)
+        self._odom_last = (x, y, stamp, now, source)
         self._pose, self._odom_t = (x, y, yaw), now
+        if why is not None:
+            self.counts["odometry_resets"] += 1
+            if self.goal is not None:
+                self._end(f"odometry_reset: {why}")
         return True
 
+    def _odometry_restart(self, x: float, y: float, stamp: float | None, now: float, source) -> str | None:
+        """Why this odometry cannot follow the last one (the robot or its odometry restarted), or None."""
+        if self._odom_last is None:
+            return None
+        x0, y0, stamp0, _, source0 = self._odom_last
+        if source is not None and source0 is not None and source != source0:
+            return "a new /odom publisher"
+        if stamp is not None and stamp0 is not None and stamp < stamp0:
+            return f"odometry time went back {stamp0 - stamp:.2f} s"
+        if stamp is None or stamp0 is None:
+            return None  # without stamps the time between them is unknown
+        speed = self.layout.max_linear_speed if math.isfinite(self.layout.max_linear_speed) else 1.0
+        jump = math.hypot(x - x0, y - y0)
+        if jump > ODOM_JUMP_M + 2.0 * speed * (stamp - stamp0):
+            return f"odometry jumped {jump:.2f} m in {stamp - stamp0:.2f} s"
+        return None
+
     def on_goal(self, goal) -> bool:
-        """Take a ``geometry_msgs/PoseStamped`` in ``odom_frame``: the new goal (a plan ending
-        elsewhere is dropped)."""
+        """Take a ``geometry_msgs/PoseStamped`` in ``odom_frame`` with |x|, |y| within
+        ``max_goal_m``: the new goal (a plan ending elsewhere is dropped). A goal refused ends the
+        goal held (``refused: why``)."""
         x, y = float(goal.pose.position.x), float(goal.pose.position.y)
-        if goal.header.frame_id != self.config.odom_frame or not (math.isfinite(x) and math.isfinite(y)):
+        frame, bound = goal.header.frame_id, self.config.max_goal_m
+        why = None
+        if frame != self.config.odom_frame:
+            why = f"goal in frame {frame!r}, expected {self.config.odom_frame!r}"
+        elif not (math.isfinite(x) and math.isfinite(y)):
+            why = f"goal ({x:g}, {y:g}) not finite"
+        elif max(abs(x), abs(y)) > bound:
+            why = f"goal ({x:.4g}, {y:.4g}) beyond {bound:g} m of the odometry origin (--max-goal-m)"
+        if why is not None:
             self.counts["goals_refused"] += 1
+            self._end(f"refused: {why}")
             return False
         self.counts["goals"] += 1
         if self.plan is not None and math.dist(self.plan.goal, (x, y)) > self.config.goal_tolerance_m:
             self.plan = None
-        self.goal, self._stacks = (x, y), None
+        self._start((x, y))
         return True
 
     def on_plan(self, path) -> bool:
         """Take a ``nav_msgs/Path`` in ``odom_frame`` (with ``follow_plan``): followed waypoint
-        by waypoint; its last pose is the goal."""
+        by waypoint; its last pose is the goal. A plan for the goal that just ended does not
+        start it again (a planner re-sends its plan): that takes a new ``/goal_pose``."""
         if not self.follow_plan:
             return False
-        points = np.array([[p.pose.position.x, p.pose.position.y] for p in path.poses], dtype=np.float64)
-        if path.header.frame_id != self.config.odom_frame or len(points) == 0 or not np.isfinite(points).all():
+        if len(path.poses) > MAX_PLAN_POSES:
             self.counts["plans_refused"] += 1
+            return False
+        points = np.array([[p.pose.position.x, p.pose.position.y] for p in path.poses], dtype=np.float64)
+        if path.header.frame_id != self.config.odom_frame or len(points) == 0 or not np.isfinite(points).all() \
+                or np.abs(points).max() > self.config.max_goal_m:
+            self.counts["plans_refused"] += 1
+            return False
+        end = (float(points[-1, 0]), float(points[-1, 1]))
+        if self.goal is None and self._ended_goal is not None \
+                and math.dist(end, self._ended_goal) <= self.config.goal_tolerance_m:
+            self.counts["plans_for_an_ended_goal"] += 1
             return False
         self.counts["plans"] += 1
         start = self._pose[:2] if self._pose is not None else tuple(points[0])
-        self.plan = GlobalPlan(_GivenPath(points), start, tuple(points[-1]), self.config.waypoints)
-        if self.goal != tuple(points[-1]):
-            self.goal, self._stacks = tuple(points[-1]), None
+        self.plan = GlobalPlan(_GivenPath(points), start, end, self.config.waypoints)
+        self._plan_along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
+        self._plan_points = points
+        if self.goal != end:
+            self._start(end)
         return True
+
+    def on_cancel(self, message=None) -> bool:
+        """Cancel the goal held (``/goal_cancel``); False when there is none."""
+        if self.goal is None:
+            return False
+        self.counts["goals_cancelled"] += 1
+        self._end("cancelled")
+        return True
+
+    def _start(self, goal: tuple[float, float]) -> None:
+        self.goal, self._stacks, self._ended_goal = goal, None, None
+        self._best, self._best_t = None, -math.inf
+
+    def _end(self, state: str) -> None:
+        """The goal held (if any) ends as ``state``: one stop goes out, nothing resumes it."""
+        if self.goal is not None:
+            self._ended_goal, self._stop_pending = self.goal, True
+        self.goal = self.plan = None
+        self._best = None
+        self.state = state
+
+    @property
+    def stop_pending(self) -> bool:
+        """A goal ended since the last ``act``: its stop has yet to go out."""
+        return self._stop_pending
 
     # -- the control step ---------------------------------------------------------------------------
     def stop_reason(self, now: float) -> str | None:
@@ -260,24 +433,60 @@ class PolicyNode:
             return "stopped: /odom silent" if self._pose is not None else "stopped: no /odom yet"
         return None
 
+    def to_go(self) -> float:
+        """The distance still to go (m): along the plan when following one, else straight."""
+        x, y, _ = self._pose
+        if self.plan is None:
+            return math.dist((x, y), self.goal)
+        d = np.hypot(self._plan_points[:, 0] - x, self._plan_points[:, 1] - y)
+        k = int(np.argmin(d))
+        return float(d[k] + self._plan_along[-1] - self._plan_along[k])
+
     def act(self, now: float) -> Command | None:
         """The command for ``now`` (call it once per control step, after a new scan): None when
-        there is no goal (nothing to send), a stop on a safety rule and once at the goal (which
-        then clears), else the policy's action scaled to m/s, rad/s and m."""
+        there is no goal (nothing to send), a stop on a safety rule and once when the goal ends,
+        else the policy's action scaled to m/s, rad/s and m and passed by ``guard``."""
         if self.goal is None:
+            if self._stop_pending:
+                self._stop_pending = False
+                return Command(0.0, 0.0, 0.0, self.state)
             return None
+        if self._pose is not None:  # progress, measured whether the robot may move or not
+            to_go = self.to_go()
+            if self._best is None or to_go <= self._best - self.config.progress_m:
+                self._best, self._best_t = to_go, now
+            elif now - self._best_t > self.config.give_up_s:
+                self.counts["goals_given_up"] += 1
+                self._end(f"gave_up: no progress for {self.config.give_up_s:g} s "
+                          f"({self._best:.1f} m to go)")
+                return self.act(now)
         reason = self.stop_reason(now)
         if reason is not None:
             return self._stop(reason)
         x, y, _ = self._pose
         if math.dist((x, y), self.goal) <= self.config.goal_tolerance_m:
-            self.goal = self.plan = None
-            return self._stop("reached")
-        action = np.asarray(self.policy(self.observation()), dtype=np.float64)
-        v, w, arm = float(np.clip(action[0], 0, 1)), float(np.clip(action[1], -1, 1)), float(np.clip(action[2], 0, 1))
+            self.counts["goals_reached"] += 1
+            self._end("reached")
+            return self.act(now)
         lay = self.layout
+        try:
+            action = np.asarray(self.policy(self.observation()), dtype=np.float64).reshape(-1)
+            if len(action) != 3:
+                raise ValueError(f"{len(action)} values, expected 3")
+        except Exception as exc:  # a broken artefact must not end the node while the robot moves
+            self.counts["policy_errors"] += 1
+            return self._stop(f"stopped: policy failed ({type(exc).__name__}: {str(exc)[:120]})")
+        if not np.isfinite(action).all():
+            command, why = Command(0.0, 0.0, 0.0, f"stopped: unsafe command (policy action {action.tolist()})"), "nan"
+        else:
+            v, w, arm = float(np.clip(action[0], 0, 1)), float(np.clip(action[1], -1, 1)), float(np.clip(action[2], 0, 1))
+            command, why = guard(Command(v * lay.max_linear_speed, w * lay.max_angular_speed, arm * lay.arm_reach,
+                                         "active"), lay)
+        if why is not None:
+            self.counts["unsafe_commands"] += 1
+            return self._stop(command.state)
         self.state = "active"
-        return Command(v * lay.max_linear_speed, w * lay.max_angular_speed, arm * lay.arm_reach, self.state)
+        return command
 
     def observation(self) -> np.ndarray:
         """The policy's observation now: the frames pushed one per control step, oldest first,
@@ -301,6 +510,14 @@ class PolicyNode:
             self.counts["stops"] += state.startswith("stopped")
         self.state = state
         return Command(0.0, 0.0, 0.0, state)
+
+
+def _stamp_s(header) -> float | None:
+    """The header's stamp (s), None when it has none (zero or missing)."""
+    stamp = getattr(header, "stamp", None)
+    if stamp is None or (stamp.sec == 0 and stamp.nanosec == 0):
+        return None
+    return stamp.sec + stamp.nanosec * 1e-9
 
 
 def _yaw(q) -> float:
@@ -337,53 +554,105 @@ def run_node(node: PolicyNode, bus, topics: dict, stop=lambda: False, stats_ever
              log=lambda line: print(line, file=sys.stderr, flush=True)) -> LatencyLog:
     """Run ``node`` on ``bus`` (a ``curlnav.ros2.topics.Bus``) until ``stop()``: act on each good
     scan at most ``rate_hz`` times a second, check the silence rule 20 times a second, publish
-    ``/goal_state`` when it changes. Returns the latency log."""
+    ``/goal_state`` when it changes. Everything published passes ``guard``. A watchdog thread
+    sends a stop whenever no ``/cmd_vel`` went out for ``silence_s`` while the node holds a goal
+    or its last command moved the robot (a control loop blocked by a slow policy or a hostile
+    message cannot leave the robot driving). Returns the latency log."""
     from .messages import build
 
-    readers = {key: bus.reader(topics[key]) for key in ("scan", "odom", "goal_pose", "plan")
-               if key != "plan" or node.follow_plan}
+    readers = {key: bus.reader(topics[key]) for key in ("scan", "odom", "goal_pose", "goal_cancel", "plan")
+               if key in topics and (key != "plan" or node.follow_plan)}
     writers = {key: bus.writer(topics[key]) for key in ("cmd_vel", "arm_cmd", "goal_state")}
-    period = 1.0 / node.config.rate_hz
+    period, silence = 1.0 / node.config.rate_hz, node.config.silence_s
     latency = LatencyLog()
-    last_act, last_stats, published_state = -math.inf, time.monotonic(), None
+    lock = threading.Lock()  # one publisher at a time: the control loop or the watchdog
+    # what went out last; "idle" is not published (the first /goal_state says what became of a goal)
+    sent = {"t": time.monotonic(), "moving": False, "state": node.state, "logged": node.state, "late": False}
 
-    def publish(command: Command, scan_taken: float | None = None, source_ns: int | None = None) -> None:
-        nonlocal published_state
+    def write_state(state: str) -> None:  # under lock
+        if state != sent["state"]:
+            writers["goal_state"].write(build(topics["goal_state"].type, {"data": state}))
+            sent["state"] = state
+        if state != sent["logged"]:
+            log(f"curlnav ros2 run: {state}")
+            sent["logged"] = state
+
+    def write_command(command: Command) -> None:  # under lock
         writers["cmd_vel"].write(build(topics["cmd_vel"].type, {"linear": {"x": command.linear},
                                                                  "angular": {"z": command.angular}}))
-        if scan_taken is not None:
-            latency.add(scan_taken, source_ns, time.monotonic(), time.time_ns())
         writers["arm_cmd"].write(build(topics["arm_cmd"].type, {"data": command.arm}))
-        if command.state != published_state:
-            writers["goal_state"].write(build(topics["goal_state"].type, {"data": command.state}))
-            published_state = command.state
-            log(f"curlnav ros2 run: {command.state}")
+        sent["t"], sent["moving"] = time.monotonic(), not command.is_stop or command.arm != 0.0
 
-    while not stop():
-        bus.wait(0.05)
-        now = time.monotonic()
-        fresh_scan = None
-        for goal in bus.take(readers["goal_pose"], 16):
-            if node.on_goal(goal):
-                log(f"curlnav ros2 run: goal ({goal.pose.position.x:.2f}, {goal.pose.position.y:.2f})")
-        if "plan" in readers:
-            for path in bus.take(readers["plan"], 4):
-                node.on_plan(path)
-        for odom in bus.take(readers["odom"], 64):
-            node.on_odom(odom, now)
-        for scan in bus.take(readers["scan"], 16):
-            fresh_scan = scan if node.on_scan(scan, now) else None
-        now = time.monotonic()
-        if fresh_scan is not None and now - last_act >= 0.9 * period:
-            last_act = now
-            command = node.act(now)
-            if command is not None:
-                publish(command, now, fresh_scan.sample_info.source_timestamp)
-        elif node.goal is not None and node.stop_reason(now) is not None and (
-                now - last_act >= period or node.state == "active"):
-            last_act = now  # a stop at once, then held at the control rate
-            publish(node.act(now))
-        if now - last_stats >= stats_every_s:
-            last_stats = now
-            log(f"curlnav ros2 run: {dict(node.counts)}; {latency.summary()}")
+    def publish(command: Command, scan_taken: float | None = None, source_ns: int | None = None) -> None:
+        checked, why = guard(command, node.layout)
+        with lock:
+            if why is not None:
+                node.counts["unsafe_commands"] += 1
+                node.state = checked.state
+            write_command(checked)
+            if scan_taken is not None and why is None:
+                latency.add(scan_taken, source_ns, time.monotonic(), time.time_ns())
+            sent["late"] = False
+            write_state(node.state)
+
+    def watchdog(halt: threading.Event) -> None:
+        while not halt.wait(0.05):
+            with lock:
+                quiet = time.monotonic() - sent["t"]
+                if quiet > silence and (node.goal is not None or sent["moving"]):
+                    write_command(Command(0.0, 0.0, 0.0, "stopped"))
+                    node.counts["watchdog_stops"] += 1
+                    if not sent["late"]:
+                        sent["late"] = True
+                        log(f"curlnav ros2 run: watchdog: no /cmd_vel for {quiet:.2f} s (control loop late), stop sent")
+                        write_state(f"stopped: control loop late (no /cmd_vel for {silence:g} s)")
+
+    halt = threading.Event()
+    guard_thread = threading.Thread(target=watchdog, args=(halt,), name="curlnav-watchdog", daemon=True)
+    guard_thread.start()
+    last_act, last_stats = -math.inf, time.monotonic()
+    try:
+        while not stop():
+            bus.wait(0.05)
+            now = time.monotonic()
+            fresh_scan = None
+            for goal in bus.take(readers["goal_pose"], 16):
+                if node.on_goal(goal):
+                    log(f"curlnav ros2 run: goal ({goal.pose.position.x:.2f}, {goal.pose.position.y:.2f})")
+                else:
+                    with lock:
+                        sent["logged"] = None  # each refused goal is logged, one line each
+                        write_state(node.state)
+            if "goal_cancel" in readers:
+                for _ in bus.take(readers["goal_cancel"], 16):
+                    node.on_cancel()
+            if "plan" in readers:
+                for path in bus.take(readers["plan"], 4):
+                    node.on_plan(path)
+            for odom in bus.take(readers["odom"], 64):
+                node.on_odom(odom, now, source=odom.sample_info.publication_handle)
+            for scan in bus.take(readers["scan"], 16):
+                fresh_scan = scan if node.on_scan(scan, now) else None
+            now = time.monotonic()
+            if node.stop_pending:  # a goal ended: its stop at once
+                publish(node.act(now))
+            elif fresh_scan is not None and now - last_act >= 0.9 * period:
+                last_act = now
+                command = node.act(now)
+                if command is not None:
+                    publish(command, now, fresh_scan.sample_info.source_timestamp)
+            elif node.goal is not None and node.stop_reason(now) is not None and (
+                    now - last_act >= period or node.state == "active"):
+                last_act = now  # a stop at once, then held at the control rate
+                command = node.act(now)
+                if command is not None:
+                    publish(command)
+            with lock:
+                write_state(node.state)
+            if now - last_stats >= stats_every_s:
+                last_stats = now
+                log(f"curlnav ros2 run: {dict(node.counts)}; {latency.summary()}")
+    finally:
+        halt.set()
+        guard_thread.join(1.0)
     return latency

@@ -30,17 +30,19 @@ SCAN = TopicSpec("/scan", "sensor_msgs/msg/LaserScan", "sensor")  # ranges + per
 ODOM = TopicSpec("/odom", "nav_msgs/msg/Odometry", "sensor")  # best effort: matches reliable and best-effort odometry
 GOAL = TopicSpec("/goal_pose", "geometry_msgs/msg/PoseStamped", "reliable")  # RViz's "2D Goal Pose", in /odom's frame
 PLAN = TopicSpec("/plan", "nav_msgs/msg/Path", "reliable")  # a global plan (Nav2's planner), with --global-plan
+CANCEL = TopicSpec("/goal_cancel", "std_msgs/msg/Empty", "reliable")  # any message cancels the goal
 # -- the node: writes ---------------------------------------------------------------------------------------
 CMD_VEL = TopicSpec("/cmd_vel", "geometry_msgs/msg/Twist", "reliable")  # m/s, rad/s in base_link
 ARM_CMD = TopicSpec("/arm_cmd", "std_msgs/msg/Float64", "reliable")  # the stick's forward extension (m)
-GOAL_STATE = TopicSpec("/goal_state", "std_msgs/msg/String", "latched")  # idle | active | reached | stopped: why
+# idle | active | stopped: why | reached | gave_up: why | cancelled | odometry_reset: why | refused: why
+GOAL_STATE = TopicSpec("/goal_state", "std_msgs/msg/String", "latched")
 # -- the simulator (curlnav ros2 sim): writes SCAN, ODOM and these; reads CMD_VEL and ARM_CMD ------------------
 TF = TopicSpec("/tf", "tf2_msgs/msg/TFMessage", "reliable")  # odom -> base_link
 TF_STATIC = TopicSpec("/tf_static", "tf2_msgs/msg/TFMessage", "latched")  # map -> odom (the identity)
 MAP = TopicSpec("/map", "nav_msgs/msg/OccupancyGrid", "latched")  # the static map, 100 occupied / 0 free
 
-NODE_TOPICS = {"scan": SCAN, "odom": ODOM, "goal_pose": GOAL, "plan": PLAN, "cmd_vel": CMD_VEL, "arm_cmd": ARM_CMD,
-               "goal_state": GOAL_STATE}
+NODE_TOPICS = {"scan": SCAN, "odom": ODOM, "goal_pose": GOAL, "goal_cancel": CANCEL, "plan": PLAN, "cmd_vel": CMD_VEL,
+               "arm_cmd": ARM_CMD, "goal_state": GOAL_STATE}
 SIM_TOPICS = {"scan": SCAN, "odom": ODOM, "tf": TF, "tf_static": TF_STATIC, "map": MAP, "cmd_vel": CMD_VEL,
               "arm_cmd": ARM_CMD}
 
