@@ -531,7 +531,8 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--actors", type=int, default=None, help="actor processes (distributed trainer; default 2)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch threads: the serial trainer's (default 2) or the learner service's (default 1)")
-    p.add_argument("--run-dir", default=None, help="run folder (default runs/<time>-<world>)")
+    p.add_argument("--run-dir", default=None, help="run folder (default runs/<date>-<time>-<world>-x<actors>; "
+                   "--serial: runs/<date>-<time>-<world>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's run (its saved config)")
     p.add_argument("--init-from", default=None, metavar="RUN_OR_CHECKPOINT",
                    help="--serial: start from the networks of a serial run (or checkpoint file) instead of fresh "
