@@ -34,11 +34,23 @@ state; segments whose transitions have left the table are deleted). With a prior
 the learner's ``PriorityUpdate`` messages set the sampled items' new priorities (priorities are
 not persisted: restored items start at the maximum). The table and its rate limiter come from
 ``D4PGBuilder`` (the experiment config), exactly as in the serial trainer.
+
+An accepted transition the table cannot store (a frame it no longer knows or holds: the table's
+``dropped``) is counted by reason, over the run like ``accepted``: ``dropped`` and
+``dropped/<reason>`` in ``/status`` (``stored`` = what went into the table, accepted less dropped,
+of what has left the wait), ``replay_transitions_dropped_total{reason}`` in ``/metrics``. The count
+survives a restart without counting a batch twice: ``dropped.json`` (the counts and the log
+index they cover) is rewritten after each insert that drops something and at a clean stop; at
+start, the log's batches from that index on count again (those before it were counted), except
+the first segment of a pruned log (its transitions left the table long ago, and may name frames
+of the segment deleted before it).
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -52,7 +64,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, ServiceShell
-from curlnav.bus.transport import RateMeter
+from curlnav.bus.transport import RateMeter, json_response
 from curlnav.config import ExperimentConfig
 
 from .table import RateLimiterTimeout, ReplayInputError
@@ -67,6 +79,19 @@ CREDIT_ACKS = 256  # acknowledgements in one credit message (the most recently a
 #: a seq this far (1 s of microseconds) above an actor's last accepted one starts a new stream (a
 #: restarted actor numbers from its start time); a smaller jump is a gap: batches were lost on the way
 NEW_STREAM_GAP = 1_000_000
+DROPPED_FILE = "dropped.json"  # in the data folder: the drop counts and the log index they cover
+
+
+def read_dropped(data_dir: str | Path) -> tuple[int, dict[str, int]]:
+    """The replay's drops as last saved in ``data_dir``: (the log index they cover, reason ->
+    transitions); (0, {}) when none were saved (or the file is unreadable: the log counts again)."""
+    try:
+        saved = json.loads((Path(data_dir) / DROPPED_FILE).read_text())
+        through, dropped = int(saved["through"]), saved["dropped"]
+        counts = {str(reason): int(n) for reason, n in dropped.items() if int(n) > 0}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return 0, {}
+    return (through, counts) if through >= 0 else (0, {})
 
 
 def seq_limit() -> int:
@@ -105,6 +130,9 @@ class ReplayService:
         self.m_in = Counter("replay_transitions_inserted", "transitions accepted", registry=self.registry)
         self.m_batches = Counter("replay_batches_received", "transition batches received", registry=self.registry)
         self.m_rejected = Counter("replay_messages_rejected", "refused messages", ["reason"], registry=self.registry)
+        self.m_dropped = Counter("replay_transitions_dropped", "accepted transitions not stored, by reason (over "
+                                 "the run, across restarts)", ["reason"], registry=self.registry)
+        self.dropped: dict[str, int] = {}  # reason -> accepted transitions not stored, over the run
         self.m_sampled = Counter("replay_transitions_sampled", "transitions served to the learner", registry=self.registry)
         self.m_size = Gauge("replay_size", "transitions held", registry=self.registry)
         self.m_size.set_function(lambda: self.table.size)
@@ -124,9 +152,14 @@ class ReplayService:
         """Re-insert the log's batches (the accepted ones, in order); returns transitions restored."""
         restored = future = 0
         limit = seq_limit()
+        drops: list[tuple[int, dict[str, int]]] = []  # (log index, the table's drops before) of records that dropped
         for first, payload in self.log.records():
             msg = TransitionBatch.decode(payload, beams=self.layout.beams)
-            restored += self.table.insert(msg.batch, stream=msg.actor_id, force=True)
+            before = dict(self.table.dropped)
+            added = self.table.insert(msg.batch, stream=msg.actor_id, force=True)
+            restored += added
+            if added < msg.batch.num_transitions:
+                drops.append((first, before))
             self.accepted_total = self.in_table_total = first + msg.batch.num_transitions
             if msg.seq > limit:  # logged before seqs were checked: the data stays, its number is not believed
                 future += 1
@@ -136,6 +169,7 @@ class ReplayService:
         if future:
             log.warning("the log holds %d batches numbered beyond now + %g s: restored, not acknowledged",
                         future, SEQ_FUTURE_MARGIN_S)
+        self._restore_drops(drops)
         if restored:
             self.table.total_inserted = self.accepted_total
             self.table.rate_limiter.recentre(self.table.size)
@@ -145,6 +179,29 @@ class ReplayService:
             log.warning("%s is a replay file of an earlier version: not restored (the log is the state now)",
                         self.data_dir / "replay.npz")
         return restored
+
+    def _restore_drops(self, drops: list[tuple[int, dict[str, int]]]) -> None:
+        """The run's drop count at start: the saved one, plus the drops of the log's records from
+        the index it covers on (``drops``: (index, the table's ``dropped`` before) of each record
+        that dropped something at restore), except the first segment of a pruned log."""
+        through, saved = read_dropped(self.data_dir)
+        if through > self.accepted_total:  # saved beside another log (this one was cleared): not ours
+            through, saved = 0, {}
+        segments = self.log.segments()
+        count_from = max(through, segments[1][0] if len(segments) > 1 and segments[0][0] > 0 else 0)
+        counted = dict(saved)
+        ends = [before for _, before in drops[1:]] + [self.table.dropped]  # after a record: before the next
+        for (first, before), after in zip(drops, ends):
+            if first >= count_from:
+                for reason, n in after.items():
+                    counted[reason] = counted.get(reason, 0) + n - before.get(reason, 0)
+        self.dropped = {reason: n for reason, n in counted.items() if n}
+        for reason, n in self.dropped.items():
+            self.m_dropped.labels(reason).inc(n)
+        if self.dropped != saved:
+            log.warning("%d accepted transitions not stored over the run (%s)", sum(self.dropped.values()),
+                        ", ".join(f"{reason} {n}" for reason, n in sorted(self.dropped.items())))
+            self._save_dropped()
 
     def _remember(self, actor: str, seq: int) -> None:
         """Set ``actor``'s acknowledged seq (most recent last); beyond ``MAX_TRACKED_ACTORS`` ids
@@ -217,9 +274,12 @@ class ReplayService:
 
     def insert_accepted(self, msg: TransitionBatch, timeout: float | None = None, force: bool = False) -> int:
         """Insert one accepted batch into the table (waits on the rate limiter, up to
-        ``timeout``: ``RateLimiterTimeout``)."""
+        ``timeout``: ``RateLimiterTimeout``). Transitions not stored are counted (``dropped``)."""
+        before = dict(self.table.dropped)
         added = self.table.insert(msg.batch, stream=msg.actor_id, timeout=timeout, force=force)
         self.in_table_total += msg.batch.num_transitions  # the log index the table has reached
+        if added < msg.batch.num_transitions and self._count_drops(before):
+            self._save_dropped()
         last = self.last_seq.get(msg.actor_id)
         if last is not None and msg.seq != last + 1:
             self.seq_gaps += 1
@@ -230,6 +290,25 @@ class ReplayService:
         self.insert_rate.add(added)
         self.mean_batch = 0.9 * self.mean_batch + 0.1 * msg.batch.num_transitions
         return added
+
+    def _count_drops(self, before: dict[str, int]) -> int:
+        """Add what the table dropped since ``before`` (its ``dropped`` then) to the run's count;
+        returns transitions."""
+        new = 0
+        for reason, n in self.table.dropped.items():
+            if n > before.get(reason, 0):
+                self.dropped[reason] = self.dropped.get(reason, 0) + n - before.get(reason, 0)
+                self.m_dropped.labels(reason).inc(n - before.get(reason, 0))
+                new += n - before.get(reason, 0)
+        return new
+
+    def _save_dropped(self) -> None:
+        """Write the drop counts and the log index they cover (atomically: a kill leaves the old
+        file or the new one; an old one only makes the next start count a few batches again)."""
+        path = self.data_dir / DROPPED_FILE
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps({"through": self.in_table_total, "dropped": self.dropped}))
+        os.replace(tmp, path)
 
     def handle_batch(self, payload: bytes, timeout: float | None = None, force: bool = False,
                      sender: str | None = None) -> int:
@@ -280,8 +359,11 @@ class ReplayService:
 
     def status(self) -> dict:
         info = self.table.info()
+        dropped = dict(self.dropped)
         return {"size": info["size"], "inserted": self.accepted_total, "accepted": self.accepted_total,
                 "in_table": info["total_inserted"], "sampled": info["total_sampled"], "waiting": len(self.accepted),
+                "stored": self.in_table_total - sum(dropped.values()), "dropped": sum(dropped.values()),
+                **{f"dropped/{reason}": n for reason, n in sorted(dropped.items())},
                 "insert_rate": self.insert_rate.rate(), "sample_rate": self.sample_rate.rate(),
                 "rejected": sum(self.rejected().values()), "seq_gaps": self.seq_gaps,
                 "log_bytes": self.log.bytes_written, "restored": self.restored,
@@ -312,7 +394,7 @@ class ReplayService:
         cfg = self.cfg
         shell = ServiceShell("replay", "0", cfg.deployment, self.experiment, self.registry, self.status)
         with shell:
-            session = shell.open()
+            session = shell.open({("GET", "/status"): lambda request: json_response(self.status())})
             topo = shell.topology
             # Transitions come in on a session of their own: when the limiter holds inserts back
             # and the channel is full, that session's receive path blocks (backpressure to the
@@ -367,6 +449,7 @@ class ReplayService:
                         min(len(self.backlog), 256))]))
                 while self.accepted:
                     self.insert_accepted(self.accepted.popleft(), force=True)
+                self._save_dropped()  # covers the whole log: the next start counts none of it again
                 self.log.close()
                 log.info("replay stopped: %d transitions held, %d accepted in the run", self.table.size,
                          self.accepted_total)

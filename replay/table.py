@@ -14,6 +14,12 @@ Bytes per transition, with the default 1.25 frames of capacity per transition:
 Eviction. Transitions leave first-in first-out when the table is full. Frames live in a ring
 of ``frame_capacity``; when a frame a transition needs is overwritten, that transition is
 evicted too (at the head, where the oldest frames are; rarely elsewhere, lazily at sampling).
+
+Drops. A transition that names a frame the table cannot give it is not stored, and counted in
+``dropped`` by reason (a transition inserted is stored or dropped, never neither):
+``unknown_frame``, a writer id the table no longer remembers for that writer (it remembers the
+last ``2 x insert_batch + history + 64`` of each); ``frame_overwritten``, a frame it remembers
+but whose slot in the ring another writer has filled since (a writer silent for a whole ring).
 """
 
 from __future__ import annotations
@@ -180,7 +186,8 @@ class ReplayTable:
         # at most 2 x insert_batch + 64 frames back. 74 had been enough for one environment and
         # dropped transitions as unknown_frame with 8 (issue 31).
         self._stream_window = layout.history + 64 + 2 * int(insert_batch)
-        self.rejected: dict[str, int] = {}
+        self.rejected: dict[str, int] = {}  # inserts refused (nothing of them stored), by reason
+        self.dropped: dict[str, int] = {}  # transitions of inserts not stored, by reason (module docstring)
         self.total_inserted = 0
         self.total_sampled = 0
 
@@ -199,7 +206,7 @@ class ReplayTable:
         with self._cond:
             return {"size": self.size, "max_size": self.max_size, "total_inserted": self.total_inserted,
                     "total_sampled": self.total_sampled, "frames": min(self._next_frame, self.frame_capacity),
-                    "rejected": dict(self.rejected), "sampler": self.sampler,
+                    "rejected": dict(self.rejected), "dropped": dict(self.dropped), "sampler": self.sampler,
                     "bytes_per_transition": round(self.bytes_per_transition, 1),
                     "rate_limiter": {"inserts": self.rate_limiter.inserts, "samples": self.rate_limiter.samples,
                                      "samples_per_insert": self.rate_limiter.samples_per_insert,
@@ -234,7 +241,8 @@ class ReplayTable:
         Blocks while the rate limiter refuses inserts (``timeout`` seconds at most, then
         ``RateLimiterTimeout``; ``timeout=0`` never waits; ``force`` skips the limiter, for data
         already accepted upstream, at shutdown). Transitions that refer to frames
-        the table does not hold are dropped and counted as ``unknown_frame``.
+        the table does not hold are not stored: counted in ``dropped`` (``unknown_frame``,
+        ``frame_overwritten``; the module docstring).
         """
         with self._cond:
             self.validate(batch)
@@ -257,11 +265,14 @@ class ReplayTable:
                     ids.popitem(last=False)
             self._evict_stale_head()
             added = 0
+            oldest = self._oldest_frame()
             for i in range(t):
                 obs = ids.get(int(batch.obs_id[i]))
                 nxt = ids.get(int(batch.next_id[i]))
-                if obs is None or nxt is None:
-                    self.rejected["unknown_frame"] = self.rejected.get("unknown_frame", 0) + 1
+                reason = ("unknown_frame" if obs is None or nxt is None else
+                          "frame_overwritten" if min(obs, nxt) < oldest else None)
+                if reason is not None:
+                    self.dropped[reason] = self.dropped.get(reason, 0) + 1
                     continue
                 if self.size == self.max_size:
                     self._first_key += 1
@@ -452,7 +463,7 @@ class ReplayTable:
                 "priority_exponent": self.priority_exponent, "action_size": self.action_size,
                 "next_frame": self._next_frame, "first_key": self._first_key, "next_key": self._next_key,
                 "max_priority": self._max_priority, "total_inserted": self.total_inserted,
-                "total_sampled": self.total_sampled, "rejected": self.rejected,
+                "total_sampled": self.total_sampled, "rejected": self.rejected, "dropped": self.dropped,
                 "streams": {name: [[k, v] for k, v in ids.items()] for name, ids in self._streams.items()},
             }
             frames, slots = self._live_frame_slots(), self._live_slots()
@@ -495,6 +506,8 @@ class ReplayTable:
         table.total_inserted = meta["total_inserted"]
         table.total_sampled = meta["total_sampled"]
         table.rejected = dict(meta["rejected"])
+        legacy = table.rejected.pop("unknown_frame", 0)  # files from before issue 35 counted drops as refusals
+        table.dropped = dict(meta.get("dropped", {"unknown_frame": legacy} if legacy else {}))
         table._streams = {name: OrderedDict((int(k), int(v)) for k, v in pairs) for name, pairs in meta["streams"].items()}
         table.rate_limiter.recentre(table.size)
         return table

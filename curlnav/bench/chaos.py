@@ -11,18 +11,22 @@ shuffled rounds, so every kind is hit once per six faults. The bench supervises 
 Per fault one line: what, when, seconds until the service answered again (``back``) and until the
 run moved again (``moving``: transitions accepted, for the learner a new weights version, for the
 scheduler an episode counted, for an actor its own transitions accepted); per minute one line
-(transitions generated and accepted, learner version, curriculum stage and epoch). At the end the
-actors stop gracefully (their final flush) and the bench checks:
+(transitions generated, accepted and dropped by the replay, learner version, curriculum stage and
+epoch). At the end the actors stop gracefully (their final flush) and the bench checks:
 
-- **lost** (transitions): per actor process, what it generated against what the replay accepted
-  from it. The replay's log (``replay/wal``, read as it grows: ``LogTally``) names each accepted
-  batch's actor and ``seq``, and a process numbers its batches from its start time in
-  microseconds, so every accepted batch belongs to one process. A process that stopped
-  gracefully wrote ``actor-final.json`` (generated, unacknowledged): lost = generated -
-  accepted - unacknowledged. A process killed (or crashed) took its unacknowledged batches with
-  it: they are **in flight**, not lost (its generated count is its last reading, taken just
-  before the kill, or what was accepted from it if more). The replay's accepted count going
-  back, or below what its log was seen to hold, is lost too. ``account``.
+- **lost** (transitions): what the actors generated and the replay did not store. Per actor
+  process, what it generated against what the replay accepted from it. The replay's log
+  (``replay/wal``, read as it grows: ``LogTally``) names each accepted batch's actor and ``seq``,
+  and a process numbers its batches from its start time in microseconds, so every accepted batch
+  belongs to one process. A process that stopped gracefully wrote ``actor-final.json``
+  (generated, unacknowledged): lost = generated - accepted - unacknowledged. A process killed (or
+  crashed) took its unacknowledged batches with it: they are **in flight**, not lost (its
+  generated count is its last reading, taken just before the kill, or what was accepted from it
+  if more). The replay's accepted count going back, or below what its log was seen to hold, is
+  lost too; and so is every accepted transition the replay did not store (**dropped**: a frame it
+  no longer knew or held), by its own count over the run (``dropped.json`` in its folder, read
+  after it stopped, or the most its ``/healthz`` was seen to say, if more). So lost = generated -
+  stored - in flight, not generated - accepted. ``account``.
 - **versions monotonic**: the learner's weights version, sampled every second across learner
   restarts, never went back, and its version mark (``learner/version``) is at least the highest.
 - **curriculum intact**: ``scheduler/state.json`` reads back, matches the scheduler's last
@@ -34,7 +38,10 @@ actors stop gracefully (their final flush) and the bench checks:
 The last line::
 
     chaos M min: faults F (router r, replay p, learner l, scheduler s, actor a, stalls t), generated G,
-    accepted N, in flight I, lost L, versions monotonic yes, curriculum intact yes, policy intact yes
+    accepted N, dropped by the replay D, in flight I, lost L, versions monotonic yes, curriculum intact
+    yes, policy intact yes
+
+(D is part of L: accepted, but not stored.)
 
 The command exits non-zero when lost > 0, a check fails, a service did not come back or an actor
 did not report its final flush. The pure parts (``fault_schedule``, ``went_back``, ``account``,
@@ -133,19 +140,24 @@ class Incarnation:
 @dataclass(frozen=True)
 class Accounting:
     """``account``'s figures (transitions): generated G, accepted N (the replay's count at the end),
-    in flight I (unacknowledged at a stop, or held by a killed process), lost L."""
+    in flight I (unacknowledged at a stop, or held by a killed process), lost L (of which D
+    accepted but dropped by the replay, not stored)."""
 
     generated: int
     accepted: int
     in_flight: int
     lost: int
     accepted_went_back: int  # the replay's count at the end below the most it had been seen to accept
+    dropped: int = 0  # accepted, not stored by the replay (its count over the run)
 
 
-def account(incarnations: Iterable[Incarnation], accepted_total: int, accepted_seen: int = 0) -> Accounting:
+def account(incarnations: Iterable[Incarnation], accepted_total: int, accepted_seen: int = 0, dropped: int = 0,
+            dropped_seen: int = 0) -> Accounting:
     """The loss arithmetic (see the module docstring). ``accepted_total``: the replay's count at
     the end; ``accepted_seen``: the most it was seen to have accepted before (its samples, or the
-    transitions its log was seen to hold)."""
+    transitions its log was seen to hold); ``dropped``, ``dropped_seen``: the replay's count of
+    accepted transitions it did not store, at the end and the most seen before (the larger is
+    lost)."""
     generated = in_flight = lost = 0
     for inc in incarnations:
         if inc.ended == "stopped" and inc.unacknowledged is not None:
@@ -158,7 +170,8 @@ def account(incarnations: Iterable[Incarnation], accepted_total: int, accepted_s
             in_flight += gen - inc.accepted
         generated += gen
     back = max(0, accepted_seen - accepted_total)
-    return Accounting(generated, accepted_total, in_flight, lost + back, back)
+    not_stored = max(dropped, dropped_seen)
+    return Accounting(generated, accepted_total, in_flight, lost + back + not_stored, back, not_stored)
 
 
 class LogTally:
@@ -326,7 +339,7 @@ def summary_line(minutes: float, counts: dict[str, int], acc: Accounting, checks
 
     kinds = ", ".join(f"{k} {counts.get(k, 0)}" for k in FAULT_KINDS[:-1]) + f", stalls {counts.get('stall', 0)}"
     return (f"chaos {minutes:g} min: faults {sum(counts.values())} ({kinds}), generated {acc.generated}, "
-            f"accepted {acc.accepted}, in flight {acc.in_flight}, lost {acc.lost}, "
+            f"accepted {acc.accepted}, dropped by the replay {acc.dropped}, in flight {acc.in_flight}, lost {acc.lost}, "
             + ", ".join(f"{name} {yes(ok)}" for name, ok in checks.items()))
 
 
@@ -415,6 +428,7 @@ class ChaosRun:
         self.unplanned: list[str] = []
         self.versions: list[tuple[float, int | None]] = []
         self.accepted: list[tuple[float, int | None]] = []
+        self.dropped_seen = 0  # the most the replay's /healthz said it dropped (a run's count)
         self.statuses: list[tuple[float, dict]] = []
         self.readings: dict[str, float] = {}  # actor -> last generated reading of its current process
         self.stopped: dict[int, float] = {}  # pid -> monotonic time of its SIGCONT (a stall under way)
@@ -508,7 +522,9 @@ class ChaosRun:
         """Versions, accepted counts, the curriculum; the log; each actor's generated count."""
         now = self.elapsed()
         self.versions.append((now, (self.learner_health() or {}).get("version")))
-        self.accepted.append((now, (self.replay_health() or {}).get("accepted")))
+        replay = self.replay_health() or {}
+        self.accepted.append((now, replay.get("accepted")))
+        self.dropped_seen = max(self.dropped_seen, int(replay.get("dropped") or 0))
         status = self.cluster.status()
         if status:
             self.statuses.append((now, {k: status.get(k) for k in ("curriculum", "stage", "stage_index", "substep",
@@ -534,6 +550,7 @@ class ChaosRun:
         version = next((v for _, v in reversed(self.versions) if v is not None), None)
         accepted = next((v for _, v in reversed(self.accepted) if v is not None), None)
         self.say(f"[{self.elapsed() / 60:5.1f} min] generated {self.generated_so_far()}, accepted {accepted}, "
+                 f"dropped by the replay {self.dropped_seen}, "
                  f"learner v{version}, stage {s.get('stage')} (index {s.get('stage_index')}, sub-step "
                  f"{s.get('substep')}, epoch {s.get('epoch')}), episodes {s.get('episodes')}, actors live "
                  f"{len(s.get('live_actors') or {})}/{self.actors}, faults {len(self.outcomes)}")
@@ -733,7 +750,12 @@ class ChaosRun:
         unattributed = attribute(self.incarnations, self.tally)
         accepted_end = self.tally.end or 0  # the replay's count is its log's index: read after it stopped
         seen = max([v for _, v in self.accepted if v is not None] + [int(replay.get("accepted") or 0)])
-        acc = account(self.incarnations, accepted_end, seen)
+        from curlnav.replay.service import read_dropped
+
+        # the replay's drops over the run: its file, written as it stopped, covers its last inserts too
+        dropped = sum(read_dropped(self.run_dir / "replay")[1].values())
+        acc = account(self.incarnations, accepted_end, seen, dropped,
+                      max(self.dropped_seen, int(replay.get("dropped") or 0)))
         if unattributed:
             problems.append(f"{unattributed} transitions in the replay's log from no actor process of this run")
         if self.tally.gaps or self.tally.missed or self.tally.unreadable:

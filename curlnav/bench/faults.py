@@ -4,8 +4,10 @@ container fault injection (``scripts/compose_faults.py``, Docker SDK), through `
 
 Figures per kill:
 - replay: transitions accepted before the kill (the last status heard, at most ~1 s old, so a
-  lower bound), transitions restored from the log after it, lost = accepted - restored (>= 0
-  would be a loss), seconds until it answers again, seconds until inserts flow again;
+  lower bound), transitions restored from the log after it (stored in the table: what the replay
+  could not store is not restored), lost = accepted - restored (> 0 is a loss, drops included),
+  dropped (the replay's count of accepted transitions it could not store, over the run), seconds
+  until it answers again, seconds until inserts flow again;
 - learner: last weights version before, first version after (must be higher), seconds until a
   new version is published;
 - scheduler: episodes counted before and after, seconds until it answers again.
@@ -59,7 +61,8 @@ def measure_kill(target: FaultTarget, status_url: str, timeout: float = 180.0) -
                        > ((fresh or {}).get("accepted") or 0) and s, timeout)
         accepted = int(replay_before.get("accepted") or 0)
         restored = int((fresh or {}).get("restored") or 0)
-        row.update(accepted_before=accepted, restored=restored, lost=max(0, accepted - restored), back_s=back,
+        row.update(accepted_before=accepted, restored=restored, lost=max(0, accepted - restored),
+                   dropped=int((fresh or {}).get("dropped") or 0), back_s=back,
                    inserts_again_s=(time.monotonic() - killed) if flowing else None)
     elif target.name == "learner":
         first = poll(lambda: (s := status()) and ((s.get("learner") or {}).get("uptime_s", 1e9)
