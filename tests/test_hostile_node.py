@@ -391,7 +391,7 @@ def test_the_watchdog_stops_the_robot_while_the_control_loop_is_blocked(domain_i
     assert len(calls) >= 8, "the policy acted after the block"
     times = [start] + sorted(t for t, _, _ in robot.commands if t >= start) + [time.time()]
     gap = max(np.diff(times))
-    assert gap <= 0.8, f"{gap:.2f} s without a /cmd_vel while the control loop was blocked"
+    assert gap <= 1.0, f"{gap:.2f} s without a /cmd_vel while the control loop was blocked"
     stops = [t for t, v, w in robot.commands if t >= start and v == 0 and w == 0]
     assert stops, "the watchdog sent stops"
     assert node.counts["watchdog_stops"] >= 1 and any("watchdog" in line for line in lines), lines
