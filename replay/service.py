@@ -296,17 +296,17 @@ class ReplayService:
         returns transitions."""
         new = 0
         for reason, n in self.table.dropped.items():
-            if n > before.get(reason, 0):
-                self.dropped[reason] = self.dropped.get(reason, 0) + n - before.get(reason, 0)
-                self.m_dropped.labels(reason).inc(n - before.get(reason, 0))
-                new += n - before.get(reason, 0)
+            if (more := n - before.get(reason, 0)) > 0:
+                self.dropped[reason] = self.dropped.get(reason, 0) + more
+                self.m_dropped.labels(reason).inc(more)
+                new += more
         return new
 
     def _save_dropped(self) -> None:
         """Write the drop counts and the log index they cover (atomically: a kill leaves the old
         file or the new one; an old one only makes the next start count a few batches again)."""
         path = self.data_dir / DROPPED_FILE
-        tmp = path.with_name(path.name + ".tmp")
+        tmp = path.with_name(f"{path.name}.{threading.get_ident()}.tmp")  # the insert thread's, or the stop's
         tmp.write_text(json.dumps({"through": self.in_table_total, "dropped": self.dropped}))
         os.replace(tmp, path)
 
