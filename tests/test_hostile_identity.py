@@ -44,6 +44,19 @@ TOPO = Topology(RUN)
 CLI = [sys.executable, "-m", "curlnav.cli"]
 
 
+def stop(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM to every process still running, then wait for each (SIGKILL after 10 s)."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 @pytest.fixture(autouse=True)
 def release_claims():
     """Identities this test process holds are given back after each test."""
@@ -270,12 +283,7 @@ def test_a_planted_wildcard_identity_puts_nothing_under_other_actors_at_a_real_r
     finally:
         for session in sessions:
             session.close()
-        router.terminate()
-        try:
-            router.wait(10)
-        except subprocess.TimeoutExpired:
-            router.kill()
-            router.wait()
+        stop([router])
         log.close()
     assert result.returncode == 2 and "actor-$*" not in (bus / "router" / "acl.json").read_text()
     assert "actor-$*" not in (bus / "router" / "users.txt").read_text()
@@ -402,12 +410,4 @@ def test_the_hosts_bench_credentials_link_two_hosts_without_the_ca_key(tmp_path)
             out, _ = replay.communicate(timeout=90)
             assert f"received ['curlnav/{RUN}/transitions/actor-0']" in out, out[-2000:]
         finally:
-            for proc in procs:
-                if proc.poll() is None:
-                    proc.terminate()
-            for proc in procs:
-                try:
-                    proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+            stop(procs)
