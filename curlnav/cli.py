@@ -319,7 +319,8 @@ def _cmd_pull(args: argparse.Namespace) -> int:
     from curlnav.run.pull import pull_policy, unreachable_reason
 
     try:
-        folder = pull_policy(args.source, args.out, args.version)
+        folder = pull_policy(args.source, args.out, args.version, max_bytes=args.max_bytes, max_files=args.max_files,
+                             deadline_s=args.deadline_s)
     except OSError as exc:
         raise ValueError(f"cannot reach {args.source} ({unreachable_reason(exc)}): is the learner running?") from None
     policy = PolicyArtefact(folder)
@@ -608,6 +609,14 @@ def _add_training_commands(sub) -> None:
     p.add_argument("--from", dest="source", required=True, help="learner URL, e.g. http://localhost:8081")
     p.add_argument("--version", default="latest", help="policy version: a number or latest")
     p.add_argument("--out", default="policy", help="artefact folder to write")
+    from curlnav.run.pull import DEFAULT_DEADLINE_S, DEFAULT_MAX_BYTES, DEFAULT_MAX_FILES
+
+    p.add_argument("--max-bytes", type=int, default=DEFAULT_MAX_BYTES,
+                   help=f"refuse an artefact above this many bytes in all (default {DEFAULT_MAX_BYTES >> 20} MiB)")
+    p.add_argument("--max-files", type=int, default=DEFAULT_MAX_FILES,
+                   help=f"refuse a listing of more files (default {DEFAULT_MAX_FILES})")
+    p.add_argument("--deadline-s", type=float, default=DEFAULT_DEADLINE_S,
+                   help=f"give the whole pull up after this many seconds (default {DEFAULT_DEADLINE_S:g})")
     p.set_defaults(func=_cmd_pull)
 
     p = sub.add_parser("status", help="where a distributed run's curriculum, learner, replay and actors stand")

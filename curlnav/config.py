@@ -51,9 +51,21 @@ def _positive_numbers(obj: Any, prefix: str, names: list[str]) -> None:
                  f"{prefix}.{name} must be a positive number, got {value!r}")
 
 
+# Network size limits (issue 35): a config, checkpoint or weights message asking for more is
+# refused before anything is allocated. The paper's networks (512, 512, 256, 256) fit well inside.
+MAX_HIDDEN_WIDTH = 4096  # units of one hidden layer
+MAX_HIDDEN_LAYERS = 8
+MAX_ATOMS = 1001
+MAX_CONV_FILTERS = 512
+MAX_POOL = 256
+
+
 @dataclass(frozen=True)
 class D4PGConfig:
-    """Networks and optimisation of distributional DDPG."""
+    """Networks and optimisation of distributional DDPG. Sizes are bounded: ``MAX_HIDDEN_WIDTH``
+    units per layer, ``MAX_HIDDEN_LAYERS`` layers, ``MAX_ATOMS``, ``MAX_CONV_FILTERS``,
+    ``MAX_POOL``; with an observation layout, ``curlnav.learner.networks.check_network_size``
+    bounds the parameters of each network."""
 
     preset: str = "default"  # the preset these values came from (informative)
     # "pooled" min-pools each range frame (max-pools each label frame) over windows of `pool`
@@ -78,13 +90,19 @@ class D4PGConfig:
     def __post_init__(self) -> None:
         p = "d4pg"
         _require(self.encoder in ("pooled", "conv"), f"{p}.encoder must be 'pooled' or 'conv', got {self.encoder!r}")
-        _require(isinstance(self.atoms, int) and self.atoms >= 2, f"{p}.atoms must be an integer >= 2, got {self.atoms!r}")
+        _require(isinstance(self.atoms, int) and not isinstance(self.atoms, bool) and 2 <= self.atoms <= MAX_ATOMS,
+                 f"{p}.atoms must be an integer 2-{MAX_ATOMS}, got {shown(self.atoms)}")
         _require(self.v_min < self.v_max, f"{p}.v_min ({self.v_min}) must be below {p}.v_max ({self.v_max})")
         _require(0 < self.discount <= 1, f"{p}.discount must be in (0, 1], got {self.discount!r}")
         _positive_numbers(self, p, ["pool", "conv_filters", "n_step", "batch_size", "actor_lr", "critic_lr",
                                     "target_update_period", "grad_clip_norm"])
-        _require(len(self.hidden) > 0 and all(isinstance(h, int) and h > 0 for h in self.hidden),
-                 f"{p}.hidden must be positive integer widths, got {self.hidden!r}")
+        _require(isinstance(self.hidden, tuple) and 0 < len(self.hidden) <= MAX_HIDDEN_LAYERS
+                 and all(isinstance(h, int) and not isinstance(h, bool) and 0 < h <= MAX_HIDDEN_WIDTH for h in self.hidden),
+                 f"{p}.hidden must be 1-{MAX_HIDDEN_LAYERS} integer widths of 1-{MAX_HIDDEN_WIDTH}, got {shown(self.hidden)}")
+        _require(isinstance(self.pool, int) and self.pool <= MAX_POOL,
+                 f"{p}.pool must be an integer of at most {MAX_POOL}, got {shown(self.pool)}")
+        _require(isinstance(self.conv_filters, int) and self.conv_filters <= MAX_CONV_FILTERS,
+                 f"{p}.conv_filters must be an integer of at most {MAX_CONV_FILTERS}, got {shown(self.conv_filters)}")
 
     def to_dict(self) -> dict:
         return config_to_dict(self)

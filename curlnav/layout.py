@@ -8,9 +8,13 @@ rebuilds stacked observations from them, so no frame is stored four (or ten) tim
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
+MAX_BEAMS = 1 << 16  # beams of one scan
+MAX_FRAMES = 256  # range, label or goal frames of one observation
 
 
 @dataclass(frozen=True)
@@ -20,6 +24,18 @@ class ObservationLayout:
     label_frames: int = 4
     goal_frames: int = 10
     max_range: float = 10.0  # m
+
+    def __post_init__(self) -> None:
+        """Bounded, so a layout read from a checkpoint or a replay folder cannot size a network
+        or a buffer of billions (issue 35); ``ValueError`` naming the field."""
+        for name, low, high in (("beams", 1, MAX_BEAMS), ("range_frames", 1, MAX_FRAMES),
+                                ("label_frames", 0, MAX_FRAMES), ("goal_frames", 1, MAX_FRAMES)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+                raise ValueError(f"layout.{name} must be a whole number {low}-{high}, got {str(value)[:40]!r}")
+        ok = isinstance(self.max_range, (int, float)) and not isinstance(self.max_range, bool)
+        if not (ok and math.isfinite(self.max_range) and self.max_range > 0):
+            raise ValueError(f"layout.max_range must be a positive distance (m), got {str(self.max_range)[:40]!r}")
 
     @staticmethod
     def from_env_config(cfg) -> ObservationLayout:

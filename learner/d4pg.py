@@ -19,7 +19,7 @@ from safetensors.torch import load_file, save_file
 from curlnav.config import D4PGConfig
 from curlnav.layout import ObservationLayout
 
-from .networks import ACTION_HIGH, ACTION_LOW, Actor, DistributionalCritic, act  # noqa: F401  (act: re-exported)
+from .networks import ACTION_HIGH, ACTION_LOW, Actor, DistributionalCritic, act, check_network_size  # noqa: F401  (act: re-exported)
 
 
 def categorical_projection(next_probs: torch.Tensor, reward: torch.Tensor, discount: torch.Tensor,
@@ -102,6 +102,7 @@ def default_device() -> torch.device:
 
 
 def init_state(config: D4PGConfig, layout: ObservationLayout, device: torch.device | str | None = None) -> D4PGState:
+    check_network_size(layout, config)  # before anything is allocated
     torch.manual_seed(config.seed)
     device = torch.device(device) if device is not None else default_device()
     actor = Actor(layout, config).to(device)
@@ -268,8 +269,13 @@ def load_checkpoint(path: str | Path, device: torch.device | str | None = None) 
         meta = json.loads(f.metadata()["curlnav"])
     if meta.get("format") != "curlnav-d4pg-checkpoint":
         raise ValueError(f"{path}: not a curlnav D4PG checkpoint")
+    try:  # every size checked (config bounds, layout bounds, parameters) before a tensor is read or made
+        config, layout = D4PGConfig.from_dict(meta["config"]), ObservationLayout(**meta["layout"])
+        check_network_size(layout, config)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
     tensors = load_file(str(path))
-    state = init_state(D4PGConfig.from_dict(meta["config"]), ObservationLayout(**meta["layout"]), device)
+    state = init_state(config, layout, device)
     for key in ("actor_opt", "critic_opt"):  # fused Adam on the device it resumes on, wherever it was saved
         for group in meta[key]["param_groups"]:
             group["fused"] = state.device.type == "cuda"

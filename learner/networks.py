@@ -17,6 +17,22 @@ from torch import nn
 from curlnav.config import INFERENCE_BACKENDS, D4PGConfig
 from curlnav.layout import ObservationLayout
 
+MAX_NETWORK_PARAMETERS = 20_000_000  # of the actor or the critic: 80 MB of float32 each
+
+
+def check_network_size(layout: ObservationLayout, cfg: D4PGConfig) -> None:
+    """Refuse (``ValueError``) networks of more than ``MAX_NETWORK_PARAMETERS`` each, counted on
+    the meta device: nothing is allocated. Call before making the networks of a layout and a
+    config that came from outside (a checkpoint, a weights message, a config file)."""
+    with torch.device("meta"):
+        sizes = {name: sum(p.numel() for p in net(layout, cfg).parameters())
+                 for name, net in (("actor", Actor), ("critic", DistributionalCritic))}
+    for name, size in sizes.items():
+        if size > MAX_NETWORK_PARAMETERS:
+            raise ValueError(f"the {name} of d4pg.hidden {list(cfg.hidden)}, d4pg.encoder {cfg.encoder} and layout "
+                             f"{layout.to_dict()} has {size:,} parameters, above the {MAX_NETWORK_PARAMETERS:,} limit")
+
+
 # Action bounds of NamoEnv: v in [0, 1], w in [-1, 1], L in [0, 1].
 ACTION_LOW = (0.0, -1.0, 0.0)
 ACTION_HIGH = (1.0, 1.0, 1.0)
@@ -199,6 +215,7 @@ class BehaviourPolicy:
         """Load actor weights (safetensors bytes); a network of ``d4pg``'s shape is made on
         first use. Raises if the tensors do not fit the network."""
         if self.network is None:
+            check_network_size(self.layout, d4pg or self.d4pg)
             self.network = Actor(self.layout, d4pg or self.d4pg)
             self.network.eval()
         self.network.load_state_dict(safetensors_load(safetensors))  # checks every name and shape
