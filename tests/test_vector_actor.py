@@ -152,7 +152,7 @@ def test_eight_environments_with_five_step_returns_lose_no_transition_and_keep_t
     batch = writer.flush()
     made += batch.num_transitions
     table.insert(batch, stream="actor-0")
-    assert table.rejected.get("unknown_frame", 0) == 0 and table.size == made > 3000
+    assert table.dropped == {} and table.size == made > 3000
     sample = table.sample(200)
     for i in range(200):
         e, ep, t = (int(x) for x in sample.action[i])

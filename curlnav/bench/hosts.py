@@ -16,10 +16,10 @@ the actors stop, send what they still hold and wait for its acknowledgement (the
 and the replay's count is read. Per phase: actors live per host, transitions accepted per second,
 weights version and policy lag. The last line::
 
-    hosts H, actors A, partition S s: generated G, accepted N, accepted after heal X, lost L, duplicates D, learner v V0 -> V1
+    hosts H, actors A, partition S s: generated G, accepted N, accepted after heal X, dropped by the replay R, lost L, duplicates D, learner v V0 -> V1
 
 G: transitions the actors put into batches; N: transitions the replay accepted (in its log); X: of
-those, accepted after the heal; L = G - N; D: batches the replay dropped as already accepted
+those, accepted after the heal; R: accepted transitions the replay could not store; L = G - N + R; D: batches the replay dropped as already accepted
 (resends whose acknowledgement had not arrived); V0 -> V1: the learner's version when the
 partition began and at the end.
 """
@@ -135,7 +135,8 @@ class HostsCluster(LocalCluster):
                         rejected[reason] = float(line.rsplit(" ", 1)[1])
         except (OSError, ValueError, IndexError):
             pass
-        return {"accepted": int(health.get("accepted") or 0), "rejected": rejected}
+        return {"accepted": int(health.get("accepted") or 0), "dropped": int(health.get("dropped") or 0),
+                "rejected": rejected}
 
     def live_per_host(self, status: dict | None) -> dict[int, int]:
         live = list((status or {}).get("live_actors") or {})
@@ -248,16 +249,18 @@ def run_hosts_bench(hosts: int = 3, actors_per_host: int = 2, partition_s: float
         accepted = int(counts.get("accepted") or 0)
         after_heal = accepted - int(healed["accepted"] or 0)
         duplicates = int(counts.get("rejected", {}).get("duplicate", 0))
+        dropped = int(counts.get("dropped") or 0)  # accepted, but not stored by the replay: lost too
+        lost = generated - accepted + dropped
         v1 = (status.get("learner") or {}).get("version")
         summary = (f"hosts {hosts}, actors {cluster.actors}, partition {partition_s:g} s: generated {generated}, "
-                   f"accepted {accepted}, accepted after heal {after_heal}, lost {generated - accepted}, "
+                   f"accepted {accepted}, accepted after heal {after_heal}, dropped by the replay {dropped}, lost {lost}, "
                    f"duplicates {duplicates}, learner v {v0} -> {v1}")
         unacked = sum(int(f.get("unacknowledged_batches") or 0) for f in finals)
         print(f"final flush: {len(finals)}/{cluster.actors} actors reported, {unacked} batches unacknowledged at "
               f"exit, refused by the replay {counts.get('rejected', {})}", flush=True)
         print(summary, flush=True)
         return {"phases": phases.rows, "generated": generated, "accepted": accepted, "after_heal": after_heal,
-                "lost": generated - accepted, "duplicates": duplicates, "v0": v0, "v1": v1, "finals": finals,
+                "lost": lost, "dropped": dropped, "duplicates": duplicates, "v0": v0, "v1": v1, "finals": finals,
                 "summary": summary, "rejected": counts.get("rejected", {})}
     finally:
         if cluster is not None:
