@@ -16,12 +16,13 @@ the actors stop, send what they still hold and wait for its acknowledgement (the
 and the replay's count is read. Per phase: actors live per host, transitions accepted per second,
 weights version and policy lag. The last line::
 
-    hosts H, actors A, partition S s: generated G, accepted N, accepted after heal X, dropped by the replay R, lost L, duplicates D, learner v V0 -> V1
+    hosts H, actors A, partition S s: generated G, accepted N, accepted after heal X, dropped by the replay R,
+    lost L, duplicates D, learner v V0 -> V1
 
 G: transitions the actors put into batches; N: transitions the replay accepted (in its log); X: of
-those, accepted after the heal; R: accepted transitions the replay could not store; L = G - N + R; D: batches the replay dropped as already accepted
-(resends whose acknowledgement had not arrived); V0 -> V1: the learner's version when the
-partition began and at the end.
+those, accepted after the heal; R: accepted transitions the replay could not store; L = G - N + R;
+D: batches the replay dropped as already accepted (resends whose acknowledgement had not arrived);
+V0 -> V1: the learner's version when the partition began and at the end.
 """
 
 from __future__ import annotations
