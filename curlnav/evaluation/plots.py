@@ -46,9 +46,18 @@ def _evaluations(rows: list[dict]) -> tuple[list[dict], dict[str, list[tuple[dic
     return means, pairs
 
 
+def _legend_below(ax, handles=None, labels=None) -> None:
+    """The legend under the axes (below its x label), where it covers no data."""
+    if handles is None:
+        handles, labels = ax.get_legend_handles_labels()
+    if handles:
+        ax.legend(handles, labels, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)
+
+
 def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> Path:
     """Success rate (training, last 100 episodes; held-out evaluation) against wall-clock minutes
-    and environment steps, plus critic loss. Writes ``learning_curve.png`` in the run folder."""
+    and environment steps, plus critic loss. Writes ``learning_curve.png`` in the run folder; the
+    legends sit under the panels, off the data."""
     run_dir = Path(run_dir)
     train = _read(run_dir / "metrics.csv")
     evals, pairs = _evaluations(_read(run_dir / "eval.csv"))
@@ -68,7 +77,7 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
         ax.set_xlabel(label)
         ax.set_ylabel("success rate")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        _legend_below(ax)
     if train:
         axes[2].plot([r["env_steps"] for r in train], [r.get("losses/critic", float("nan")) for r in train],
                      color="tab:purple", label="critic loss")
@@ -78,11 +87,11 @@ def plot_learning_curve(run_dir: str | Path, out: str | Path | None = None) -> P
         ax2.set_ylabel("episode return")
         axes[2].set_xlabel("environment steps")
         axes[2].set_ylabel("critic loss (cross-entropy)")
-        axes[2].legend(loc="upper left", fontsize=7)
-        ax2.legend(loc="upper right", fontsize=7)
+        (loss, loss_label), (ret, ret_label) = (a.get_legend_handles_labels() for a in (axes[2], ax2))
+        _legend_below(axes[2], loss + ret, loss_label + ret_label)
     fig.suptitle(f"curlnav learning curve: {run_dir.name}")
     fig.tight_layout()
     out = Path(out) if out else run_dir / "learning_curve.png"
-    fig.savefig(out)
+    fig.savefig(out, bbox_inches="tight")  # the legends under the panels included
     plt.close(fig)
     return out

@@ -12,6 +12,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -109,6 +110,101 @@ def last_evaluation_number(eval_csv: Path) -> int:
     """The highest ``evaluation`` number in an eval.csv (0 when there is none): a resumed run's
     evaluations continue after it, whichever process writes them."""
     return max((int(r["evaluation"]) for r in read_csv(eval_csv) if r.get("evaluation", "").isdigit()), default=0)
+
+
+def evaluations_of(eval_csv: Path) -> list[dict]:
+    """Every evaluation of a run, from its eval.csv (all sessions, both modes): one entry per
+    evaluation whose rows are all written, in order. ``success_rate`` and
+    ``collisions_per_episode`` are the headline target's (the evaluation's last row: the
+    curriculum's last fixed target, or the training world's held-out pairs), ``mean_success_rate``
+    the mean over its rows, ``per_pair`` each row's success. ``summary.json`` and ``curlnav status``
+    report these, so a resumed run reports the evaluations of its earlier sessions too."""
+    groups: dict[str, list[dict]] = {}
+    for row in read_csv(eval_csv):
+        try:  # a row still being written ends what can be read
+            float(row["success_rate"]), float(row["collisions_per_episode"]), float(row["wall_s"])
+        except (KeyError, TypeError, ValueError):
+            break
+        groups.setdefault(row.get("evaluation") or str(len(groups) + 1), []).append(row)
+    evaluations = []
+    for number, rows in groups.items():
+        expected = rows[0].get("rows") or ""
+        if expected.isdigit() and len(rows) < int(expected):
+            continue  # the evaluator stopped during it
+        head, first = rows[-1], rows[0]
+        evaluations.append({
+            "evaluation": int(number) if number.isdigit() else number, "wall_s": float(first["wall_s"]),
+            "env_steps": _whole(first.get("env_steps")), "updates": _whole(first.get("updates")),
+            "version": _whole(first.get("policy_version")),
+            "stage": rows[0].get("stage"), "target": f"{head.get('world')}/{head.get('pair')}",
+            "success_rate": float(head["success_rate"]),
+            "mean_success_rate": sum(float(r["success_rate"]) for r in rows) / len(rows),
+            "collisions_per_episode": float(head["collisions_per_episode"]),
+            "per_pair": {f"{r.get('world')}/{r.get('pair')}": float(r["success_rate"]) for r in rows}})
+    return evaluations
+
+
+def _whole(value: str | None) -> int | None:
+    try:
+        return int(float(value))
+    except (TypeError, ValueError):
+        return None
+
+
+def first_reaching(evaluations: list[dict], success: float = 0.8) -> dict | None:
+    """The first evaluation at or above ``success`` on its headline target, or None."""
+    return next((e for e in evaluations if e["success_rate"] >= success), None)
+
+
+def outcome_fields(run_dir: Path) -> dict:
+    """What a closing ``summary.json`` says of evaluations and policies, in both modes: every
+    evaluation of the run (``evals``, all sessions, from eval.csv), the first at >= 80 %, and the
+    policy folders (None for one that holds no artefact yet)."""
+    evals = evaluations_of(run_dir / "eval.csv")
+    newest, best = run_dir / "policy", run_dir / "policy-best"
+    return {"evals": evals, "first_eval_reaching_80": first_reaching(evals),
+            "policy": str(newest) if has_policy(newest) else None,
+            "policy_best": str(best) if has_policy(best) else None}
+
+
+def absolute(path: str | Path) -> Path:
+    """``path`` as an absolute path (not resolving links): what is printed for a person works from
+    any directory."""
+    return Path(os.path.abspath(path))
+
+
+def has_policy(folder: Path) -> bool:
+    return (Path(folder) / "metadata.json").is_file()
+
+
+def policy_lines(run_dir: str | Path) -> str:
+    """Where a run's policies are, by absolute path, naming only folders that hold an artefact
+    (``policy-best`` appears with the first evaluation, ``policy`` with the first export)."""
+    run_dir = absolute(run_dir)
+    newest, best = run_dir / "policy", run_dir / "policy-best"
+    return "; ".join([f"policy (newest): {newest}" if has_policy(newest) else
+                      "policy (newest): no policy yet (the learner exported none)",
+                      f"policy (best evaluation): {best}" if has_policy(best) else
+                      "policy (best evaluation): no best policy yet (no evaluation finished)"])
+
+
+def process_started() -> float | None:
+    """When this process started, on ``time.monotonic()``'s clock (Linux ``/proc/self/stat``), or
+    None where that cannot be read."""
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        age = time.clock_gettime(time.CLOCK_BOOTTIME) - int(fields[19]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+    return time.monotonic() - age if 0.0 <= age < 300.0 else None
+
+
+def command_started() -> float:
+    """When this ``curlnav train`` started, on ``time.monotonic()``'s clock: the start of the
+    process when the process is that command (the interpreter's start-up and imports count against
+    the budget too), else now (``run_train`` called in-process: a test, a notebook)."""
+    started = process_started() if sys.argv[1:2] == ["train"] else None
+    return time.monotonic() if started is None else started
 
 
 class TensorBoardLog:

@@ -11,6 +11,8 @@ A run folder holds ``config.yaml`` (the experiment), ``metrics.csv`` (training),
 ``summary.json`` (one entry per session), ``checkpoints/`` (learner + replay, resumable),
 ``policy/`` (the latest exported artefact) and ``policy-best/`` (the best held-out evaluation).
 SIGINT, SIGTERM and SIGHUP stop it with a checkpoint (exit code 130 from ``curlnav train``).
+The time budget counts from the start of the command (loading the checkpoint and the replay
+count); the final evaluation and checkpoint follow it.
 
 With a curriculum file (``--curriculum``), the scheduler's own core (``CurriculumState``) runs
 in-process: every episode takes its (world, pair) from it and reports its outcome to it, exactly
@@ -53,8 +55,10 @@ from curlnav.run.record import (
     CsvLog,
     RunSummary,
     TensorBoardLog,
+    absolute,
     last_evaluation_number,
     now_iso,
+    outcome_fields,
     strict_json,
 )
 
@@ -74,8 +78,10 @@ class SerialTrainer:
     """One serial run in ``run_dir``. ``run()`` trains to the budget and returns a summary."""
 
     def __init__(self, run_dir: str | Path, experiment: ExperimentConfig, run: SerialRunConfig | None = None,
-                 resume: bool = False) -> None:
-        self.run_dir = Path(run_dir)
+                 resume: bool = False, started: float | None = None) -> None:
+        # the session's clock (time.monotonic()) starts with its command: loading counts against the budget
+        self.started = time.monotonic() if started is None else started
+        self.run_dir = absolute(run_dir)
         self.experiment = experiment
         self.run_cfg = run or SerialRunConfig()
         torch.set_num_threads(self.run_cfg.torch_threads)
@@ -352,11 +358,11 @@ class SerialTrainer:
         self.board = TensorBoardLog(self.run_dir)
         history = RunSummary(self.run_dir)
         session = {"started": now_iso(), "mode": "serial", "env_steps_before": self.counters["env_steps"]}
-        session_start = time.monotonic()
+        session_start = self.started
         received: list[int] = []
         previous = on_stop_signals(lambda signum, frame: received.append(signum))
         budget_s = budget.minutes * 60.0
-        start = self._start = time.monotonic() - self.counters["elapsed_s"]
+        start = self._start = self.started - self.counters["elapsed_s"]
         self.bar = tqdm(total=int(budget_s), unit="s", disable=not self.run_cfg.progress,
                         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} s {postfix}")
         last_log = last_eval = last_ckpt = time.monotonic()
@@ -421,13 +427,12 @@ class SerialTrainer:
         return history.close_session(
             session, stop_reason=stop_reason, exit_code=exit_code, wall_s=time.monotonic() - start,
             env_steps=self.counters["env_steps"], updates=self.state.steps, episodes=self.counters["episodes"],
-            final_eval=dataclasses.asdict(final), evals=self.counters["evals"],
-            first_eval_reaching_80=next((e for e in self.counters["evals"] if e["success_rate"] >= 0.8), None),
+            final_eval=dataclasses.asdict(final),
             curriculum=None if self.curriculum is None else {
                 "name": self.curriculum.curriculum.name, "stage": self.curriculum.current.name,
                 "substep": self.curriculum.substep, "advances": self.counters.get("advances", []),
                 "replays": self.curriculum.replays},
-            run_dir=str(self.run_dir), policy=str(self.run_dir / "policy"), policy_best=str(self.run_dir / "policy-best"))
+            run_dir=str(self.run_dir), **outcome_fields(self.run_dir))  # every evaluation of the run, all sessions
 
     bar = None
 
@@ -460,6 +465,7 @@ class SerialTrainer:
 
 
 def train_serial(run_dir: str | Path, experiment: ExperimentConfig, run: SerialRunConfig | None = None,
-                 resume: bool = False) -> dict:
-    """Train in one process; returns a summary with the final evaluation (see ``SerialTrainer``)."""
-    return SerialTrainer(run_dir, experiment, run, resume).run()
+                 resume: bool = False, started: float | None = None) -> dict:
+    """Train in one process; returns a summary with the final evaluation (see ``SerialTrainer``).
+    The budget's clock starts at ``started`` (``time.monotonic()``; default now)."""
+    return SerialTrainer(run_dir, experiment, run, resume, started).run()

@@ -64,6 +64,11 @@ def _percent(rate) -> str:
     return "-" if rate is None else f"{rate:.0%}"
 
 
+def _count(value, noun: str) -> str:
+    """``"12 updates"``, or ``"no updates recorded"`` for a count nobody reported."""
+    return f"no {noun} recorded" if value is None else f"{value} {noun}"
+
+
 def _world_name(world: str) -> str:
     """A world file's stem, a built-in world's name."""
     return Path(world).stem if world.endswith((".yaml", ".yml")) else world
@@ -87,11 +92,16 @@ def format_status(s: dict) -> str:
                  f"{s.get('window_size')} episodes, {goal}; last 100 episodes {_percent(s.get('success_last_100'))}")
     learner, replay = s.get("learner") or {}, s.get("replay") or {}
     rate = learner.get("updates_per_s")
-    lines.append(f"learner: version {learner.get('version', '-')}, {learner.get('updates', '-')} updates, "
-                 f"{'-' if rate is None else f'{rate:.1f}'} updates/s")
+    if learner.get("version") is None:  # the learner has not reported to the scheduler yet
+        lines.append("learner: no policy yet (the learner has not reported)")
+    else:
+        lines.append(f"learner: version {learner['version']}, {_count(learner.get('updates'), 'updates')}, "
+                     f"{'-' if rate is None else f'{rate:.1f}'} updates/s")
     inserts = replay.get("insert_rate")
-    lines.append(f"replay: {replay.get('size', '-')} transitions, "
-                 f"{'-' if inserts is None else f'{inserts:.0f}'} inserts/s")
+    if replay.get("size") is None:
+        lines.append("replay: not reported yet")
+    else:
+        lines.append(f"replay: {replay['size']} transitions, {'-' if inserts is None else f'{inserts:.0f}'} inserts/s")
     actors = s.get("live_actors") or {}
     count = s.get("live_actor_count", len(actors))
     lines.append(f"live actors: {count}" + (f" (the {len(actors)} that reported last below)" if count > len(actors) else ""))
@@ -135,13 +145,16 @@ def finished_summary(folder: Path) -> dict | None:
 
 def format_outcome(folder: Path, summary: dict) -> str:
     """A finished run's outcome (``summary.json``) as lines of text for a terminal."""
+    from curlnav.run.record import absolute, policy_lines
+
+    folder = absolute(folder)
     sessions = summary.get("sessions") or [{}]
     last = sessions[-1]
     minutes = (summary.get("elapsed_s") or 0.0) / 60
     lines = [f"run {folder} has finished: stopped ({summary.get('stop_reason')}), exit code {summary.get('exit_code', '-')}, "
              f"{len(sessions)} session{'s' if len(sessions) != 1 else ''}, {minutes:.1f} min of training "
              f"({last.get('mode', 'distributed')})",
-             f"counts: {summary.get('env_steps', '-')} env steps, {summary.get('updates', '-')} updates"
+             f"counts: {_count(summary.get('env_steps'), 'env steps')}, {_count(summary.get('updates'), 'updates')}"
              + (f", {summary['episodes']} episodes" if summary.get("episodes") is not None else "")]
     evals = summary.get("evals") or []
     final = summary.get("final_eval") or (evals[-1] if evals else None)
@@ -155,7 +168,7 @@ def format_outcome(folder: Path, summary: dict) -> str:
     reached = summary.get("first_eval_reaching_80")
     if reached:
         lines.append(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
-    lines.append(f"policy (newest): {folder / 'policy'}; policy (best evaluation): {folder / 'policy-best'}")
+    lines.append(policy_lines(folder))
     from curlnav.run.launch import shell_command
 
     lines.append(f"continue it: {shell_command('curlnav', 'train', '--run-dir', folder, '--resume')} "

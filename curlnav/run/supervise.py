@@ -12,8 +12,9 @@ process):
   budget stops the run with exit code 1 and the reason;
 - SIGINT, SIGTERM and SIGHUP stop every service in order (the learner checkpoints; the replay's log already
   holds everything accepted), exit 130;
-- the budget (``budget.minutes`` of the run, earlier sessions included, or ``budget.max_env_steps``
-  transitions accepted by the replay) or the held-out target ends it with exit 0.
+- the budget (``budget.minutes`` of the run, earlier sessions included, each counted from the start
+  of its command, start-up included; or ``budget.max_env_steps`` transitions accepted by the
+  replay) or the held-out target ends it with exit 0.
 
 The run folder gets ``run.json`` (URLs, pids), ``metrics.csv``, ``eval.csv`` (written by the
 evaluator), TensorBoard event files, ``learning_curve.png``, ``summary.json``, ``policy/`` (the
@@ -33,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from curlnav.bus.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
+from curlnav.run import record
 from curlnav.run.launch import LocalCluster, http_json, shell_command
 from curlnav.run.record import EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, copy_policy, now_iso, read_csv
 
@@ -133,10 +135,13 @@ class StatusPoller(threading.Thread):
 
 def start_hints(run_dir: Path, status_url: str, learner_url: str) -> list[str]:
     """What the launcher prints at start: where to watch the run and take its policy, each as a
-    command that works without activating the virtual environment (``shell_command``)."""
+    command that works without activating the virtual environment (``shell_command``) and from any
+    directory (the run folder by absolute path)."""
+    run_dir = record.absolute(run_dir)
     return [f"status:  {status_url}   ({shell_command('curlnav', 'status', run_dir)})",
             f"policy:  {learner_url}/policy/latest   ({shell_command('curlnav', 'pull', '--from', learner_url)}); "
-            f"copies in {run_dir / 'policy'} and {run_dir / 'policy-best'}",
+            f"newest copy in {run_dir / 'policy'}, best evaluated in {run_dir / 'policy-best'} "
+            f"from the first evaluation on",
             f"curves:  {shell_command('tensorboard', '--logdir', run_dir / 'tensorboard')}"]
 
 
@@ -167,8 +172,10 @@ class DistributedRun:
     """One session of a distributed run in ``run_dir`` (see the module docstring)."""
 
     def __init__(self, run_dir: Path, experiment, actors: int, learner_threads: int = 1,
-                 progress_every_s: float = 5.0) -> None:
-        self.run_dir = Path(run_dir)
+                 progress_every_s: float = 5.0, started: float | None = None) -> None:
+        # the session's clock starts with its command (start-up counts against the budget)
+        self.started = time.monotonic() if started is None else started
+        self.run_dir = record.absolute(run_dir)
         self.experiment = experiment
         self.actors = actors
         self.progress_every_s = progress_every_s
@@ -190,7 +197,6 @@ class DistributedRun:
         CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS).close()  # the header (an old one moves to .old) first
         self.eval_rows_seen = len(read_csv(self.run_dir / "eval.csv"))
         self.eval_bytes_read = -1  # eval.csv's size at the last read
-        self.evals: list[dict] = []
         self.policy_version = -1
         self.last_status: dict | None = None
         self.counts = saved_counts(self.run_dir / "metrics.csv")
@@ -373,10 +379,6 @@ class DistributedRun:
             say(f"[eval {number} at {float(first['wall_s']) / 60:5.1f} min, policy v{first['policy_version']}, "
                 f"stage {first['stage']}] {group[-1]['world']}/{group[-1]['pair']} {success:.0%}"
                 + (f" (all: {per_pair})" if len(group) > 1 else ""))
-            self.evals.append({"evaluation": int(number), "wall_s": float(first["wall_s"]), "env_steps": env_steps,
-                               "version": int(float(first["policy_version"])), "success_rate": success, "mean_success_rate": mean,
-                               "collisions_per_episode": sum(float(r["collisions_per_episode"]) for r in group) / len(group),
-                               "per_pair": {f"{r['world']}/{r['pair']}": float(r["success_rate"]) for r in group}})
             target = self.experiment.evaluation.stop_at_success
             if target is not None and success >= target:
                 reason = f"held-out success on {group[-1]['world']}/{group[-1]['pair']} {success:.0%} >= {target:.0%}"
@@ -390,7 +392,6 @@ class DistributedRun:
         previous = on_stop_signals(self._on_signal)
         metrics = CsvLog(self.run_dir / "metrics.csv", TRAIN_FIELDS)
         board = TensorBoardLog(self.run_dir)
-        self.started = time.monotonic()
         session = {"started": now_iso(), "mode": "distributed", "actors": self.actors}
         c = self.cluster
         poller = StatusPoller(c.status_url)
@@ -467,13 +468,13 @@ class DistributedRun:
                         "policy_version": self.policy_version})
         summary = self.history.close_session(
             session, stop_reason=stop_reason, exit_code=exit_code, run_dir=str(self.run_dir),
-            env_steps=session["env_steps"], updates=session["updates"], policy=str(self.run_dir / "policy"),
-            policy_best=str(self.run_dir / "policy-best"), evals=self.evals,
-            first_eval_reaching_80=next((e for e in self.evals if e["success_rate"] >= 0.8), None),
-            last_status=status)
+            env_steps=session["env_steps"], updates=session["updates"], last_status=status,
+            **record.outcome_fields(self.run_dir))  # every session's evaluations, the policies that exist
         return RunOutcome(exit_code, stop_reason, summary)
 
 
-def train_distributed(run_dir: str | Path, experiment, actors: int, learner_threads: int = 1) -> RunOutcome:
-    """``curlnav train``: one supervised session of the distributed run in ``run_dir``."""
-    return DistributedRun(Path(run_dir), experiment, actors, learner_threads).run()
+def train_distributed(run_dir: str | Path, experiment, actors: int, learner_threads: int = 1,
+                      started: float | None = None) -> RunOutcome:
+    """``curlnav train``: one supervised session of the distributed run in ``run_dir``; its clock
+    starts at ``started`` (``time.monotonic()``; default now)."""
+    return DistributedRun(Path(run_dir), experiment, actors, learner_threads, started=started).run()

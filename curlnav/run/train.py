@@ -4,11 +4,18 @@ services as local processes). Every option works in both modes or is refused wit
 The run folder keeps the resolved config as ``config.yaml``. A folder that already holds a run
 is continued only with ``--resume`` (with its saved config: only the budget and the stopping
 target may change), and ``--resume`` on a folder with nothing to resume is refused.
+
+The time budget (``budget.minutes``) counts every session of the run from the moment its command
+started: the interpreter's start-up, loading the checkpoint and the replay and starting the services
+count, so a session ends at the budget (then the orderly stop, a few seconds). A resume with less than
+``MIN_RESUME_S`` of the budget left is refused (one line, exit 2): it would spend it starting and
+stopping, training nothing.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -27,6 +34,9 @@ from curlnav.config import (
 from curlnav.evaluation.experiment_cli import experiment_from_args, option_overrides
 
 DEFAULT_ACTORS = 2
+#: the least budget a resume must have left (s): less goes on starting the services (or loading the
+#: replay) and stopping them again
+MIN_RESUME_S = 60.0
 RESUMABLE_CHANGES = ("budget.", "evaluation.stop_at_success")  # fields a resume may change
 
 
@@ -95,12 +105,19 @@ def check_before_start(experiment: ExperimentConfig) -> None:
             raise TrainRefused(str(exc)) from None
 
 
+def default_run_dir(world: str, actors: int, serial: bool) -> Path:
+    """``runs/<date>-<time>-<world>-x<actors>`` (``--serial``: ``runs/<date>-<time>-<world>``)."""
+    name = Path(str(world)).stem.replace(":", "-")  # t-maze:0 -> t-maze-0
+    return Path(f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{name}{'' if serial else f'-x{actors}'}")
+
+
 def run_train(args: argparse.Namespace) -> int:
     """``curlnav train``. Exit codes: 0 the budget or the target was reached, 130 interrupted
     (SIGINT, SIGTERM, SIGHUP), 1 a service failed past its restart budget, 2 refused before
-    starting (a bad config, curriculum or world, a busy run folder)."""
-    from curlnav.run.record import RunLock
+    starting (a bad config, curriculum or world, a busy run folder, a resume without budget)."""
+    from curlnav.run.record import RunLock, absolute, command_started
 
+    args.started = command_started()  # the budget counts from here (the trainers read it)
     if getattr(args, "init_from", None) and not args.serial:
         raise TrainRefused("--init-from is for the serial trainer (add --serial)")
     if args.serial and args.actors is not None:
@@ -112,11 +129,9 @@ def run_train(args: argparse.Namespace) -> int:
         if args.resume:
             raise TrainRefused("--resume needs --run-dir: the folder of the run to continue")
         experiment = experiment_from_args(args)
-        suffix = "" if args.serial else f"-x{actors}"
-        world = Path(experiment.curriculum.world).stem.replace(":", "-")  # t-maze:0 -> t-maze-0
-        run_dir = Path(f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{world}{suffix}")
+        run_dir = absolute(default_run_dir(experiment.curriculum.world, actors, args.serial))
     else:
-        run_dir = Path(args.run_dir)
+        run_dir = absolute(args.run_dir)  # printed hints work from any directory
     lock = RunLock(run_dir)
     if run_dir.exists():
         lock.acquire()  # first of all: a folder another launcher is using is not even read
@@ -131,20 +146,29 @@ def run_train(args: argparse.Namespace) -> int:
         lock.release()
 
 
+def check_budget_left(minutes: float, used_s: float) -> None:
+    """A resume must have ``MIN_RESUME_S`` of its budget left (``TrainRefused`` otherwise)."""
+    left_s = minutes * 60 - used_s
+    if left_s < MIN_RESUME_S:
+        enough = math.ceil((used_s + MIN_RESUME_S) / 60)
+        raise TrainRefused(f"--resume: {max(left_s, 0) / 60:.1f} min of its {minutes:g} min budget left ({used_s / 60:.1f} "
+                           f"used by earlier sessions), less than the {MIN_RESUME_S / 60:g} min a session needs to "
+                           f"start, train and stop: raise --minutes (to {enough} or more) to train on")
+
+
 def _train_locked(args, run_dir: Path, experiment: ExperimentConfig, actors: int) -> int:
     """The run, once everything is checked and the run folder is this launcher's."""
     from curlnav.run.record import RunSummary
 
     used_s = RunSummary(run_dir).elapsed_before_s
-    if args.resume and used_s >= experiment.budget.minutes * 60:
-        raise TrainRefused(f"--resume: the run has used {used_s / 60:.1f} of its {experiment.budget.minutes:g} min "
-                           f"budget (earlier sessions count): raise --minutes to train on")
+    if args.resume:
+        check_budget_left(experiment.budget.minutes, used_s)
     (run_dir / "config.yaml").write_text(config_to_yaml(experiment))
     print(f"run folder: {run_dir}; {hash_labels(experiment)}; preset "
           f"{experiment.d4pg.preset}, world {experiment.curriculum.world}, curriculum "
           f"{experiment.curriculum.file or 'none'}, {experiment.budget.minutes:g} min"
           + (f" ({used_s / 60:.1f} used before)" if used_s else "")
-          + ("" if args.serial else f", {actors} actors"), flush=True)
+          + ("" if args.serial else f", {actors} actor{'s' if actors != 1 else ''}"), flush=True)
     if args.serial:
         return _train_serial(args, run_dir, experiment)
     return _train_distributed(args, run_dir, experiment, actors)
@@ -160,13 +184,17 @@ def hash_labels(experiment: ExperimentConfig) -> str:
 
 
 def _print_evaluations(summary: dict, run_dir: Path) -> None:
+    """The run's last lines: where its policies and curves are (absolute paths, only what exists)."""
     from curlnav.run.launch import shell_command
+    from curlnav.run.record import absolute, policy_lines
 
+    run_dir = absolute(run_dir)
     reached = summary.get("first_eval_reaching_80")
     if reached:
         print(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
-    print(f"policy (newest): {run_dir / 'policy'}; policy (best evaluation): {run_dir / 'policy-best'}")
-    print(f"learning curve: {run_dir / 'learning_curve.png'}; metrics.csv, eval.csv, summary.json; "
+    print(policy_lines(run_dir))
+    curve = run_dir / "learning_curve.png"
+    print((f"learning curve: {curve}; " if curve.exists() else "") + f"metrics.csv, eval.csv, summary.json in {run_dir}; "
           f"{shell_command('tensorboard', '--logdir', run_dir / 'tensorboard')}")
 
 
@@ -175,7 +203,7 @@ def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
 
     summary = train_serial(run_dir, experiment, SerialRunConfig(torch_threads=args.threads or 2,
                                                                 init_from=getattr(args, "init_from", None) or ""),
-                           resume=args.resume)
+                           resume=args.resume, started=getattr(args, "started", None))
     final = summary["final_eval"]
     print(f"stopped ({summary['stop_reason']}) after {summary['wall_s'] / 60:.1f} min, {summary['env_steps']} env steps, "
           f"{summary['updates']} updates, {summary['episodes']} episodes")
@@ -189,14 +217,16 @@ def _train_serial(args, run_dir: Path, experiment: ExperimentConfig) -> int:
 def _train_distributed(args, run_dir: Path, experiment: ExperimentConfig, actors: int) -> int:
     from curlnav.run.supervise import say, train_distributed
 
-    outcome = train_distributed(run_dir, experiment, actors, learner_threads=args.threads or 1)
+    outcome = train_distributed(run_dir, experiment, actors, learner_threads=args.threads or 1,
+                                started=getattr(args, "started", None))
     summary = outcome.summary
     say(f"stopped ({outcome.stop_reason}) after {summary['sessions'][-1]['wall_s'] / 60:.1f} min "
         f"(run total {summary['elapsed_s'] / 60:.1f} min), exit code {outcome.exit_code}")
     if summary["evals"]:
         last = summary["evals"][-1]
-        say(f"last evaluation: success {last['success_rate']:.0%}, {last['collisions_per_episode']:.2f} "
-            f"collisions/episode (policy v{last['version']})")
+        say(f"last evaluation: success {last['success_rate']:.0%} on {last['target']}, "
+            f"{last['collisions_per_episode']:.2f} collisions/episode (policy v{last['version']}); "
+            f"{len(summary['evals'])} evaluation{'s' if len(summary['evals']) != 1 else ''} in the run")
     try:
         _print_evaluations(summary, run_dir)
     except OSError:
@@ -214,4 +244,5 @@ def show_config(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ["ConfigError", "TrainRefused", "resolve_train_config", "run_train", "show_config"]
+__all__ = ["MIN_RESUME_S", "ConfigError", "TrainRefused", "default_run_dir", "resolve_train_config", "run_train",
+           "show_config"]
