@@ -194,9 +194,6 @@ def _session_clock_lag(run_dir: Path, launched: float) -> float:
 
 
 def test_the_budget_counts_from_the_start_of_the_command_start_up_included(resumed_run, tmp_path):
-    # distributed, the resumed session of the run above
-    _, run_dir, _, launched = resumed_run
-    assert _session_clock_lag(run_dir, launched[-1]) < 0.3
     # serial: the interpreter's start-up, imports, the environment, all count
     serial = tmp_path / "serial"
     launched = time.time()
@@ -204,7 +201,11 @@ def test_the_budget_counts_from_the_start_of_the_command_start_up_included(resum
                            "--eval-episodes", "2", "--threads", "1", "--minutes", "10", "--max-env-steps", "250"],
                           capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    assert _session_clock_lag(serial, launched) < 0.3
+    # distributed: the resumed session of the run above (loading, waiting, starting services)
+    _, run_dir, _, sessions_launched = resumed_run
+    lags = {"serial": _session_clock_lag(serial, launched),
+            "distributed, resumed": _session_clock_lag(run_dir, sessions_launched[-1])}
+    assert max(lags.values()) < 0.3, f"seconds of the command before the session's clock started: {lags}"
 
 
 # -- 6. the learning curve's legends cover no data ------------------------------------------------------
