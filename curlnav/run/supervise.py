@@ -197,6 +197,7 @@ class DistributedRun:
         CsvLog(self.run_dir / "eval.csv", EVAL_FIELDS).close()  # the header (an old one moves to .old) first
         self.eval_rows_seen = len(read_csv(self.run_dir / "eval.csv"))
         self.eval_bytes_read = -1  # eval.csv's size at the last read
+        self.evals: list[dict] = []  # this session's, as read; summary.json lists the whole run's (eval.csv)
         self.policy_version = -1
         self.last_status: dict | None = None
         self.counts = saved_counts(self.run_dir / "metrics.csv")
@@ -375,6 +376,7 @@ class DistributedRun:
                 scalars[f"eval/success/{r['world']}/{r['pair']}"] = float(r["success_rate"])
                 scalars[f"eval/base_collisions_per_episode/{r['world']}/{r['pair']}"] = float(r["collisions_per_episode"])
             board.scalars(scalars, env_steps)
+            self.evals.append({"evaluation": int(number), "success_rate": success, "mean_success_rate": mean})
             per_pair = ", ".join(f"{r['world']}/{r['pair']} {float(r['success_rate']):.0%}" for r in group)
             say(f"[eval {number} at {float(first['wall_s']) / 60:5.1f} min, policy v{first['policy_version']}, "
                 f"stage {first['stage']}] {group[-1]['world']}/{group[-1]['pair']} {success:.0%}"
