@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from curlnav.replay import FrameBatch, NStepWriter
 
+from curlnav.replay import FrameBatch, NStepWriter
 from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
 

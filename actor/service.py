@@ -31,6 +31,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from prometheus_client import CollectorRegistry, Counter, Gauge
+
+from curlnav.builder import D4PGBuilder
+from curlnav.bus.service import Deployment, ServiceShell
+from curlnav.bus.transport import RateMeter, reliable_publisher
+from curlnav.config import ActorConfig, ConfigError, D4PGConfig, ExperimentConfig
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import (
     MAX_ACTOR_ID,
@@ -41,12 +47,6 @@ from curlnav.proto.messages import (
     TransitionBatch,
     Weights,
 )
-from prometheus_client import CollectorRegistry, Counter, Gauge
-
-from curlnav.builder import D4PGBuilder
-from curlnav.bus.service import Deployment, ServiceShell
-from curlnav.bus.transport import RateMeter, reliable_publisher
-from curlnav.config import ActorConfig, ConfigError, D4PGConfig, ExperimentConfig
 
 from .resend import ResendBuffer
 

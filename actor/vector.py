@@ -17,10 +17,10 @@ import itertools
 from collections.abc import Callable
 
 import numpy as np
-from curlnav.proto.frames import FrameBatch
-from curlnav.replay.nstep import NStepWriter
 
 from curlnav.layout import ObservationLayout
+from curlnav.proto.frames import FrameBatch
+from curlnav.replay.nstep import NStepWriter
 from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
 

@@ -144,7 +144,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         table_ii,
         write_csv,
     )
-    from curlnav.sim.pairs import check_pairs_possible
+    from curlnav.worlds.pairs import check_pairs_possible
 
     suite = SUITES[args.suite] if args.suite else None
     if suite is not None:
@@ -288,7 +288,7 @@ def _check_world(spec: str) -> None:
     """Fail fast, before any service or PyBullet scene starts: the world loads and, when it
     draws random pairs, a pair is possible (one-line ``WorldError`` otherwise)."""
     from curlnav.sim import get_world
-    from curlnav.sim.pairs import check_pairs_possible
+    from curlnav.worlds.pairs import check_pairs_possible
 
     check_pairs_possible(get_world(spec))
 
@@ -455,8 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_ablation_commands(sub) -> None:
-    """ablation run, ablation report (curlnav.evaluation.ablation)."""
-    from curlnav.evaluation.ablation import PAPER_CONDITIONS
+    """ablation run, ablation report (curlnav.run.ablation)."""
+    from curlnav.run.ablation import PAPER_CONDITIONS
 
     ablation = sub.add_parser("ablation", help="the curriculum ablation (the paper's Fig. 5): conditions x seeds "
                                                "at one env-step budget, serial runs, and their report")
@@ -477,7 +477,7 @@ def _add_ablation_commands(sub) -> None:
 
 
 def _add_experiment_command(sub) -> None:
-    from curlnav.evaluation.experiment import BUDGETS
+    from curlnav.run.experiment import BUDGETS
 
     p = sub.add_parser("experiment", help="the paper's evaluation with our numbers: Table I, Fig. 4, Fig. 5 and "
                                           "Table II in report.md (resumable)")
@@ -490,7 +490,7 @@ def _add_experiment_command(sub) -> None:
 
 
 def _cmd_experiment(args: argparse.Namespace) -> int:
-    from curlnav.evaluation.experiment import BUDGETS, run_experiment, write_experiment_report
+    from curlnav.run.experiment import BUDGETS, run_experiment, write_experiment_report
 
     out, budget = Path(args.out), BUDGETS[args.budget]
     if args.report_only:
@@ -508,7 +508,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def _cmd_ablation_run(args: argparse.Namespace) -> int:
-    from curlnav.evaluation.ablation import plan_runs, run_all, write_report
+    from curlnav.run.ablation import plan_runs, run_all, write_report
 
     out = Path(args.out)
     specs = plan_runs(out, args.conditions, args.seeds, args.max_env_steps,
@@ -519,7 +519,7 @@ def _cmd_ablation_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_ablation_report(args: argparse.Namespace) -> int:
-    from curlnav.evaluation.ablation import write_report
+    from curlnav.run.ablation import write_report
 
     print(f"report: {write_report(Path(args.folder))} (ablation.png, ablation.csv beside it)")
     return 0
@@ -540,7 +540,7 @@ def _add_training_commands(sub) -> None:
                         "ones: two-stage fine-tuning, e.g. an easy world's run, then a hard world. Training "
                         "settings (d4pg.n_step, batch_size, learning rates, replay, exploration) may differ; the "
                         "network settings (encoder, widths, atoms, support) and observation layout must agree")
-    from curlnav.evaluation.experiment_cli import add_config_arguments, add_train_options
+    from curlnav.run.options import add_config_arguments, add_train_options
 
     add_train_options(p)
     add_config_arguments(p)
@@ -804,8 +804,8 @@ def main(argv: list[str] | None = None) -> int:
     from curlnav.bus.service import ConfigMismatch
     from curlnav.bus.transport import RouterUnreachable
     from curlnav.policy import ArtefactError
-    from curlnav.sim.world import WorldError
     from curlnav.worlds.metrics import MetricsError
+    from curlnav.worlds.world import WorldError
 
     try:
         return int(args.func(args) or 0)

@@ -25,6 +25,7 @@ from collections import deque
 
 import numpy as np
 import torch
+
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import SampledBatch, SampleRequest
 

@@ -22,8 +22,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import PriorityUpdate, SampledBatch, ServiceStatus, Weights
 from prometheus_client import CollectorRegistry, Counter, Gauge
 from safetensors.torch import save as safetensors_bytes
 
@@ -31,6 +29,8 @@ from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import RateMeter, json_response, reliable_publisher
 from curlnav.config import ConfigError, ExperimentConfig, config_differences, config_to_dict
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import PriorityUpdate, SampledBatch, ServiceStatus, Weights
 
 from .artefact import export_policy, training_worlds
 from .d4pg import TensorBatch, compile_networks, load_checkpoint, read_metrics, save_checkpoint, set_amp, sgd_step

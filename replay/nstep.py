@@ -18,9 +18,9 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from curlnav.proto.frames import FrameBatch
 
 from curlnav.layout import ObservationLayout
+from curlnav.proto.frames import FrameBatch
 
 
 class NStepWriter:

@@ -58,14 +58,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
-from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import RateMeter, json_response
 from curlnav.config import ExperimentConfig
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
 
 from .table import RateLimiterTimeout, ReplayInputError
 from .wal import SegmentLog

@@ -33,9 +33,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from curlnav.proto.messages import SampledBatch
 
 from curlnav.layout import ObservationLayout
+from curlnav.proto.messages import SampledBatch
 
 from .nstep import FrameBatch
 

@@ -251,7 +251,7 @@ def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
     world of every stage loads, and every sub-step pair exists in each world of its stage.
     Raises ``CurriculumError`` (one line naming the file, stage and world) otherwise."""
     from curlnav.sim import get_world
-    from curlnav.sim.world import WorldError
+    from curlnav.worlds.world import WorldError
 
     where = f"{source or curriculum.name}"
     extra = [w for w, _ in curriculum.evaluate if all(w not in s.worlds for s in curriculum.stages)]

@@ -23,13 +23,13 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
 
-from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import MAX_ACTOR_ID, Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import json_response
 from curlnav.config import ExperimentConfig
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import MAX_ACTOR_ID, Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
 
 from .curriculum import Curriculum, CurriculumState, load_curriculum
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from curlnav.evaluation.baseline import GridPlanner, StaticMapPlanner, astar
 from curlnav.evaluation.protocol import evaluate, evaluation_config, held_out_pairs
+from curlnav.planners.oracle import GridPlanner, StaticMapPlanner, astar
 from curlnav.sim import NamoEnv, get_world
 from curlnav.worlds.metrics import GridGraph
 from curlnav.worlds.namo import door_crossings

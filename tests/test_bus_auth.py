@@ -19,8 +19,6 @@ from types import SimpleNamespace
 
 import pytest
 import zenoh
-from curlnav.proto.messages import EpisodeReport, Weights
-from curlnav.proto.topology import Topology
 
 from curlnav.bench.faults import poll
 from curlnav.bus import identity
@@ -38,6 +36,8 @@ from curlnav.bus.security import (
     permissions,
 )
 from curlnav.bus.transport import RouterUnreachable, open_session
+from curlnav.proto.messages import EpisodeReport, Weights
+from curlnav.proto.topology import Topology
 from curlnav.run.launch import free_port
 
 RUN = "authtest"

@@ -10,9 +10,6 @@ import zlib
 
 import numpy as np
 import pytest
-from curlnav.proto.messages import TransitionBatch
-from curlnav.replay.nstep import NStepWriter
-from curlnav.replay.wal import HEADER, SegmentLog
 
 from curlnav.bench.chaos import (
     FAULT_KINDS,
@@ -27,6 +24,9 @@ from curlnav.bench.chaos import (
     went_back,
 )
 from curlnav.layout import ObservationLayout
+from curlnav.proto.messages import TransitionBatch
+from curlnav.replay.nstep import NStepWriter
+from curlnav.replay.wal import HEADER, SegmentLog
 
 LAYOUT = ObservationLayout()
 

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from curlnav.replay import NStepWriter, ReplayTable
 
 from curlnav.cli import build_parser
 from curlnav.layout import ObservationLayout
+from curlnav.replay import NStepWriter, ReplayTable
 from curlnav.sim import EnvConfig
 
 REPO = Path(__file__).resolve().parent.parent
@@ -51,10 +51,9 @@ def closed_port() -> int:
 @pytest.fixture(scope="module")
 def artefact(tmp_path_factory) -> Path:
     """A freshly exported (untrained) policy artefact."""
+    from curlnav.config import D4PGConfig
     from curlnav.learner.artefact import export_policy
     from curlnav.learner.d4pg import init_state
-
-    from curlnav.config import D4PGConfig
 
     state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
     return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])

@@ -23,10 +23,9 @@ PLANNER = "oracle"  # `planner` is the old name of the oracle, still accepted
 
 @pytest.fixture(scope="module")
 def untrained_policy(tmp_path_factory) -> Path:
+    from curlnav.config import D4PGConfig
     from curlnav.learner.artefact import export_policy
     from curlnav.learner.d4pg import init_state
-
-    from curlnav.config import D4PGConfig
 
     state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
     return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])

@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import pytest
-from curlnav.proto.messages import RunConfig
 
 from curlnav.bus.service import ConfigMismatch, check_agreement
 from curlnav.cli import build_parser, main
@@ -26,6 +25,7 @@ from curlnav.config import (
     resolve_config,
     service_config_hash,
 )
+from curlnav.proto.messages import RunConfig
 from curlnav.run.launch import build_service, free_port
 from curlnav.run.serial import SerialRunConfig, SerialTrainer
 
@@ -201,11 +201,11 @@ LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.bus.mesh": 0, "curlnav.policy": 0,
     "curlnav.run": 0, "curlnav.run.record": 0, "curlnav.evaluation": 0, "curlnav.bench": 0,
     "curlnav.replay": 1, "curlnav.learner": 1, "curlnav.scheduler": 1, "curlnav.actor": 1, "curlnav.builder": 1,
-    "curlnav.bus.service": 1, "curlnav.evaluation.protocol": 1, "curlnav.evaluation.baseline": 1,
+    "curlnav.bus.service": 1, "curlnav.evaluation.protocol": 1, "curlnav.planners": 1,
     "curlnav.cli": 2, "curlnav.run.launch": 2, "curlnav.run.train": 2, "curlnav.run.serial": 2,
     "curlnav.run.pull": 2, "curlnav.run.evaluator": 2, "curlnav.run.supervise": 2, "curlnav.run.status": 2,
-    "curlnav.evaluation.experiment_cli": 2, "curlnav.evaluation.plots": 2, "curlnav.evaluation.animation": 2,
-    "curlnav.evaluation.compare": 2, "curlnav.evaluation.ablation": 2, "curlnav.evaluation.experiment": 2,
+    "curlnav.run.options": 2, "curlnav.evaluation.plots": 2, "curlnav.evaluation.animation": 2,
+    "curlnav.evaluation.compare": 2, "curlnav.run.ablation": 2, "curlnav.run.experiment": 2,
     "curlnav.bench.transport": 2, "curlnav.bench.faults": 2, "curlnav.bench.draws": 2, "curlnav.bench.hosts": 2,
     "curlnav.bench.actor": 2, "curlnav.bench.chaos": 2,
     "curlnav.learner.bench": 2, "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2,

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from curlnav.replay.service import ReplayService, ReplayServiceConfig
-from curlnav.replay.wal import SegmentLog
 from test_proto_and_cores import a_batch
 from test_service import wait_for
 
 from curlnav.bus.service import Deployment
 from curlnav.config import resolve_config
+from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.replay.wal import SegmentLog
 from curlnav.run.launch import http_json_or_none
 
 SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])

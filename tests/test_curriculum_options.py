@@ -8,6 +8,7 @@ import json
 from collections import Counter
 
 import pytest
+
 from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
 
 REPLAY = """
@@ -365,11 +366,10 @@ def test_the_distributed_learners_artefacts_name_the_curriculums_worlds_read_onc
     """A user pulling a learner artefact sees what it was trained on: the curriculum's stage worlds
     and its name, not the actors' fallback world. The file is read when the learner starts: an
     artefact exported after the file went away still names it."""
-    from curlnav.learner.service import LearnerService, LearnerServiceConfig
-
     from curlnav.bus.service import Deployment
     from curlnav.config import resolve_config
-    from curlnav.evaluation.ablation import CURRICULA
+    from curlnav.learner.service import LearnerService, LearnerServiceConfig
+    from curlnav.run.ablation import CURRICULA
 
     curriculum = tmp_path / "budget.yaml"
     curriculum.write_text((CURRICULA / "s1+s2-budget.yaml").read_text())

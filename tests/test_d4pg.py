@@ -10,6 +10,9 @@ import sys
 import numpy as np
 import pytest
 import torch
+
+from curlnav.config import D4PGConfig, ExperimentConfig
+from curlnav.layout import ObservationLayout
 from curlnav.learner.artefact import export_policy
 from curlnav.learner.d4pg import (
     NETWORK_FIELDS,
@@ -22,9 +25,6 @@ from curlnav.learner.d4pg import (
     save_checkpoint,
     sgd_step,
 )
-
-from curlnav.config import D4PGConfig, ExperimentConfig
-from curlnav.layout import ObservationLayout
 from curlnav.policy import ArtefactError, PolicyArtefact
 from curlnav.sim import EnvConfig
 

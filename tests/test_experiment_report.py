@@ -6,7 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from curlnav.evaluation.experiment import BUDGETS, fig4_plan, write_experiment_report
+from curlnav.run.experiment import BUDGETS, fig4_plan, write_experiment_report
 from curlnav.run.record import EVAL_FIELDS, CsvLog
 from curlnav.sim import get_world
 from curlnav.worlds.rank import rank, write_outputs

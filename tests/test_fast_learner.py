@@ -9,10 +9,10 @@ import sys
 
 import pytest
 import torch
-from curlnav.learner.d4pg import compile_networks, init_state, read_metrics, set_amp, sgd_step
 from test_d4pg import LAYOUT, random_batch
 
 from curlnav.config import D4PGConfig
+from curlnav.learner.d4pg import compile_networks, init_state, read_metrics, set_amp, sgd_step
 
 
 def test_an_update_that_leaves_its_metrics_on_the_device_computes_the_same_update():
@@ -53,8 +53,9 @@ def test_a_learner_or_replay_host_imports_its_service_without_the_simulator():
 
 def test_an_actor_on_onnx_runtime_acts_as_pytorch_does_and_follows_each_new_weights_broadcast():
     import numpy as np
-    from curlnav.learner.networks import Actor, BehaviourPolicy
     from safetensors.torch import save
+
+    from curlnav.learner.networks import Actor, BehaviourPolicy
 
     cfg = D4PGConfig()
     obs = np.random.default_rng(0).uniform(0, 5, (8, LAYOUT.size)).astype(np.float32)
@@ -83,7 +84,6 @@ def test_eight_environments_per_actor_fit_their_batches_to_the_replays_insert_ba
     makes the batches shorter instead of refusing to start; one that cannot fit is refused when
     the config is read, naming the fields."""
     from curlnav.actor.service import ActorCore, ActorServiceConfig
-
     from curlnav.config import ConfigError, ExperimentConfig, apply_overrides
 
     longer = apply_overrides(ExperimentConfig(), ["d4pg.n_step=6"])

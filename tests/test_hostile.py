@@ -265,10 +265,9 @@ class HostileLearner:
 @pytest.fixture(scope="module")
 def artefact(tmp_path_factory) -> Path:
     """A freshly exported (untrained) policy artefact."""
+    from curlnav.config import D4PGConfig
     from curlnav.learner.artefact import export_policy
     from curlnav.learner.d4pg import init_state
-
-    from curlnav.config import D4PGConfig
 
     state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
     return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])
@@ -584,7 +583,6 @@ def test_metadata_names_no_file_outside_its_folder_and_no_outside_checksum_is_sh
 def test_every_hostile_loader_keeps_existing_world_files_loading(tmp_path):
     """The shipped worlds and curricula (no aliases, small) still load with the caps in place."""
     from curlnav.scheduler.curriculum import load_curriculum
-
     from curlnav.sim import load_world
 
     root = Path(__file__).resolve().parents[1] / "scheduler" / "curricula"

@@ -16,15 +16,15 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from test_proto_and_cores import a_batch
+
+from curlnav.bus.service import Deployment, check_agreement
+from curlnav.config import ExperimentConfig, resolve_config
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, RunConfig, TransitionBatch
 from curlnav.proto.topology import Topology
 from curlnav.replay.service import ReplayService, ReplayServiceConfig
 from curlnav.replay.wal import SegmentLog
-from test_proto_and_cores import a_batch
-
-from curlnav.bus.service import Deployment, check_agreement
-from curlnav.config import ExperimentConfig, resolve_config
 from curlnav.run.launch import http_json_or_none
 
 SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])

@@ -27,7 +27,6 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from curlnav.proto.topology import Topology
 from test_stack_file import Namespaces
 
 from curlnav.bench.faults import poll
@@ -36,6 +35,7 @@ from curlnav.bus import identity
 from curlnav.bus.identity import claim_actor_identity
 from curlnav.bus.security import BusCredentialsError, BusUser, load_router, load_tls, load_user, make_credentials
 from curlnav.bus.transport import RouterUnreachable, open_session
+from curlnav.proto.topology import Topology
 from curlnav.run.launch import _actor_identity, free_port
 
 ROOT = Path(__file__).resolve().parent.parent

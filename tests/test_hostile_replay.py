@@ -13,11 +13,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from curlnav.proto.frames import FrameBatch
-from curlnav.proto.messages import TransitionBatch
-from curlnav.proto.topology import Topology
-from curlnav.replay.service import ReplayService, ReplayServiceConfig
-from curlnav.replay.table import ReplayTable
 from prometheus_client import generate_latest
 from test_hostile_bus import metrics, wait_for
 
@@ -25,6 +20,11 @@ from curlnav.bench.chaos import Incarnation, account, summary_line
 from curlnav.bus.service import Deployment
 from curlnav.config import resolve_config
 from curlnav.layout import ObservationLayout
+from curlnav.proto.frames import FrameBatch
+from curlnav.proto.messages import TransitionBatch
+from curlnav.proto.topology import Topology
+from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.replay.table import ReplayTable
 from curlnav.run.launch import http_json_or_none
 
 SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])

@@ -159,10 +159,9 @@ def test_beyond_max_threads_requests_wait_for_a_handler_and_are_then_served():
 # -- the learner's artefacts -------------------------------------------------------------------------
 
 def test_the_learner_serves_no_artefact_through_a_symlink(tmp_path):
-    from curlnav.learner.service import LearnerService, LearnerServiceConfig
-
     from curlnav.bus.service import Deployment
     from curlnav.config import resolve_config
+    from curlnav.learner.service import LearnerService, LearnerServiceConfig
 
     service = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(tmp_path / "learner"))),
                              resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"]))

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from curlnav.evaluation.baseline import GlobalPlanAgent, GridPlanner, StaticMapPlanner
-from curlnav.evaluation.local_planners import DynamicWindowPlanner, TareLocalPlanner
 from curlnav.evaluation.protocol import evaluate, evaluation_config, held_out_pairs
+from curlnav.planners.local import DynamicWindowPlanner, TareLocalPlanner
+from curlnav.planners.oracle import GlobalPlanAgent, GridPlanner, StaticMapPlanner
 from curlnav.sim import NamoEnv, StartGoal, World
-from curlnav.sim.pairs import clearance_map
+from curlnav.worlds.pairs import clearance_map
 
 ROOT = Path(__file__).resolve().parent.parent
 

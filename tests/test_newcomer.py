@@ -58,9 +58,8 @@ def _row(success: float, collisions: float, world: str = "t-maze-0", pair: str =
 
 
 def test_policy_best_prefers_the_policy_that_avoids_walls_at_equal_success():
-    from curlnav.scheduler.curriculum import load_curriculum
-
     from curlnav.run.evaluator import RANKING, best_rank, rank_beats
+    from curlnav.scheduler.curriculum import load_curriculum
 
     curriculum = load_curriculum(ROOT / "scheduler" / "curricula" / "s1+s2.yaml")  # headline: T-Maze p4
     clean = best_rank(curriculum, [_row(0.98, 0.00)])
@@ -156,12 +155,11 @@ def test_the_launcher_names_both_config_hashes_and_how_they_differ(tmp_path, cap
     import json
     import re
 
-    from curlnav.proto.messages import RunConfig
-
     import curlnav.run.train as train
     from curlnav.bus.service import ConfigMismatch, check_agreement
     from curlnav.cli import main
     from curlnav.config import config_hash, config_to_dict, resolve_config, service_config_hash
+    from curlnav.proto.messages import RunConfig
 
     monkeypatch.setattr(train, "_train_serial", lambda args, run_dir, experiment: 0)  # the first line is enough
     assert main(["train", "--serial", "--run-dir", str(tmp_path / "run"), "--minutes", "7"]) == 0

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import time
 
-from curlnav.actor.resend import ResendBuffer
-from curlnav.proto.messages import ServiceStatus, TransitionBatch
 from test_hostile_bus import play, replay_in, scheduler_core
 from test_proto_and_cores import a_batch
+
+from curlnav.actor.resend import ResendBuffer
+from curlnav.proto.messages import ServiceStatus, TransitionBatch
 
 
 def test_the_buffer_spills_to_disk_then_is_full_and_acknowledgements_free_it(tmp_path):

@@ -7,6 +7,10 @@ import json
 import msgpack
 import numpy as np
 import pytest
+
+from curlnav.bus.service import Deployment
+from curlnav.config import resolve_config
+from curlnav.layout import ObservationLayout
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import (
     Assignment,
@@ -23,10 +27,6 @@ from curlnav.replay.nstep import NStepWriter
 from curlnav.replay.service import ReplayService, ReplayServiceConfig
 from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
 from curlnav.scheduler.service import SchedulerCore
-
-from curlnav.bus.service import Deployment
-from curlnav.config import resolve_config
-from curlnav.layout import ObservationLayout
 
 LAYOUT = ObservationLayout()
 

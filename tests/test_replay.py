@@ -7,9 +7,9 @@ import time
 
 import numpy as np
 import pytest
-from curlnav.replay import FrameBatch, NStepWriter, RateLimiterTimeout, ReplayInputError, ReplayTable, SampleToInsertRatio
 
 from curlnav.layout import ObservationLayout
+from curlnav.replay import FrameBatch, NStepWriter, RateLimiterTimeout, ReplayInputError, ReplayTable, SampleToInsertRatio
 
 LAYOUT = ObservationLayout(beams=5, range_frames=4, label_frames=4, goal_frames=10)
 

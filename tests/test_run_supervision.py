@@ -203,10 +203,9 @@ def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_res
 def test_a_service_that_refuses_its_config_stops_the_run_with_a_nonzero_exit(tmp_path):
     """The learner finds a checkpoint of another network: it exits 2, the run stops (exit 1)
     and the reason is on the console, instead of restarting it forever."""
-    from curlnav.learner.d4pg import save_checkpoint
-
     from curlnav.builder import D4PGBuilder
     from curlnav.config import resolve_config
+    from curlnav.learner.d4pg import save_checkpoint
 
     run_dir = tmp_path / "run"
     other = resolve_config(overrides=["d4pg.hidden=[64, 64]"])
@@ -260,14 +259,13 @@ def test_serial_run_stops_on_sigterm_with_exit_130_and_resumes_with_curves_and_p
 
 # -- evaluation beside a curriculum ----------------------------------------------------------------
 def test_the_evaluator_follows_the_curriculum_evaluates_the_fixed_targets_and_keeps_the_best_on_the_headline(tmp_path):
-    from curlnav.learner.artefact import export_policy
-    from curlnav.scheduler.curriculum import load_curriculum
-
     from curlnav.builder import D4PGBuilder
     from curlnav.config import resolve_config
+    from curlnav.learner.artefact import export_policy
     from curlnav.policy import PolicyArtefact
     from curlnav.run.evaluator import BesideEvaluator, evaluation_plan, targets_for
     from curlnav.run.record import read_csv
+    from curlnav.scheduler.curriculum import load_curriculum
 
     file = ROOT / "scheduler" / "curricula" / "s1+s2.yaml"
     experiment = resolve_config(overrides=[f"curriculum.file={file}", "evaluation.episodes=8",

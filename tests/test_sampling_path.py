@@ -9,14 +9,14 @@ import struct
 import numpy as np
 import pytest
 import torch
+from test_replay import LAYOUT, expected_stack, obs_for
+
+from curlnav.layout import ObservationLayout
 from curlnav.learner.feed import BatchAssembler, SampleFeed, describe_device, resolve_device
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import PriorityUpdate, SampledBatch
 from curlnav.proto.rawbuf import peek_raw
 from curlnav.replay import NStepWriter, ReplayTable
-from test_replay import LAYOUT, expected_stack, obs_for
-
-from curlnav.layout import ObservationLayout
 
 
 def filled_table(steps: int = 40) -> ReplayTable:
@@ -139,12 +139,11 @@ def test_one_reply_carrying_several_batches_splits_into_the_learners_batches():
 def test_the_learner_asks_only_for_requests_the_replays_rate_limiter_can_admit(tmp_path):
     """A request larger than the limiter's slack would wait for ever: the learner asks for fewer
     batches per request, and a replay refuses such a request at once instead of hanging."""
-    from curlnav.proto.messages import SampleRequest
-    from curlnav.replay.service import ReplayService, ReplayServiceConfig
-
     from curlnav.builder import D4PGBuilder
     from curlnav.bus.service import Deployment
     from curlnav.config import ExperimentConfig, apply_overrides
+    from curlnav.proto.messages import SampleRequest
+    from curlnav.replay.service import ReplayService, ReplayServiceConfig
 
     base = ExperimentConfig()
     assert D4PGBuilder(base).batches_per_request(4) == 4  # the default config's slack admits 4 x 256

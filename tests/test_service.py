@@ -9,10 +9,10 @@ import urllib.error
 import urllib.request
 
 import pytest
-from curlnav.proto.topology import Topology
 
 from curlnav.bus.transport import reliable_publisher
 from curlnav.config import resolve_config
+from curlnav.proto.topology import Topology
 from curlnav.run.launch import LocalCluster, http_json
 
 CURRICULUM = """

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from curlnav.sim import Ball, EnvConfig, NamoEnv, StartGoal, World, WorldError
-from curlnav.sim.builtin import _walled_grid
+from curlnav.worlds.builtin import _walled_grid
 
 
 def room_world(balls=(), pairs=None, size=10.0) -> World:

@@ -16,8 +16,8 @@ from PIL import Image
 
 from curlnav.cli import main
 from curlnav.sim import NamoEnv, WorldError, load_world, save_world
-from curlnav.sim.pairs import PairSampler, check_pairs_possible, footprint_cells, sample_pairs
-from curlnav.sim.world import map_server_values
+from curlnav.worlds.pairs import PairSampler, check_pairs_possible, footprint_cells, sample_pairs
+from curlnav.worlds.world import map_server_values
 
 ROOT = Path(__file__).resolve().parents[1]
 BARN_3X3 = ROOT / "scheduler" / "curricula" / "worlds" / "barn-3x3-0.yaml"

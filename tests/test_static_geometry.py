@@ -14,14 +14,14 @@ import pybullet as pb
 import pytest
 
 from curlnav.sim import scene as scene_module
-from curlnav.sim.builtin import get_world
 from curlnav.sim.config import EnvConfig
 from curlnav.sim.env import NamoEnv
 from curlnav.sim.geometry import face_segments, merge_cells_into_rectangles, wall_faces
-from curlnav.sim.pairs import footprint_free
 from curlnav.sim.scene import GROUP_STATIC, RAY_MASK, Scene, StaticGeometryError
-from curlnav.sim.world import RandomPairs, StartGoal, World
+from curlnav.worlds.builtin import get_world
 from curlnav.worlds.generators import FAMILIES, generate
+from curlnav.worlds.pairs import footprint_free
+from curlnav.worlds.world import RandomPairs, StartGoal, World
 
 CFG = EnvConfig()
 POSES_PER_WORLD = 12

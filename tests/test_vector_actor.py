@@ -5,12 +5,12 @@ environment keeps its own episodes and assignment."""
 from __future__ import annotations
 
 import numpy as np
-from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
-from curlnav.learner.networks import BehaviourPolicy
-from curlnav.replay import ReplayTable
 
+from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
 from curlnav.config import D4PGConfig
 from curlnav.layout import ObservationLayout
+from curlnav.learner.networks import BehaviourPolicy
+from curlnav.replay import ReplayTable
 from curlnav.sim import EnvConfig, NamoEnv
 
 

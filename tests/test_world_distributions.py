@@ -8,12 +8,12 @@ import dataclasses
 
 import numpy as np
 import pytest
-from curlnav.actor.loop import EpisodeLoop
-from curlnav.replay import NStepWriter
-from curlnav.scheduler.curriculum import CurriculumError, check_curriculum, load_curriculum
 
+from curlnav.actor.loop import EpisodeLoop
 from curlnav.config import CurriculumConfig, ExperimentConfig
 from curlnav.layout import ObservationLayout
+from curlnav.replay import NStepWriter
+from curlnav.scheduler.curriculum import CurriculumError, check_curriculum, load_curriculum
 from curlnav.sim import EnvConfig, NamoEnv, get_world
 from curlnav.worlds.distribution import DistributionError, WorldDistribution, WorldDraws
 from curlnav.worlds.heldout import HELD_OUT_FROM, HeldOutSeedError, held_out_seeds, training_seeds
@@ -148,9 +148,8 @@ def test_the_episode_loop_draws_a_world_per_episode_and_keeps_the_scenes_of_its_
 def test_both_training_modes_draw_from_an_assigned_distribution(tmp_path):
     from curlnav.actor.service import ActorCore, ActorServiceConfig
     from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport
-    from curlnav.scheduler.service import SchedulerCore
-
     from curlnav.run.serial import SerialRunConfig, SerialTrainer
+    from curlnav.scheduler.service import SchedulerCore
 
     path = tmp_path / "c.yaml"
     path.write_text(f"name: d\nstages:\n  - name: S1\n    worlds: ['{TINY}']\n")

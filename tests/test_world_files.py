@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from curlnav.sim import NamoEnv, WorldError, get_world, load_world, save_world
-from curlnav.sim.world import merge_cells_into_rectangles
+from curlnav.sim.geometry import merge_cells_into_rectangles
 
 
 def test_save_and_load_round_trip_keeps_grid_objects_and_pairs(tmp_path):

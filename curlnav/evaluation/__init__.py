@@ -1,11 +1,9 @@
-"""Evaluating policies: the one evaluation protocol (`protocol`), the oracle and the global plan
-(`baseline`), the map-less classical baselines tare-l and dwa (`local_planners`), side-by-side
-comparisons and the unseen-world suite (`compare`), the curriculum ablation (`ablation`), the
-paper's experiment report (`experiment`, `experiment_cli`), curves (`plots`) and trajectory
-animations (`animation`).
+"""Evaluating policies: the one evaluation protocol (`protocol`), side-by-side comparisons and the
+unseen-world suite (`compare`), curves (`plots`) and trajectory animations (`animation`). The
+planners they compare against live in `curlnav.planners`; the studies that train (the ablation,
+the paper's experiment) in `curlnav.run`.
 
-Submodules are imported on use (they span layers).
+Submodules are imported on use.
 """
 
-__all__ = ["ablation", "animation", "baseline", "compare", "experiment", "experiment_cli", "local_planners", "plots",
-           "protocol"]
+__all__ = ["animation", "compare", "plots", "protocol"]

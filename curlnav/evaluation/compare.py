@@ -1,9 +1,9 @@
 """Compare agents on the same worlds, start/goal pairs and seeds: ``curlnav eval A B ...``.
 
 An agent is a policy (``obs -> action``: an artefact folder or a checkpoint), alone or behind a
-global plan (``curlnav.evaluation.baseline.GlobalPlanAgent``), or a classical planner: the map-less
-``tare-l`` and ``dwa`` (``curlnav.evaluation.local_planners``) and the ``oracle`` with the true
-map and pose (``curlnav.evaluation.baseline.StaticMapPlanner``). Every
+global plan (``curlnav.planners.oracle.GlobalPlanAgent``), or a classical planner: the map-less
+``tare-l`` and ``dwa`` (``curlnav.planners.local``) and the ``oracle`` with the true
+map and pose (``curlnav.planners.oracle.StaticMapPlanner``). Every
 agent runs the evaluation protocol (``curlnav.evaluation.protocol.evaluate``: the evaluation environment,
 collisions counted and the trial goes on, 60 s limit) on every world's pairs, once per seed
 (a seed places the balls of worlds that re-place them on reset; the same for every agent).
@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from curlnav.evaluation.baseline import GlobalPlanAgent, GridPlanner, StaticMapPlanner, polyline_length
-from curlnav.evaluation.local_planners import DynamicWindowPlanner, TareLocalPlanner
 from curlnav.evaluation.protocol import EVAL_SEED, evaluate, held_out_pairs
+from curlnav.planners.local import DynamicWindowPlanner, TareLocalPlanner
+from curlnav.planners.oracle import GlobalPlanAgent, GridPlanner, StaticMapPlanner, polyline_length
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
-from curlnav.sim.pairs import draws_random_pairs
+from curlnav.worlds.pairs import draws_random_pairs
 
 DEFAULT_EPISODES = 50  # held-out pairs per world when neither pairs nor episodes are given
 SEED_STRIDE = 100_000  # seed k's episodes place their balls from EVAL_SEED + k * SEED_STRIDE + i

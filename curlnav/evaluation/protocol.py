@@ -20,7 +20,7 @@ import numpy as np
 
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World, get_world
 from curlnav.sim.env import pair_key
-from curlnav.sim.pairs import draws_random_pairs
+from curlnav.worlds.pairs import draws_random_pairs
 
 EVAL_SEED = 1_000_003  # seeds of held-out pairs live far from training seeds
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from curlnav.evaluation.baseline import GlobalPlan, WaypointConfig
+from curlnav.planners.oracle import GlobalPlan, WaypointConfig
 
 #: A scan of more ranges is refused as malformed (work per message bounded; 2-D scanners give
 #: a few thousand: 3,600 at 0.1 degree over 360)

@@ -1,9 +1,12 @@
 """Running training: the `train` command (`train`), the serial trainer (`serial`), the services as
 supervised local processes (`launch`, `supervise`), run records (`record`: metrics.csv, eval.csv,
 TensorBoard, summary.json), the evaluator beside training (`evaluator`), `curlnav status`
-(`status`) and `curlnav pull` (`pull`).
+(`status`), `curlnav pull` (`pull`), and the studies that train: the curriculum ablation
+(`ablation`), the paper's experiment report (`experiment`) and the experiment options every
+training command shares (`options`).
 
 Submodules are imported on use (they span layers: `record` is at the bottom, the rest on top).
 """
 
-__all__ = ["evaluator", "launch", "pull", "record", "serial", "status", "supervise", "train"]
+__all__ = ["ablation", "evaluator", "experiment", "launch", "options", "pull", "record", "serial", "status", "supervise",
+           "train"]

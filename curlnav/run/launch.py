@@ -29,7 +29,7 @@ def env_default(name: str, default):
 def add_serve_arguments(p) -> None:
     """``curlnav serve ROLE``: deployment options, plus the experiment config (``--preset``,
     ``--config``, ``--set``, ``--world``, ``--curriculum``), which every service of a run must share."""
-    from curlnav.evaluation.experiment_cli import add_config_arguments
+    from curlnav.run.options import add_config_arguments
 
     p.add_argument("role", choices=ROLES)
     p.add_argument("--run", default=env_default("run", "default"), help="run name: the Zenoh key prefix")
@@ -85,7 +85,7 @@ def build_service(args):
     import zlib
 
     from curlnav.bus.service import Deployment
-    from curlnav.evaluation.experiment_cli import experiment_from_args
+    from curlnav.run.options import experiment_from_args
     from curlnav.sim import get_world
 
     experiment = experiment_from_args(args)

@@ -3,9 +3,10 @@
 ``NamoEnv`` (and with it PyBullet) is imported on first use: a learner or a replay host reads the
 configs and worlds of this package and needs no simulator installed."""
 
-from .builtin import BUILTIN_WORLDS, get_world
+from curlnav.worlds.builtin import BUILTIN_WORLDS, get_world
+from curlnav.worlds.world import Ball, Box, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world, save_world
+
 from .config import ConfigError, EnvConfig, RewardConfig, RobotConfig
-from .world import Ball, Box, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world, save_world
 
 __all__ = ["Ball", "Box", "BUILTIN_WORLDS", "ConfigError", "Door", "EnvConfig", "NamoEnv", "RandomPairs",
            "Region", "RewardConfig", "RobotConfig", "StartGoal", "World", "WorldError", "get_world",

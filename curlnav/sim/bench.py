@@ -16,13 +16,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from curlnav.worlds.pairs import check_pairs_possible
+from curlnav.worlds.world import World
+
 from .bullet import import_pybullet
 from .config import EnvConfig
 from .env import NamoEnv
 from .geometry import merge_cells_into_rectangles
-from .pairs import check_pairs_possible
 from .scene import RAY_MASK, Scene
-from .world import World
 
 pb = import_pybullet()
 
@@ -137,9 +138,8 @@ def run_env_bench(steps: int = 5000, worlds: list[World] | None = None, cfg: Env
     """Benchmark each of ``worlds`` (default: bench-36m, barn-3x3-0 and slam-office-0)."""
     cfg = cfg or EnvConfig()
     if worlds is None:
+        from curlnav.worlds.builtin import get_world
         from curlnav.worlds.generators import generate
-
-        from .builtin import get_world
 
         worlds = [get_world("bench-36m"), generate("barn-3x3", 0), generate("slam-office", 0)]
     pinned = _pin_to_one_core() if pin else "not pinned"

@@ -37,11 +37,12 @@ import gymnasium as gym
 import numpy as np
 from scipy import ndimage
 
-from .builtin import get_world
+from curlnav.worlds.builtin import get_world
+from curlnav.worlds.pairs import PairSampler, check_pairs_possible, pair_key  # noqa: F401  (pair_key: public here too)
+from curlnav.worlds.world import StartGoal, World
+
 from .config import EnvConfig
-from .pairs import PairSampler, check_pairs_possible, pair_key  # noqa: F401  (pair_key: public here too)
 from .scene import Scene, connect
-from .world import StartGoal, World
 
 
 def _file_key(spec) -> tuple | None:
@@ -146,7 +147,7 @@ class NamoEnv(gym.Env):
         ``options``: ``world`` (built-in name, YAML path or ``World``) and ``pair`` (index or
         name of one of the world's start/goal pairs, or a ``StartGoal``). Without a pair, one
         is drawn: at random on the C-space grid if the world has ``random_pairs`` or no pairs of
-        its own (``curlnav.sim.pairs``), else among its pairs. Unknown worlds and pairs raise
+        its own (``curlnav.worlds.pairs``), else among its pairs. Unknown worlds and pairs raise
         ``WorldError`` / ``KeyError``.
         """
         super().reset(seed=seed)

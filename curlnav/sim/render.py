@@ -15,7 +15,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Polygon  # noqa: E402
 from matplotlib.transforms import Affine2D  # noqa: E402
 
-from .world import StartGoal, World  # noqa: E402
+from curlnav.worlds.world import StartGoal, World  # noqa: E402
 
 
 class DrawableEnv(Protocol):

@@ -24,10 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from curlnav.worlds.world import Ball, Box, Door, World
+
 from .bullet import import_pybullet
 from .config import EnvConfig
 from .geometry import cast_grid, cast_movable, face_segments, wall_faces
-from .world import Ball, Box, Door, World
 
 pb = import_pybullet()
 

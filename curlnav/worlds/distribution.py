@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from curlnav.sim.world import World
+from curlnav.worlds.world import World
 
 from .heldout import check_training_seed, check_training_world, held_out_from
 from .levels import LEVEL_SAMPLERS, LevelSampler

@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy import ndimage
 
-from curlnav.sim.world import Ball, Door, RandomPairs, Region, StartGoal, World
+from curlnav.worlds.world import Ball, Door, RandomPairs, Region, StartGoal, World
 
 from .metrics import GridGraph, inflate
 from .namo import NAMO_FAMILIES

@@ -25,8 +25,8 @@ import math
 
 import numpy as np
 
-from curlnav.sim.pairs import HUSKY_FOOTPRINT, footprint_free
-from curlnav.sim.world import Door, Region, StartGoal, World
+from curlnav.worlds.pairs import HUSKY_FOOTPRINT, footprint_free
+from curlnav.worlds.world import Door, Region, StartGoal, World
 
 from .metrics import GridGraph, inflate
 from .rank import CSPACE_RADIUS_M

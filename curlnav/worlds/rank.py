@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from curlnav.sim.pairs import sample_pairs
-from curlnav.sim.world import StartGoal, World
+from curlnav.worlds.pairs import sample_pairs
+from curlnav.worlds.world import StartGoal, World
 
 from .metrics import GridGraph, MetricMaps, MetricsError, barn_astar, inflate
 
@@ -81,7 +81,7 @@ MEASURE_SEED = 0
 
 def measured_pairs(world: World) -> tuple[StartGoal, ...]:
     """The pairs a world is measured (and drawn) with: its own, or for a plain map
-    ``MEASURE_PAIRS`` seeded random pairs (``curlnav.sim.pairs``; ``WorldError`` when no pair is
+    ``MEASURE_PAIRS`` seeded random pairs (``curlnav.worlds.pairs``; ``WorldError`` when no pair is
     possible)."""
     if world.pairs:
         return world.pairs

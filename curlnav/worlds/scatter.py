@@ -1,7 +1,7 @@
 """Make a NAMO task from any map: scatter movable balls on the shortest paths of its pairs.
 
 ``scatter_balls(world, count, seed)`` takes the world's pairs (or, for a plain SLAM map,
-``pairs`` seeded random ones from ``curlnav.sim.pairs``, which become the world's pairs), finds
+``pairs`` seeded random ones from ``curlnav.worlds.pairs``, which become the world's pairs), finds
 each pair's shortest path on the C-space grid of ``curlnav.worlds.rank.world_paths`` (0.15 m
 cells, the map inflated by 0.3 m; Dijkstra), and puts ``count`` balls on those paths, in turn
 over the pairs: each ball's centre is a path cell whose whole disc (plus ``gap``) clears every
@@ -16,8 +16,8 @@ import math
 
 import numpy as np
 
-from curlnav.sim.pairs import clearance_map, sample_pairs
-from curlnav.sim.world import Ball, World, WorldError
+from curlnav.worlds.pairs import clearance_map, sample_pairs
+from curlnav.worlds.world import Ball, World, WorldError
 
 from .rank import METRIC_RESOLUTION, path_points, world_paths
 

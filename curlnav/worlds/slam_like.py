@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from curlnav.sim.world import RandomPairs, World
+from curlnav.worlds.world import RandomPairs, World
 
 SLAM_RESOLUTION = 0.05  # m per cell, a common SLAM map resolution
 

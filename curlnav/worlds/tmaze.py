@@ -23,8 +23,8 @@ from collections import deque
 
 import numpy as np
 
-from curlnav.sim.pairs import HUSKY_FOOTPRINT, footprint_free
-from curlnav.sim.world import Ball, Door, Region, StartGoal, World
+from curlnav.worlds.pairs import HUSKY_FOOTPRINT, footprint_free
+from curlnav.worlds.world import Ball, Door, Region, StartGoal, World
 
 from .metrics import GridGraph, inflate
 from .namo import closed_door_grid, door_crossings

@@ -7,7 +7,7 @@ It produces ``<out>/report.md`` with its figures and tables:
   environment steps). Finding 1: the metrics predict which worlds train from scratch.
 - **Fig. 4**: two-stage fine-tuning (the networks of the easy world's run, then the hard
   world) against training from scratch, on the hardest worlds, at equal steps. Finding 2.
-- **Fig. 5**: the curriculum ablation (``curlnav.evaluation.ablation``): S1+S2, S1 only, S2 only, no
+- **Fig. 5**: the curriculum ablation (``curlnav.run.ablation``): S1+S2, S1 only, S2 only, no
   curriculum, held-out success on T-Maze p1..p4. Finding 3: S1+S2 is the most sample-efficient.
 - **Table II**: the S1+S2 policy (alone and behind a global plan) and the no-curriculum one
   against the map-less classical planners (``tare-l``, after TARE's local planner, and ``dwa``;
@@ -33,7 +33,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from curlnav.evaluation.ablation import (
+from curlnav.run.ablation import (
     PAPER_CONDITIONS,
     RunResult,
     RunSpec,
@@ -206,7 +206,6 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
     if (folder / "summary.csv").exists() and cached == key:
         return folder  # the same policies were compared already
     from curlnav.config import ExperimentConfig
-    from curlnav.evaluation.baseline import GlobalPlanAgent
     from curlnav.evaluation.compare import (
         Comparison,
         draw_trajectories,
@@ -216,6 +215,7 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
         table_ii,
         write_csv,
     )
+    from curlnav.planners.oracle import GlobalPlanAgent
     from curlnav.policy import PolicyArtefact
     from curlnav.sim import get_world
 

@@ -286,8 +286,6 @@ class World:
         return dataclasses.replace(self, **changes)
 
 
-# -- static geometry -----------------------------------------------------------------------
-from .geometry import merge_cells_into_rectangles  # noqa: E402,F401  (re-exported: part of the world API)
 
 # -- file format ---------------------------------------------------------------------------
 MAP_MODES = ("trinary", "scale", "raw")

@@ -30,7 +30,7 @@ stays retracted (L = 0).
   it (ROS's goal distance, map-less), clearance and speed.
 
 Both are defeated by a trap deeper than their range (a U between start and goal), as the
-paper's TARE-L was; ``curlnav.evaluation.baseline.StaticMapPlanner`` (``oracle``), with the true
+paper's TARE-L was; ``curlnav.planners.oracle.StaticMapPlanner`` (``oracle``), with the true
 map and pose, is the upper bound.
 """
 

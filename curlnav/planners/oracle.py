@@ -2,7 +2,7 @@
 the true pose; and the global plan that a learned local planner can follow (``GlobalPlanAgent``).
 
 ``StaticMapPlanner`` (``curlnav eval oracle``; ``planner`` is the old name) was the stand-in for
-TARE's local planner until the map-less baselines (``curlnav.evaluation.local_planners``:
+TARE's local planner until the map-less baselines (``curlnav.planners.local``:
 ``tare-l``, ``dwa``) were written; it knows the static map and its pose exactly, so it bounds what
 a local planner could do from above. It drives the same robot through the same ``NamoEnv``
 interface, with the same action limits and the same observation:
@@ -46,7 +46,7 @@ from scipy import ndimage
 
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig, StartGoal, World
-from curlnav.sim.pairs import clearance_map
+from curlnav.worlds.pairs import clearance_map
 
 ORACLE_LABEL = "oracle"
 PLANNER_LABEL = ORACLE_LABEL  # the old name
