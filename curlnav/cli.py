@@ -228,7 +228,7 @@ def _parse_params(items: list[str]) -> dict:
 
 def _cmd_worlds_generate(args: argparse.Namespace) -> int:
     from curlnav.sim import save_world
-    from curlnav.worlds.generators import generate
+    from curlnav.worlds.families import generate
 
     out = Path(args.out)
     for seed in range(args.seed, args.seed + args.count):
@@ -296,13 +296,13 @@ def _check_world(spec: str) -> None:
 def _cmd_worlds_rank(args: argparse.Namespace) -> int:
     import time as _time
 
-    from curlnav.worlds.rank import rank, table, write_outputs
+    from curlnav.worlds.rank import rank, ranking_table, write_outputs
 
     worlds = [_world_from_spec(spec) for spec in args.worlds]
     t0 = _time.perf_counter()
     rows = rank(worlds)
     elapsed = _time.perf_counter() - t0
-    print(table(rows))
+    print(ranking_table(rows))
     files = write_outputs(rows, args.out)
     print(f"measured {len(worlds)} worlds in {elapsed:.2f} s; wrote {files['csv']}, {files['json']}, {files['png']}")
     return 0
@@ -685,8 +685,9 @@ def _add_world_commands(sub) -> None:
     worlds = sub.add_parser("worlds", help="generate, draw and rank worlds")
     worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)
     p = worlds_sub.add_parser("generate", help="write generated worlds as world files")
-    p.add_argument("family", help="barn, barn-3x3, t-maze, cave, forest, garage, indoor, office, campus, auditorium, "
-                   "slam-office; unseen NAMO worlds: namo-office, namo-indoor, namo-auditorium")
+    from curlnav.worlds.families import FAMILIES
+
+    p.add_argument("family", help=", ".join(FAMILIES))
     p.add_argument("--seed", type=int, default=0, help="seed of the first world")
     p.add_argument("--count", type=int, default=1, help="worlds with seeds seed, seed+1, ...")
     p.add_argument("--param", action="append", help="generator parameter KEY=VALUE (e.g. fill_pct=0.3)")

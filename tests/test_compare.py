@@ -13,7 +13,7 @@ from curlnav.cli import main
 from curlnav.evaluation.compare import Episode, summarise
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig
-from curlnav.worlds.generators import FAMILIES, generate
+from curlnav.worlds.families import FAMILIES, generate
 from curlnav.worlds.namo import NAMO_FAMILIES, door_crossings
 from curlnav.worlds.rank import path_points, world_paths
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from curlnav.sim import NamoEnv, get_world, load_world, save_world
-from curlnav.worlds.generators import generate
+from curlnav.worlds.families import generate
 from curlnav.worlds.namo import closed_door_grid, door_crossings, opening_direction, reachable
 from curlnav.worlds.rank import path_points, world_paths
 

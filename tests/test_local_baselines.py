@@ -127,7 +127,7 @@ def far_pair(world: World, half_width: float, low: float, high: float, seed: int
                    strict=False)
 def test_on_slam_office_a_policy_behind_a_global_plan_crosses_rooms_it_cannot_cross_alone():
     from curlnav.policy import PolicyArtefact
-    from curlnav.worlds.generators import generate
+    from curlnav.worlds.families import generate
 
     cfg = evaluation_config()
     world = generate("slam-office", 300)

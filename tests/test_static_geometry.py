@@ -19,7 +19,7 @@ from curlnav.sim.env import NamoEnv
 from curlnav.sim.geometry import face_segments, merge_cells_into_rectangles, wall_faces
 from curlnav.sim.scene import GROUP_STATIC, RAY_MASK, Scene, StaticGeometryError
 from curlnav.worlds.builtin import get_world
-from curlnav.worlds.generators import FAMILIES, generate
+from curlnav.worlds.families import FAMILIES, generate
 from curlnav.worlds.pairs import footprint_free
 from curlnav.worlds.world import RandomPairs, StartGoal, World
 

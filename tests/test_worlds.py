@@ -12,7 +12,8 @@ import pytest
 
 from curlnav.sim import StartGoal, World
 from curlnav.worlds.bench import barn_parameter_grid
-from curlnav.worlds.generators import FAMILIES, barn_cellular_automaton, cspace, generate
+from curlnav.worlds.families import FAMILIES, generate
+from curlnav.worlds.generators import barn_cellular_automaton, cspace
 from curlnav.worlds.metrics import (
     GridGraph,
     MetricMaps,

@@ -95,7 +95,7 @@ class ExperimentError(ValueError):
 def prepare_worlds(out: Path, log=say) -> tuple[list[Path], list[Path]]:
     """World files: Table I's (one per family, seed 0) and the unseen NAMO worlds (seed 100)."""
     from curlnav.sim import save_world
-    from curlnav.worlds.generators import generate
+    from curlnav.worlds.families import generate
 
     folder = out / "worlds"
     folder.mkdir(parents=True, exist_ok=True)

@@ -139,7 +139,7 @@ def run_env_bench(steps: int = 5000, worlds: list[World] | None = None, cfg: Env
     cfg = cfg or EnvConfig()
     if worlds is None:
         from curlnav.worlds.builtin import get_world
-        from curlnav.worlds.generators import generate
+        from curlnav.worlds.families import generate
 
         worlds = [get_world("bench-36m"), generate("barn-3x3", 0), generate("slam-office", 0)]
     pinned = _pin_to_one_core() if pin else "not pinned"

@@ -107,7 +107,7 @@ _DISTRIBUTION = re.compile(r"^[a-z0-9][a-z0-9-]*:\d+-\d+(\(.*\))?$")
 def get_world(spec: str | os.PathLike | World) -> World:
     """The one resolver of a world argument (every command, service and curriculum file): a
     built-in name, a path to a world YAML, ``FAMILY:SEED`` for a generated world
-    (``t-maze:0``, ``barn-3x3:12``: ``curlnav.worlds.generators``), a world distribution's key
+    (``t-maze:0``, ``barn-3x3:12``: ``curlnav.worlds.families``), a world distribution's key
     (``barn-3x3:0-99(fill_pct=0.1~0.3)``: its first world, ``curlnav.worlds.distribution``), or a
     ``World`` (returned as is).
 
@@ -135,7 +135,7 @@ def get_world(spec: str | os.PathLike | World) -> World:
         return _CACHE[key]
     family, sep, seed = key.rpartition(":")
     if sep and seed.isdigit():
-        from curlnav.worlds.generators import FAMILIES, generate  # the families build on this module's World
+        from curlnav.worlds.families import FAMILIES, generate
 
         if family in FAMILIES:
             if key not in _CACHE:

@@ -111,11 +111,11 @@ class ParamRange:
 
 
 def _generator_params(family: str) -> set[str]:
-    from .generators import FAMILIES
+    from .families import FAMILIES
 
     if family not in FAMILIES:
         raise DistributionError(f"unknown world family {_show(family)}; choose from {', '.join(sorted(FAMILIES))}")
-    return {p for p in inspect.signature(FAMILIES[family]).parameters if p != "seed"}
+    return {p for p in inspect.signature(FAMILIES[family].load()).parameters if p != "seed"}
 
 
 @dataclass(frozen=True)
@@ -231,7 +231,7 @@ class WorldDistribution:
 
     def world(self, seed: int) -> World:
         """The distribution's world of ``seed``; a seed outside ``lo..hi`` or held out is refused."""
-        from .generators import generate
+        from .families import generate
 
         check_training_seed(self.family, seed)
         if seed not in self.seeds:

@@ -10,13 +10,13 @@ doors and narrow gates, one ball per room, curriculum pairs p1..p4), ``t-maze-do
 that vary, whose pairs must push doors open: ``curlnav.worlds.tmaze``), and worlds with the
 character of the paper's others: ``cave``, ``forest``, ``garage``, ``indoor``, ``office``,
 ``campus``, ``auditorium``; and ``slam-office``, a large office floor as a SLAM stack maps it
-(0.05 m cells, ragged walls, furniture, noise: thousands of rectangles).
+(0.05 m cells, ragged walls, furniture, noise: thousands of rectangles; ``curlnav.worlds.slam_like``).
+The registry of every family's name is ``curlnav.worlds.families.FAMILIES`` (with ``generate``).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
 from scipy import ndimage
@@ -24,9 +24,6 @@ from scipy import ndimage
 from curlnav.worlds.world import Ball, Door, RandomPairs, Region, StartGoal, World
 
 from .metrics import GridGraph, inflate
-from .namo import NAMO_FAMILIES
-from .slam_like import slam_office
-from .tmaze import t_maze_doors
 
 RESOLUTION = 0.15  # m per cell: BARN's, fine enough for doors and gates
 CSPACE_RADIUS_M = 0.3  # m; BARN's 2 cells at 0.15 m
@@ -376,20 +373,3 @@ def _finish(family: str, seed: int, grid: np.ndarray, pairs: int, min_distance: 
     chosen = choose_pairs(grid, pairs, min_distance, rng)
     return World(name=f"{family}-{seed}", occupancy=grid, resolution=RESOLUTION, pairs=chosen,
                  source=f"generated:{family} seed={seed}")
-
-
-FAMILIES: dict[str, Callable[..., World]] = {
-    "barn": barn, "barn-3x3": barn_3x3, "t-maze": t_maze, "cave": cave, "forest": forest, "garage": garage,
-    "indoor": indoor, "office": office, "campus": campus, "auditorium": auditorium,
-    "slam-office": slam_office, "t-maze-doors": t_maze_doors, **NAMO_FAMILIES,
-}
-
-
-def generate(family: str, seed: int = 0, **params) -> World:
-    """A world of ``family``; unknown families and parameters raise ``ValueError``."""
-    if family not in FAMILIES:
-        raise ValueError(f"unknown world family {family!r}; choose from {', '.join(FAMILIES)}")
-    try:
-        return FAMILIES[family](seed=seed, **params)
-    except TypeError as exc:
-        raise ValueError(f"bad parameters for {family}: {exc}") from None

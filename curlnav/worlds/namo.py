@@ -1,7 +1,7 @@
 """Unseen NAMO worlds for evaluation: auditorium-, office- and indoor-like floors with hinged
 doors in their passages and balls on their paths. No curriculum trains on them.
 
-Families (``curlnav.worlds.generators.FAMILIES``), each 22-24 m x 14-18 m at 0.15 m cells:
+Families (``curlnav.worlds.families.FAMILIES``), each 22-24 m x 14-18 m at 0.15 m cells:
 
 - ``namo-office``: a corridor with four rooms on each side; every room opens onto the corridor
   through a door; desks against the room walls.

@@ -174,7 +174,7 @@ def rank(worlds: list[World]) -> list[WorldDifficulty]:
     return sorted(out, key=lambda d: d.difficulty)
 
 
-def table(rows: list[WorldDifficulty]) -> str:
+def ranking_table(rows: list[WorldDifficulty]) -> str:
     """A text table like the paper's Table I."""
     head = (f"{'world':<16} {'size (m)':>11} {'Dist':>6} {'Vis':>6} {'Disp':>6} {'CD':>6} {'Tor':>6} "
             f"{'pairs':>5} {'difficulty':>10}  class")
