@@ -28,12 +28,12 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
-from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import RateMeter, reliable_publisher
 from curlnav.config import ActorConfig, ConfigError, D4PGConfig, ExperimentConfig
@@ -49,6 +49,11 @@ from curlnav.proto.messages import (
 )
 
 from .resend import ResendBuffer
+
+if TYPE_CHECKING:
+    from curlnav.learner.networks import BehaviourPolicy
+
+    from .vector import VectorEpisodeLoop
 
 log = logging.getLogger("curlnav.actor")
 
@@ -80,12 +85,14 @@ class ActorServiceConfig:
 class ActorCore:
     """The episode loop with swappable weights; no network."""
 
-    def __init__(self, cfg: ActorServiceConfig, experiment: ExperimentConfig) -> None:
+    def __init__(self, cfg: ActorServiceConfig, experiment: ExperimentConfig, policy: BehaviourPolicy,
+                 loop: VectorEpisodeLoop) -> None:
+        """``policy`` and ``loop``: actor ``cfg.actor_index``'s behaviour policy and its loop of
+        ``cfg.envs`` environments (``D4PGBuilder.make_actor_core`` wires them)."""
         self.cfg = cfg
-        builder = D4PGBuilder(experiment)
-        self.layout = builder.layout
-        self.policy = builder.make_behaviour_policy(cfg.actor_index, cfg.actor_count)
-        self.loop = builder.make_actor_loop(cfg.actor_index, self.policy, cfg.envs)
+        self.layout = policy.layout
+        self.policy = policy
+        self.loop = loop
         self.default_world = experiment.curriculum.world
         self.rng = np.random.default_rng([experiment.seed, cfg.actor_index, 1])
         self.weights_version = -1
@@ -128,11 +135,12 @@ class ActorCore:
 
 
 class ActorService:
-    def __init__(self, cfg: ActorServiceConfig, experiment: ExperimentConfig) -> None:
+    def __init__(self, cfg: ActorServiceConfig, experiment: ExperimentConfig, core: ActorCore) -> None:
+        """``core``: made from ``cfg`` and ``experiment`` (``D4PGBuilder.make_actor_service`` wires it)."""
         self.cfg = cfg
         self.experiment = experiment
         torch.set_num_threads(1)
-        self.core = ActorCore(cfg, experiment)
+        self.core = core
         self.cfg = self.core.cfg  # batch_steps as the core fitted it to replay.insert_batch
         self.registry = CollectorRegistry()
         self.m_steps = Counter("actor_env_steps", "environment steps", registry=self.registry)

@@ -19,16 +19,17 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 from safetensors.torch import save as safetensors_bytes
 
-from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import RateMeter, json_response, reliable_publisher
 from curlnav.config import ConfigError, ExperimentConfig, config_differences, config_to_dict
+from curlnav.layout import ObservationLayout
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import PriorityUpdate, SampledBatch, ServiceStatus, Weights
 
@@ -89,12 +90,27 @@ def weights_message(state, version: int) -> Weights:
     return Weights(version, state.steps, safetensors_bytes(tensors), state.config.to_dict())
 
 
+class LearnerParts(Protocol):
+    """What the learner service takes from the experiment's wiring (``curlnav.builder.D4PGBuilder``
+    satisfies it; the service never imports the builder, which sits above it)."""
+
+    layout: ObservationLayout
+
+    def make_learner_state(self, device=None): ...
+
+    def importance_weights(self, probabilities: np.ndarray, table_size: int) -> np.ndarray | None: ...
+
+    def batches_per_request(self, wanted: int) -> int: ...
+
+
 class LearnerService:
-    def __init__(self, cfg: LearnerServiceConfig, experiment: ExperimentConfig) -> None:
+    def __init__(self, cfg: LearnerServiceConfig, experiment: ExperimentConfig, parts: LearnerParts) -> None:
+        """``parts``: the experiment's wiring (``D4PGBuilder(experiment)``; its ``make_learner_service``
+        hands itself in)."""
         self.cfg = cfg
         self.experiment = experiment
-        self.builder = builder = D4PGBuilder(experiment)
-        self.layout = builder.layout
+        self.parts = parts
+        self.layout = parts.layout
         self.data_dir = Path(cfg.deployment.data_dir)
         (self.data_dir / "artefacts").mkdir(parents=True, exist_ok=True)
         torch.set_num_threads(cfg.torch_threads)
@@ -116,7 +132,7 @@ class LearnerService:
             log.info("resumed from %s at %d updates (checkpoint version %d), now weights version %d", ckpt,
                      self.state.steps, int(extra.get("version", 0)), self.version)
         else:
-            self.state = builder.make_learner_state(self.device)
+            self.state = parts.make_learner_state(self.device)
             # no checkpoint, but a crash may have come after versions went out: go on above them
             published = max(self.version_mark.read(), *self.artefact_versions(), 0)
             self.version = published + 1 if published else 0
@@ -146,7 +162,7 @@ class LearnerService:
         batch = payload if isinstance(payload, SampledBatch) else SampledBatch.decode(payload, self.layout)
         if tensors is None:
             tensors = self.assembler(batch)
-        weights = self.builder.importance_weights(batch.probabilities, self.replay_size)
+        weights = self.parts.importance_weights(batch.probabilities, self.replay_size)
         if weights is not None:
             tensors.weights = torch.as_tensor(weights, dtype=torch.float32).to(self.device)
         self.state, self.metrics, item_loss = sgd_step(self.state, tensors, sync=self.sync_every_update)
@@ -272,7 +288,7 @@ class LearnerService:
             weights_pub.put(self.latest_weights)
             feed = SampleFeed(session, topo.sample, self.experiment.d4pg.batch_size, self.layout,
                               in_flight=cfg.in_flight, depth=cfg.prefetch, assembler=self.assembler,
-                              batches_per_request=self.builder.batches_per_request(cfg.batches_per_request),
+                              batches_per_request=self.parts.batches_per_request(cfg.batches_per_request),
                               on_reject=lambda reason: self.m_rejected.labels(reason).inc()).start()
             last_status = last_ckpt = last_export = time.monotonic()
             try:

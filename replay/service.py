@@ -33,7 +33,8 @@ its own thread, never stalled by persistence (there is no snapshot to write: the
 state; segments whose transitions have left the table are deleted). With a prioritized replay,
 the learner's ``PriorityUpdate`` messages set the sampled items' new priorities (priorities are
 not persisted: restored items start at the maximum). The table and its rate limiter come from
-``D4PGBuilder`` (the experiment config), exactly as in the serial trainer.
+``D4PGBuilder`` (the experiment config; its ``make_replay_service`` hands the table in), exactly as
+in the serial trainer.
 
 An accepted transition the table cannot store (a frame it no longer knows or holds: the table's
 ``dropped``) is counted by reason, over the run like ``accepted``: ``dropped`` and
@@ -60,14 +61,13 @@ from pathlib import Path
 import zenoh
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
-from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import RateMeter, json_response
 from curlnav.config import ExperimentConfig
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import PriorityUpdate, SampledBatch, SampleRequest, ServiceStatus, TransitionBatch
 
-from .table import RateLimiterTimeout, ReplayInputError
+from .table import RateLimiterTimeout, ReplayInputError, ReplayTable
 from .wal import SegmentLog
 
 log = logging.getLogger("curlnav.replay")
@@ -111,14 +111,15 @@ class ReplayServiceConfig:
 
 
 class ReplayService:
-    def __init__(self, cfg: ReplayServiceConfig, experiment: ExperimentConfig) -> None:
+    def __init__(self, cfg: ReplayServiceConfig, experiment: ExperimentConfig, table: ReplayTable) -> None:
+        """``table``: the experiment's empty table (``D4PGBuilder.make_replay_table``; the builder's
+        ``make_replay_service`` wires both)."""
         self.cfg = cfg
         self.experiment = experiment
-        builder = D4PGBuilder(experiment)
-        self.layout = builder.layout
+        self.layout = table.layout
         self.data_dir = Path(cfg.deployment.data_dir)
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        self.table = builder.make_replay_table()
+        self.table = table
         self.max_batch = experiment.replay.insert_batch
         self.log = SegmentLog(self.data_dir / "wal", fsync=cfg.fsync)
         self.accepted_total = 0  # transitions accepted in the run's lifetime (the log's index)

@@ -14,6 +14,7 @@ import pytest
 from test_proto_and_cores import a_batch
 from test_service import wait_for
 
+from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment
 from curlnav.config import resolve_config
 from curlnav.replay.service import ReplayService, ReplayServiceConfig
@@ -24,7 +25,7 @@ SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "rep
 
 
 def replay_in(folder: Path, experiment=SMALL) -> ReplayService:
-    return ReplayService(ReplayServiceConfig(Deployment(data_dir=str(folder))), experiment)
+    return D4PGBuilder(experiment).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(folder))))
 
 
 def table_contents(service: ReplayService) -> dict[str, np.ndarray]:
@@ -129,23 +130,23 @@ def test_segments_that_left_the_table_are_deleted_and_a_restore_keeps_the_table(
 
 
 def test_a_restarted_learner_numbers_its_weights_above_every_version_published(tmp_path):
-    from curlnav.learner.service import LearnerService, LearnerServiceConfig
+    from curlnav.learner.service import LearnerServiceConfig
 
     experiment = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"])
     cfg = LearnerServiceConfig(Deployment(data_dir=str(tmp_path)))
-    first = LearnerService(cfg, experiment)
+    first = D4PGBuilder(experiment).make_learner_service(cfg)
     first.checkpoint()  # the checkpoint says version 0
     for _ in range(7):
         first.publish_version()  # versions 1..7 go out, then kill -9 before the next checkpoint
-    second = LearnerService(cfg, experiment)
+    second = D4PGBuilder(experiment).make_learner_service(cfg)
     assert second.version == 8
-    third = LearnerService(cfg, experiment)  # and again, without publishing anything
+    third = D4PGBuilder(experiment).make_learner_service(cfg)  # and again, without publishing anything
     assert third.version == 9
     # a learner that crashed after publishing but before its first checkpoint
     fresh = tmp_path / "fresh"
-    early = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(fresh))), experiment)
+    early = D4PGBuilder(experiment).make_learner_service(LearnerServiceConfig(Deployment(data_dir=str(fresh))))
     early.publish_version(), early.publish_version()
-    again = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(fresh))), experiment)
+    again = D4PGBuilder(experiment).make_learner_service(LearnerServiceConfig(Deployment(data_dir=str(fresh))))
     assert again.version == 3
 
 

@@ -366,17 +366,17 @@ def test_the_distributed_learners_artefacts_name_the_curriculums_worlds_read_onc
     """A user pulling a learner artefact sees what it was trained on: the curriculum's stage worlds
     and its name, not the actors' fallback world. The file is read when the learner starts: an
     artefact exported after the file went away still names it."""
+    from curlnav.builder import D4PGBuilder
     from curlnav.bus.service import Deployment
     from curlnav.config import resolve_config
-    from curlnav.learner.service import LearnerService, LearnerServiceConfig
+    from curlnav.learner.service import LearnerServiceConfig
     from curlnav.run.ablation import CURRICULA
 
     curriculum = tmp_path / "budget.yaml"
     curriculum.write_text((CURRICULA / "s1+s2-budget.yaml").read_text())
     (tmp_path / "worlds").symlink_to(CURRICULA / "worlds")
-    service = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(tmp_path / "learner"))),
-                             resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8",
-                                                       f"curriculum.file={curriculum}"]))
+    experiment = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", f"curriculum.file={curriculum}"])
+    service = D4PGBuilder(experiment).make_learner_service(LearnerServiceConfig(Deployment(data_dir=str(tmp_path / "learner"))))
     curriculum.unlink()
     training = json.loads((service.export() / "metadata.json").read_text())["training"]
     assert training["worlds"] == ["barn-3x3-0", "t-maze-0"] and training["curriculum"] == "s1+s2-budget"

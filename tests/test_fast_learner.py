@@ -83,11 +83,12 @@ def test_eight_environments_per_actor_fit_their_batches_to_the_replays_insert_ba
     """With the default 8 environments an actor's batch carries 8 n-step tails: a longer n-step
     makes the batches shorter instead of refusing to start; one that cannot fit is refused when
     the config is read, naming the fields."""
-    from curlnav.actor.service import ActorCore, ActorServiceConfig
+    from curlnav.actor.service import ActorServiceConfig
+    from curlnav.builder import D4PGBuilder
     from curlnav.config import ConfigError, ExperimentConfig, apply_overrides
 
     longer = apply_overrides(ExperimentConfig(), ["d4pg.n_step=6"])
-    core = ActorCore(ActorServiceConfig(envs=longer.actor.envs_per_process), longer)
+    core = D4PGBuilder(longer).make_actor_core(ActorServiceConfig(envs=longer.actor.envs_per_process))
     try:
         assert core.cfg.envs == 8 and core.cfg.batch_steps == 64 - 8 * 6
     finally:

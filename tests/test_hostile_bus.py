@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 from test_proto_and_cores import a_batch
 
+from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, check_agreement
 from curlnav.config import ExperimentConfig, resolve_config
 from curlnav.proto.codec import ProtoError
@@ -35,7 +36,7 @@ def now_us() -> int:
 
 
 def replay_in(folder: Path) -> ReplayService:
-    return ReplayService(ReplayServiceConfig(Deployment(data_dir=str(folder))), SMALL)
+    return D4PGBuilder(SMALL).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(folder))))
 
 
 # -- H1: one batch must not block an actor ----------------------------------------------------------
@@ -83,10 +84,10 @@ def test_h1_actor_ids_are_1_to_128_characters():
 def test_h1_an_actor_refused_as_duplicate_shows_it_and_numbers_on_above(tmp_path):
     """The replay acknowledged a seq the actor never sent (someone else's batch on its id): the
     actor's unacknowledged gauge counts its refused batches and its next batches number above."""
-    from curlnav.actor.service import ActorService, ActorServiceConfig
+    from curlnav.actor.service import ActorServiceConfig
     from curlnav.proto.messages import ServiceStatus
 
-    actor = ActorService(ActorServiceConfig(deployment=Deployment(data_dir=str(tmp_path))), ExperimentConfig())
+    actor = D4PGBuilder(ExperimentConfig()).make_actor_service(ActorServiceConfig(deployment=Deployment(data_dir=str(tmp_path))))
     try:
         def credit(ack: int):
             return type("Sample", (), {"payload": type("P", (), {"to_bytes": lambda self: ServiceStatus(

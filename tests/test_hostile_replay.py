@@ -17,6 +17,7 @@ from prometheus_client import generate_latest
 from test_hostile_bus import metrics, wait_for
 
 from curlnav.bench.chaos import Incarnation, account, summary_line
+from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment
 from curlnav.config import resolve_config
 from curlnav.layout import ObservationLayout
@@ -61,7 +62,7 @@ def forgotten_frames_batches(actor: str = "actor-0", seq: int | None = None) -> 
 
 
 def replay_in(folder) -> ReplayService:
-    return ReplayService(ReplayServiceConfig(Deployment(data_dir=str(folder))), SMALL)
+    return D4PGBuilder(SMALL).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(folder))))
 
 
 def dropped_metric(service: ReplayService, reason: str) -> float | None:

@@ -159,12 +159,13 @@ def test_beyond_max_threads_requests_wait_for_a_handler_and_are_then_served():
 # -- the learner's artefacts -------------------------------------------------------------------------
 
 def test_the_learner_serves_no_artefact_through_a_symlink(tmp_path):
+    from curlnav.builder import D4PGBuilder
     from curlnav.bus.service import Deployment
     from curlnav.config import resolve_config
-    from curlnav.learner.service import LearnerService, LearnerServiceConfig
+    from curlnav.learner.service import LearnerServiceConfig
 
-    service = LearnerService(LearnerServiceConfig(Deployment(data_dir=str(tmp_path / "learner"))),
-                             resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"]))
+    experiment = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"])
+    service = D4PGBuilder(experiment).make_learner_service(LearnerServiceConfig(Deployment(data_dir=str(tmp_path / "learner"))))
     real = service.export()
     version = int(real.name[1:])
     artefacts = real.parent

@@ -8,6 +8,7 @@ import msgpack
 import numpy as np
 import pytest
 
+from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment
 from curlnav.config import resolve_config
 from curlnav.layout import ObservationLayout
@@ -24,7 +25,7 @@ from curlnav.proto.messages import (
 )
 from curlnav.proto.topology import Topology
 from curlnav.replay.nstep import NStepWriter
-from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.replay.service import ReplayServiceConfig
 from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
 from curlnav.scheduler.service import SchedulerCore
 
@@ -91,7 +92,7 @@ def test_keys_live_under_the_run_prefix():
 
 def test_replay_core_counts_rejections_and_keeps_accepted_data(tmp_path):
     small = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8"])
-    service = ReplayService(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))), small)
+    service = D4PGBuilder(small).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))))
     assert service.handle_batch(a_batch(seq=0).encode()) == 6
     for payload in (b"junk", tamper(a_batch().encode(), v=2), b""):
         assert service.handle_batch(payload) == 0
@@ -102,7 +103,7 @@ def test_replay_core_counts_rejections_and_keeps_accepted_data(tmp_path):
     batch = SampledBatch.decode(reply, LAYOUT)  # raw buffers: frames, checked against the layout
     assert batch.obs().shape == batch.next_obs().shape == (8, LAYOUT.size) and len(batch.keys) == 8
     # no save, no close: as after kill -9, the log has every accepted batch
-    restored = ReplayService(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))), small)
+    restored = D4PGBuilder(small).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))))
     assert restored.table.size == 12 and restored.accepted_total == 12
 
 

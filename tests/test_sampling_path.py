@@ -143,7 +143,7 @@ def test_the_learner_asks_only_for_requests_the_replays_rate_limiter_can_admit(t
     from curlnav.bus.service import Deployment
     from curlnav.config import ExperimentConfig, apply_overrides
     from curlnav.proto.messages import SampleRequest
-    from curlnav.replay.service import ReplayService, ReplayServiceConfig
+    from curlnav.replay.service import ReplayServiceConfig
 
     base = ExperimentConfig()
     assert D4PGBuilder(base).batches_per_request(4) == 4  # the default config's slack admits 4 x 256
@@ -155,7 +155,7 @@ def test_the_learner_asks_only_for_requests_the_replays_rate_limiter_can_admit(t
     with pytest.raises(ValueError):
         limiter.check_batch((k + 1) * 256)
     assert 1 <= k < 8
-    service = ReplayService(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))), tight)
+    service = D4PGBuilder(tight).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(tmp_path))))
     with pytest.raises(ProtoError, match="range"):
         service.handle_sample(SampleRequest((k + 1) * 256, 0.1).encode())
     assert service.rejected().get("range") == 1

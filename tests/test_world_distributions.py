@@ -146,7 +146,8 @@ def test_the_episode_loop_draws_a_world_per_episode_and_keeps_the_scenes_of_its_
 
 
 def test_both_training_modes_draw_from_an_assigned_distribution(tmp_path):
-    from curlnav.actor.service import ActorCore, ActorServiceConfig
+    from curlnav.actor.service import ActorServiceConfig
+    from curlnav.builder import D4PGBuilder
     from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport
     from curlnav.run.serial import SerialRunConfig, SerialTrainer
     from curlnav.scheduler.service import SchedulerCore
@@ -160,7 +161,8 @@ def test_both_training_modes_draw_from_an_assigned_distribution(tmp_path):
     scheduler.actor_joined("a0")
     assignment = Assignment.decode(scheduler.assign(AssignmentRequest("a0").encode()))
     assert assignment.world == TINY
-    core = ActorCore(ActorServiceConfig(actor_id="a0", envs=2), experiment)  # two environments, each its own episodes
+    # two environments, each its own episodes
+    core = D4PGBuilder(experiment).make_actor_core(ActorServiceConfig(actor_id="a0", envs=2))
     try:
         names = []
         while len(names) < 4:

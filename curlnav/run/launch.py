@@ -84,6 +84,7 @@ def build_service(args):
     validated, its worlds and curriculum loaded. Raises on any bad input, before any network."""
     import zlib
 
+    from curlnav.builder import D4PGBuilder
     from curlnav.bus.service import Deployment
     from curlnav.run.options import experiment_from_args
     from curlnav.sim import get_world
@@ -98,17 +99,17 @@ def build_service(args):
                           credentials=args.bus_credentials)
 
     if args.role == "replay":
-        from curlnav.replay.service import ReplayService, ReplayServiceConfig
+        from curlnav.replay.service import ReplayServiceConfig
 
-        return ReplayService(ReplayServiceConfig(deployment("replay"), shm=args.shm), experiment)
+        return D4PGBuilder(experiment).make_replay_service(ReplayServiceConfig(deployment("replay"), shm=args.shm))
     if args.role == "learner":
-        from curlnav.learner.service import LearnerService, LearnerServiceConfig
+        from curlnav.learner.service import LearnerServiceConfig
 
-        return LearnerService(LearnerServiceConfig(deployment("learner"), publish_every=args.publish_every,
-                                                   export_every_s=args.export_every_s,
-                                                   checkpoint_every_s=args.checkpoint_every_s,
-                                                   torch_threads=args.threads, device=args.device,
-                                                   compile=args.compile, amp=args.amp), experiment)
+        return D4PGBuilder(experiment).make_learner_service(
+            LearnerServiceConfig(deployment("learner"), publish_every=args.publish_every,
+                                 export_every_s=args.export_every_s, checkpoint_every_s=args.checkpoint_every_s,
+                                 torch_threads=args.threads, device=args.device, compile=args.compile,
+                                 amp=args.amp))
     if args.role == "scheduler":
         from curlnav.scheduler.service import SchedulerService, SchedulerServiceConfig
 
@@ -119,14 +120,14 @@ def build_service(args):
         check_curriculum(service.core.curriculum, experiment.curriculum.file)
         return service
     if args.role == "actor":
-        from curlnav.actor.service import ActorService, ActorServiceConfig
+        from curlnav.actor.service import ActorServiceConfig
 
         actor_id, claimed = _actor_identity(args)
         index = args.actor_index if args.actor_index >= 0 else claimed if claimed is not None \
             else zlib.crc32(actor_id.encode()) % 997
-        return ActorService(ActorServiceConfig(actor_id=actor_id, actor_index=index, actor_count=args.actor_count,
-                                               envs=experiment.actor.envs_per_process,
-                                               deployment=deployment(f"actors/{actor_id}")), experiment)
+        return D4PGBuilder(experiment).make_actor_service(
+            ActorServiceConfig(actor_id=actor_id, actor_index=index, actor_count=args.actor_count,
+                               envs=experiment.actor.envs_per_process, deployment=deployment(f"actors/{actor_id}")))
     raise ValueError(f"no service for role {args.role!r}")
 
 
