@@ -250,7 +250,7 @@ def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
     """Everything a run will need from ``curriculum``, checked before anything starts: every
     world of every stage loads, and every sub-step pair exists in each world of its stage.
     Raises ``CurriculumError`` (one line naming the file, stage and world) otherwise."""
-    from curlnav.sim import get_world
+    from curlnav.worlds.builtin import get_world
     from curlnav.worlds.world import WorldError
 
     where = f"{source or curriculum.name}"
