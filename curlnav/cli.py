@@ -8,64 +8,6 @@ import os
 import sys
 from pathlib import Path
 
-
-def _drive_and_draw(policy, world: str, pair, seed: int, cfg, out: str, label: str, gif: bool = False,
-                    mcap: str | None = None) -> int:
-    """One episode of ``policy`` (observation -> action) in ``world``, drawn to a PNG in ``out``
-    (and, with ``gif``, animated step by step in a GIF beside it; with ``mcap``, written to that
-    MCAP file with ROS 2 schemas: ``curlnav.ros2.recording``)."""
-    from curlnav.evaluation.animation import EpisodeRecorder
-    from curlnav.sim import NamoEnv
-    from curlnav.sim.render import save_env_picture
-
-    env = NamoEnv(world, cfg)
-    obs, info = env.reset(seed=seed, options={"pair": pair} if pair is not None else None)
-    recorder = EpisodeRecorder(env) if gif else None
-    if mcap is not None:
-        from curlnav.ros2.recording import EpisodeMcap
-
-        mcap = EpisodeMcap(mcap, env, obs)
-    total = 0.0
-    while True:
-        if recorder is not None:
-            recorder.record()
-        action = policy(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
-        if mcap is not None:
-            mcap.step(action, obs)
-        total += reward
-        if terminated or truncated:
-            break
-    folder = Path(out)
-    folder.mkdir(parents=True, exist_ok=True)
-    picture = folder / f"{label}-{env.world.name}-{info['pair']}.png"
-    outcome = "reached the goal" if info["is_success"] else ("timed out" if truncated else "stopped")
-    summary = (f"{label} on {env.world.name}/{info['pair']}: {outcome} after {info['steps']} steps "
-               f"({info['steps'] * cfg.control_period:.1f} s simulated), return {total:.1f}, "
-               f"base collisions {info['base_collisions']}, end-effector collisions {info['end_effector_collisions']}")
-    save_env_picture(env, picture, title=summary.replace(" after", "\nafter", 1))
-    print(summary)
-    print(f"picture: {picture}")
-    if recorder is not None:
-        recorder.record()
-        animation = recorder.save_gif(picture.with_suffix(".gif"), title=f"{label} on {env.world.name}/{info['pair']}")
-        print(f"animation: {animation}")
-    if mcap is not None:
-        mcap.close()
-        print(f"mcap: {mcap.path}")
-    env.close()
-    return 0
-
-
-def _cmd_rollout(args: argparse.Namespace) -> int:
-    """Drive the goal-seeking controller for one episode and draw it."""
-    from curlnav.sim import EnvConfig
-    from curlnav.sim.controllers import GoalSeekingController
-
-    cfg = EnvConfig(max_episode_steps=args.steps, end_on_base_collision=False)
-    return _drive_and_draw(GoalSeekingController(cfg).act, args.world, args.pair, args.seed, cfg, args.out, "rollout")
-
-
 #: every world argument takes the same forms (one resolver, ``curlnav.sim.get_world``)
 WORLD_HELP = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
 
@@ -90,113 +32,6 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     from curlnav.run.train import show_config
 
     return show_config(args)
-
-
-POLICY_EXPECTED = "expected a policy artefact folder or a checkpoint .safetensors written by curlnav train"
-
-
-def _load_policy(path: str):
-    """A policy callable from an artefact folder or a training checkpoint (.safetensors)."""
-    p = Path(path)
-    if not p.exists():
-        raise ValueError(f"no policy at {path}: {POLICY_EXPECTED}")
-    if p.is_dir() or p.name == "metadata.json":
-        from curlnav.policy import PolicyArtefact
-
-        return PolicyArtefact(p if p.is_dir() else p.parent)
-    return _checkpoint_policy(p)
-
-
-def _checkpoint_policy(p: Path):
-    """The actor of a D4PG checkpoint; ``ValueError`` naming the file when it is not one."""
-    from safetensors import SafetensorError, safe_open
-
-    try:
-        with safe_open(str(p), framework="pt") as f:
-            meta = f.metadata() or {}
-    except SafetensorError as exc:
-        raise ValueError(f"{p}: not a safetensors file ({exc}); {POLICY_EXPECTED}") from None
-    if "curlnav" not in meta:
-        raise ValueError(f"{p}: a safetensors file without curlnav checkpoint metadata; {POLICY_EXPECTED}")
-    from curlnav.learner.d4pg import act, load_checkpoint
-
-    try:
-        state, _ = load_checkpoint(p)
-    except (SafetensorError, KeyError, TypeError, RuntimeError) as exc:
-        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"{p}: a damaged or incompatible curlnav checkpoint ({detail})") from None
-    state.actor.eval()
-    return lambda obs: act(state.actor, obs)
-
-
-def _cmd_eval(args: argparse.Namespace) -> int:
-    """Evaluate one or more agents (policies, ``tare-l``, ``dwa``, ``oracle``) side by side (``curlnav.evaluation.compare``)."""
-    from curlnav.config import ExperimentConfig
-    from curlnav.evaluation.compare import (
-        OVERALL,
-        SUITES,
-        Comparison,
-        draw_trajectories,
-        episode_pairs,
-        make_agent,
-        summarise,
-        table,
-        table_ii,
-        write_csv,
-    )
-    from curlnav.worlds.pairs import check_pairs_possible
-
-    suite = SUITES[args.suite] if args.suite else None
-    if suite is not None:
-        given = [flag for flag, value in (("--world", args.world), ("--pair", args.pair), ("--pairs", args.pairs),
-                                          ("--episodes", args.episodes), ("--seeds", args.seeds)) if value is not None]
-        if given:
-            raise ValueError(f"--suite {suite.name} fixes the worlds, pairs and ball placements; drop {', '.join(given)}")
-        args.seeds = 1  # the suite's pairs list a pair once per ball placement
-        print(f"suite {suite.name}: {suite.about}")
-    args.seeds = 1 if args.seeds is None else args.seeds
-    if args.seeds < 1:
-        raise ValueError(f"--seeds must be at least 1, got {args.seeds}")
-    env_config = ExperimentConfig().eval_env
-    worlds = [_world_from_spec(spec) for spec in (suite.worlds if suite else args.world or ["open-room"])]
-    for world in worlds:
-        check_pairs_possible(world)
-    agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
-    if len(agents) < len(args.agents):
-        raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
-    pairs_of = suite.pairs_of if suite else lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes)
-    comparison = Comparison(agents, worlds, pairs_of, env_config)
-    from tqdm import tqdm
-
-    with tqdm(total=comparison.episode_count(args.seeds), unit="episode", desc="eval", disable=None) as bar:
-        episodes = comparison.run(args.seeds, on_episode=lambda e: bar.update(), mcap=args.mcap)
-    summaries = summarise(episodes)
-    for s in summaries:
-        if s.world != OVERALL or len(worlds) > 1:
-            print(s.line())
-    if suite is not None:
-        print(table_ii(summaries))
-    elif len(agents) > 1 or len(worlds) > 1:
-        print(table(summaries))
-    if args.mcap:
-        print(f"wrote {len(episodes)} MCAP episodes in {args.mcap}")
-    if args.out:
-        files = write_csv(episodes, summaries, args.out)
-        if suite is not None:
-            (Path(args.out) / "table2.md").write_text(f"Suite {suite.name}: {suite.about}.\n\n{table_ii(summaries)}\n")
-        pictures = draw_trajectories(episodes, worlds, Path(args.out) / "trajectories", env_config.robot.base_width / 2)
-        print(f"wrote {files['episodes']}, {files['summary']} and {len(pictures)} trajectory pictures in "
-              f"{Path(args.out) / 'trajectories'}")
-    return 0
-
-
-def _cmd_policy_run(args: argparse.Namespace) -> int:
-    from curlnav.evaluation.protocol import evaluation_config
-    from curlnav.policy import PolicyArtefact
-
-    policy = PolicyArtefact(args.artefact)
-    return _drive_and_draw(policy, args.world, args.pair, args.seed, evaluation_config(), args.out,
-                           f"policy-v{policy.version}", gif=args.gif, mcap=args.mcap)
 
 
 def _cmd_bench_learner(args: argparse.Namespace) -> int:
@@ -552,52 +387,9 @@ def _add_training_commands(sub) -> None:
     add_config_arguments(p)
     p.set_defaults(func=_cmd_config_show)
 
-    p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs; several agents side by side",
-                       epilog="e.g. curlnav eval tare-l dwa oracle runs/x/policy-best --world namo-office:0 --world "
-                              "namo-indoor:0 --pairs 10 --seeds 2 --out results/")
-    p.add_argument("agents", nargs="+", metavar="AGENT",
-                   help="policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
-                        "a global plan), or a classical planner: `tare-l` (map-less, after TARE's local planner), "
-                        "`dwa` (map-less dynamic window approach), `oracle` (A* on the true map and pose; "
-                        "`planner` is its old name)")
-    p.add_argument("--global-plan", action="store_true",
-                   help="every policy's goal input is a waypoint 3 m ahead on the oracle's A* path of the static "
-                        "map, advanced as it goes, instead of the final goal (a learned local planner in a "
-                        "navigation stack)")
-    p.add_argument("--world", action="append",
-                   help="built-in world name, world YAML path or FAMILY:SEED; repeat for several (default: open-room)")
-    p.add_argument("--pair", action="append", help="start/goal pair name or index; repeat for several "
-                                                    "(default: held-out pairs)")
-    p.add_argument("--pairs", type=int, default=None, help="the first N held-out pairs of each world, once per seed")
-    p.add_argument("--episodes", type=int, default=None,
-                   help="episodes per world and seed: held-out pairs (default: 50), or the --pair pairs in turn "
-                        "(default: one each)")
-    p.add_argument("--seeds", type=int, default=None,
-                   help="runs of every pair, each with its own ball places (worlds that re-place balls on reset; "
-                        "default 1)")
-    p.add_argument("--suite", choices=["unseen"], default=None,
-                   help="a fixed set of worlds nobody trains on (unseen: NAMO office, indoor and auditorium at seeds "
-                        "300 and 301, barn-3x3 and slam-office at seed 300; 8 trials each: pairs x ball placements); prints "
-                        "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
-                        "writes table2.md beside the CSV files and pictures")
-    p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")
-    p.add_argument("--mcap", default=None, metavar="DIR",
-                   help="also write every episode of every agent to an MCAP file with ROS 2 schemas in DIR "
-                        "(AGENT__WORLD__PAIR__NNN.mcap; Foxglove opens them), as `curlnav policy run --mcap`")
-    p.set_defaults(func=_cmd_eval)
+    from curlnav.evaluation.commands import add_commands as add_evaluation_commands
 
-    policy = sub.add_parser("policy", help="use exported policy artefacts")
-    policy_sub = policy.add_subparsers(dest="policy_command", required=True)
-    p = policy_sub.add_parser("run", help="drive the robot with an artefact and draw the trajectory")
-    p.add_argument("artefact", help="artefact folder (with metadata.json, actor.onnx)")
-    p.add_argument("--world", default="open-room", help=WORLD_HELP)
-    p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
-    p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
-    p.add_argument("--out", default="runs/policy-run", help="folder for the picture")
-    p.add_argument("--gif", action="store_true", help="also write an animated GIF of the episode beside the picture")
-    p.add_argument("--mcap", default=None, metavar="FILE",
-                   help="also write the episode to an MCAP file with ROS 2 schemas (Foxglove opens it)")
-    p.set_defaults(func=_cmd_policy_run)
+    add_evaluation_commands(sub)
 
     p = sub.add_parser("serve", help="run one service (the container entry point)")
     from curlnav.run.launch import add_serve_arguments
@@ -674,13 +466,9 @@ def _add_bus_commands(sub) -> None:
 
 def _add_world_commands(sub) -> None:
     """rollout and worlds (generate, show, scatter-balls, rank)."""
-    p = sub.add_parser("rollout", help="drive a reactive controller for one episode and draw the trajectory")
-    p.add_argument("--world", default="door-corridor", help=WORLD_HELP)
-    p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
-    p.add_argument("--steps", type=int, default=300, help="episode length limit (steps of 0.2 s)")
-    p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
-    p.add_argument("--out", default="runs/rollout", help="folder for the picture")
-    p.set_defaults(func=_cmd_rollout)
+    from curlnav.evaluation.commands import add_rollout_command
+
+    add_rollout_command(sub)
 
     worlds = sub.add_parser("worlds", help="generate, draw and rank worlds")
     worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)

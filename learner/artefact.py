@@ -8,7 +8,8 @@ A folder with:
 - ``metadata.json``: observation and action layout and scaling, robot, training steps,
   curriculum stage, source worlds, and the sha256 of each file above.
 
-``curlnav.policy`` loads it with ONNX Runtime alone: no training code needed.
+``curlnav.policy`` loads it with ONNX Runtime alone: no training code needed. ``load_policy`` reads
+what an agent argument names (``curlnav eval``): an artefact folder or a training checkpoint.
 """
 
 from __future__ import annotations
@@ -19,15 +20,13 @@ import tempfile
 import time
 import warnings
 from pathlib import Path
-
-import torch
-from safetensors.torch import save_file
+from typing import TYPE_CHECKING
 
 from curlnav.policy import sha256_of  # the one checksum of artefact files, for writer and reader
 from curlnav.sim.config import EnvConfig
 
-from .d4pg import D4PGState
-from .networks import ACTION_HIGH, ACTION_LOW
+if TYPE_CHECKING:
+    from .d4pg import D4PGState
 
 ARTEFACT_FORMAT = "curlnav-policy"
 ARTEFACT_VERSION = 1
@@ -56,6 +55,11 @@ def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, 
                   curriculum_stage: str = "none", env_steps: int = 0, version: int | None = None,
                   extra: dict | None = None) -> Path:
     """Write the artefact folder ``out_dir`` atomically (built beside it, then renamed)."""
+    import torch  # here, so that reading a policy (``load_policy``) does not load torch
+    from safetensors.torch import save_file
+
+    from .networks import ACTION_HIGH, ACTION_LOW
+
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=out_dir.name + ".", dir=out_dir.parent))
@@ -110,3 +114,41 @@ def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, 
         shutil.rmtree(out_dir)
     tmp.rename(out_dir)
     return out_dir
+
+
+POLICY_EXPECTED = "expected a policy artefact folder or a checkpoint .safetensors written by curlnav train"
+
+
+def load_policy(path: str | Path):
+    """A policy callable (``obs -> action``) from an artefact folder (or its ``metadata.json``) or a
+    training checkpoint (.safetensors); ``ValueError`` naming the path when it is neither."""
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"no policy at {path}: {POLICY_EXPECTED}")
+    if p.is_dir() or p.name == "metadata.json":
+        from curlnav.policy import PolicyArtefact
+
+        return PolicyArtefact(p if p.is_dir() else p.parent)
+    return _checkpoint_policy(p)
+
+
+def _checkpoint_policy(p: Path):
+    """The actor of a D4PG checkpoint; ``ValueError`` naming the file when it is not one."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(p), framework="pt") as f:
+            meta = f.metadata() or {}
+    except SafetensorError as exc:
+        raise ValueError(f"{p}: not a safetensors file ({exc}); {POLICY_EXPECTED}") from None
+    if "curlnav" not in meta:
+        raise ValueError(f"{p}: a safetensors file without curlnav checkpoint metadata; {POLICY_EXPECTED}")
+    from .d4pg import act, load_checkpoint
+
+    try:
+        state, _ = load_checkpoint(p)
+    except (SafetensorError, KeyError, TypeError, RuntimeError) as exc:
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{p}: a damaged or incompatible curlnav checkpoint ({detail})") from None
+    state.actor.eval()
+    return lambda obs: act(state.actor, obs)

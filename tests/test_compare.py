@@ -131,14 +131,15 @@ def test_an_agent_scores_the_same_whatever_its_place_in_the_eval_list():
     """Two agents with the same weights must drive the same trajectories: an agent's result may not
     depend on which agents ran before it (PyBullet keeps solver warm-start state across resets, so
     a shared environment made the second copy drift; measured once: 93 % against 90 %)."""
-    from curlnav.cli import _load_policy
     from curlnav.config import ExperimentConfig
-    from curlnav.evaluation.compare import Comparison, episode_pairs, make_agent
+    from curlnav.evaluation.compare import Comparison, episode_pairs
+    from curlnav.learner.artefact import load_policy
+    from curlnav.planners import make_agent
     from curlnav.sim import get_world
 
     env_config = ExperimentConfig().eval_env
     shipped = Path(__file__).resolve().parent.parent / "policies" / "namo-s1-barn"
-    _, policy = make_agent(str(shipped), env_config, _load_policy)
+    _, policy = make_agent(str(shipped), env_config, load_policy)
     world = get_world(str(T_MAZE))
     episodes = Comparison({"first": policy, "second": policy}, [world],
                           lambda w: episode_pairs(w, ["p4"], None, 1), env_config).run()

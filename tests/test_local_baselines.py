@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from curlnav.evaluation.protocol import evaluate, evaluation_config, held_out_pairs
+from curlnav.planners.global_plan import GlobalPlanAgent
 from curlnav.planners.local import DynamicWindowPlanner, TareLocalPlanner
-from curlnav.planners.oracle import GlobalPlanAgent, GridPlanner, StaticMapPlanner
+from curlnav.planners.oracle import GridPlanner, StaticMapPlanner
 from curlnav.sim import NamoEnv, StartGoal, World
 from curlnav.worlds.pairs import clearance_map
 

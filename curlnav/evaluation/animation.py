@@ -1,13 +1,86 @@
-"""An episode as an animated GIF: the robot, its LiDAR hits and the movable objects, step by
-step, over the world drawing of ``curlnav.sim.render`` (``curlnav policy run --gif``)."""
+"""One episode drawn: ``drive_and_draw`` (``curlnav policy run``, ``curlnav rollout``) drives an agent
+for one episode through the evaluation protocol's loop and draws it to a PNG; ``EpisodeRecorder``
+animates it as a GIF: the robot, its LiDAR hits and the movable objects, step by step, over the
+world drawing of ``curlnav.sim.render`` (``curlnav policy run --gif``)."""
 
 from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+from curlnav.evaluation.protocol import StepRecorder, evaluate
+
+
+def drive_and_draw(agent, world, pair, seed: int, cfg, out: str | os.PathLike, label: str, gif: bool = False,
+                   mcap: str | os.PathLike | None = None,
+                   recorder: Callable[[Path, object, np.ndarray], StepRecorder] | None = None) -> int:
+    """One episode of ``agent`` (a policy, observation -> action, or an ``EpisodeAgent``) in
+    ``world`` (a spec or a ``World``) from ``pair`` (``None``: drawn with ``seed``), run by
+    ``curlnav.evaluation.protocol.evaluate`` in an environment of ``cfg`` and drawn to a PNG in
+    ``out`` (with ``gif``, also animated step by step in a GIF beside it; with ``mcap``, also
+    written to that file by ``recorder(path, env, observation)``, e.g.
+    ``curlnav.ros2.recording.EpisodeMcap``). Prints a summary and the files; returns 0."""
+    from curlnav.sim import NamoEnv
+    from curlnav.sim.render import save_env_picture
+
+    if mcap is not None and recorder is None:
+        raise ValueError("drive_and_draw(mcap=...) needs a recorder(path, env, observation)")
+    env = NamoEnv(world, cfg)
+    frames = EpisodeRecorder(env) if gif else None
+    written: list = []
+    ended: list[dict] = []
+
+    def steps(i: int, env: NamoEnv, observation: np.ndarray) -> StepRecorder:
+        parts = [] if frames is None else [frames.start()]
+        if mcap is not None:
+            written.append(recorder(Path(mcap), env, observation))
+            parts.append(written[-1])
+        return _Both(parts)
+
+    try:
+        evaluate(agent, env.world, [pair], cfg, seed=seed, on_episode=lambda i, info: ended.append(info), env=env,
+                 recorder=steps)
+        info = ended[-1]
+        folder = Path(out)
+        folder.mkdir(parents=True, exist_ok=True)
+        picture = folder / f"{label}-{env.world.name}-{info['pair']}.png"
+        outcome = "reached the goal" if info["is_success"] else ("timed out" if info["truncated"] else "stopped")
+        summary = (f"{label} on {env.world.name}/{info['pair']}: {outcome} after {info['steps']} steps "
+                   f"({info['steps'] * cfg.control_period:.1f} s simulated), return {info['episode_return']:.1f}, "
+                   f"base collisions {info['base_collisions']}, end-effector collisions "
+                   f"{info['end_effector_collisions']}")
+        save_env_picture(env, picture, title=summary.replace(" after", "\nafter", 1))
+        print(summary)
+        print(f"picture: {picture}")
+        if frames is not None:
+            animation = frames.save_gif(picture.with_suffix(".gif"),
+                                        title=f"{label} on {env.world.name}/{info['pair']}")
+            print(f"animation: {animation}")
+        for file in written:
+            print(f"mcap: {file.path}")
+    finally:
+        env.close()
+    return 0
+
+
+class _Both:
+    """Several ``StepRecorder``s as one."""
+
+    def __init__(self, parts: list) -> None:
+        self.parts = parts
+
+    def step(self, action: np.ndarray, observation: np.ndarray) -> None:
+        for part in self.parts:
+            part.step(action, observation)
+
+    def close(self) -> None:
+        for part in self.parts:
+            part.close()
 
 
 @dataclass(frozen=True)
@@ -24,11 +97,23 @@ class EpisodeFrame:
 
 
 class EpisodeRecorder:
-    """``record()`` after ``reset`` and after every ``step`` of ``env``; ``save_gif(path)``."""
+    """``record()`` after ``reset`` and after every ``step`` of ``env``; ``save_gif(path)``. As the
+    protocol's ``StepRecorder``: ``start()`` after ``reset`` (records and returns itself), then
+    ``step(action, observation)`` records each step; ``close()`` does nothing."""
 
     def __init__(self, env) -> None:
         self.env = env
         self.frames: list[EpisodeFrame] = []
+
+    def start(self) -> EpisodeRecorder:
+        self.record()
+        return self
+
+    def step(self, action: np.ndarray, observation: np.ndarray) -> None:
+        self.record()
+
+    def close(self) -> None:
+        pass
 
     def record(self) -> None:
         env, scene = self.env, self.env.scene

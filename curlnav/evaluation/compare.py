@@ -1,7 +1,8 @@
 """Compare agents on the same worlds, start/goal pairs and seeds: ``curlnav eval A B ...``.
 
 An agent is a policy (``obs -> action``: an artefact folder or a checkpoint), alone or behind a
-global plan (``curlnav.planners.oracle.GlobalPlanAgent``), or a classical planner: the map-less
+global plan (``curlnav.planners.global_plan.GlobalPlanAgent``), or a planner of the registry
+``curlnav.planners.PLANNERS`` (``curlnav.planners.make_agent`` makes either): the map-less
 ``tare-l`` and ``dwa`` (``curlnav.planners.local``) and the ``oracle`` with the true
 map and pose (``curlnav.planners.oracle.StaticMapPlanner``). Every
 agent runs the evaluation protocol (``curlnav.evaluation.protocol.evaluate``: the evaluation environment,
@@ -15,10 +16,11 @@ path length: ``mean(S_i * l_i / max(p_i, l_i))`` with ``p_i`` the path the base 
 movable objects ignored, the robot's half-width kept from walls) less the goal tolerance: a
 trial succeeds, and stops, 0.8 m short of the goal, so that is the shortest successful path.
 
-Outputs: ``table`` (agents side by side), ``write_csv`` (``episodes.csv``, a row per episode;
-``summary.csv``), ``draw_trajectories`` (a picture per world and pair with every agent's path,
-as the paper's Fig. 7), and with ``Comparison.run(mcap=DIR)`` every episode as an MCAP file with
-ROS 2 schemas (``curlnav.ros2.recording.EpisodeMcap``, as ``curlnav policy run --mcap``).
+Outputs: ``comparison_table`` (agents side by side), ``write_csv`` (``episodes.csv``, a row per
+episode; ``summary.csv``), ``draw_trajectories`` (a picture per world and pair with every agent's
+path, as the paper's Fig. 7), and with ``Comparison.run(mcap=DIR, recorder=...)`` every episode as
+a file in DIR made by the recorder the caller hands in (``curlnav eval --mcap`` hands in
+``curlnav.ros2.recording.EpisodeMcap``: MCAP with ROS 2 schemas, as ``curlnav policy run --mcap``).
 """
 
 from __future__ import annotations
@@ -32,9 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from curlnav.evaluation.protocol import EVAL_SEED, evaluate, held_out_pairs
-from curlnav.planners.local import DynamicWindowPlanner, TareLocalPlanner
-from curlnav.planners.oracle import GlobalPlanAgent, GridPlanner, StaticMapPlanner, polyline_length
+from curlnav.evaluation.protocol import EVAL_SEED, StepRecorder, evaluate, held_out_pairs
+from curlnav.planners.oracle import GridPlanner, polyline_length
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
 from curlnav.worlds.pairs import draws_random_pairs
 
@@ -160,9 +161,13 @@ class Comparison:
         return self._shortest[key]
 
     def run(self, seeds: int = 1, on_episode: Callable[[Episode], None] | None = None,
-            mcap: str | Path | None = None) -> list[Episode]:
+            mcap: str | Path | None = None,
+            recorder: Callable[[Path, NamoEnv, np.ndarray], StepRecorder] | None = None) -> list[Episode]:
         """Every agent on every world's pairs, ``seeds`` times; with ``mcap`` (a folder), each
-        episode also written there as ``mcap_name(...)`` with ROS 2 schemas (``EpisodeMcap``)."""
+        episode also written there as ``mcap_name(...)`` by ``recorder(path, env, observation)``
+        (a ``StepRecorder`` per episode; ``curlnav eval`` hands in ``EpisodeMcap``: ROS 2 schemas)."""
+        if mcap is not None and recorder is None:
+            raise ValueError("Comparison.run(mcap=...) needs a recorder(path, env, observation)")
         episodes: list[Episode] = []
         names = _file_safe_labels(list(self.agents)) if mcap is not None else {}
         for world in self.worlds:
@@ -182,9 +187,10 @@ class Comparison:
                             if on_episode:
                                 on_episode(episodes[-1])
 
-                        recorder = None if mcap is None else _mcap_recorder(Path(mcap), names[label], world, pairs, k)
+                        steps = None if mcap is None else _mcap_recorder(recorder, Path(mcap), names[label],
+                                                                         world, pairs, k)
                         evaluate(agent, world, pairs, self.env_config, seed=base, on_episode=record, env=env,
-                                 recorder=recorder)
+                                 recorder=steps)
                 finally:
                     env.close()
         return episodes
@@ -216,12 +222,13 @@ def _file_safe_labels(labels: list[str]) -> dict[str, str]:
     return out
 
 
-def _mcap_recorder(folder: Path, agent: str, world: World, pairs: list[StartGoal], k: int) -> Callable:
-    """``evaluate``'s ``recorder`` for seed ``k`` of ``agent`` on ``world``: an ``EpisodeMcap`` per episode."""
-    from curlnav.ros2.recording import EpisodeMcap
+def _mcap_recorder(make: Callable[[Path, NamoEnv, np.ndarray], StepRecorder], folder: Path, agent: str,
+                   world: World, pairs: list[StartGoal], k: int) -> Callable:
+    """``evaluate``'s ``recorder`` for seed ``k`` of ``agent`` on ``world``: ``make(path, env,
+    observation)`` per episode, its file named by ``mcap_name``."""
 
-    def recorder(i: int, env: NamoEnv, observation: np.ndarray) -> EpisodeMcap:
-        return EpisodeMcap(folder / mcap_name(agent, world.name, pairs[i].name, k * len(pairs) + i), env, observation)
+    def recorder(i: int, env: NamoEnv, observation: np.ndarray) -> StepRecorder:
+        return make(folder / mcap_name(agent, world.name, pairs[i].name, k * len(pairs) + i), env, observation)
 
     return recorder
 
@@ -265,7 +272,7 @@ METRICS = (  # (Summary field, row label, format)
 )
 
 
-def table(summaries: list[Summary]) -> str:
+def comparison_table(summaries: list[Summary]) -> str:
     """Agents side by side (columns), a block of metric rows per world and one over all worlds."""
     agents = list(dict.fromkeys(s.agent for s in summaries))
     worlds = list(dict.fromkeys(s.world for s in summaries))
@@ -355,32 +362,6 @@ def draw_trajectories(episodes: list[Episode], worlds: list[World], out: str | P
             plt.close(fig)
             written.append(path)
     return written
-
-
-#: the classical agents by name: the map-less baselines (``tare-l``, ``dwa``: the policy's inputs only)
-#: and the upper bound (``oracle``: A* on the true map and pose; ``planner`` is its old name)
-CLASSICAL_AGENTS = ("tare-l", "dwa", "oracle")
-AGENT_ALIASES = {"planner": "oracle"}
-GLOBAL_PLAN_SUFFIX = "+global-plan"
-
-
-def make_agent(spec: str, env_config: EnvConfig, load_policy: Callable[[str], object],
-               global_plan: bool = False) -> tuple[str, object]:
-    """``(label, agent)``: ``tare-l``, ``dwa``, ``oracle`` (or ``planner``) are the classical
-    agents; anything else is a policy ``load_policy`` loads (its label: the path as given). A
-    policy named with the suffix ``+global-plan``, or any policy when ``global_plan`` is set,
-    follows waypoints on the oracle's A* path (``GlobalPlanAgent``; label ``PATH + global plan``)."""
-    name = AGENT_ALIASES.get(spec, spec)
-    if name in CLASSICAL_AGENTS:
-        agent = {"tare-l": TareLocalPlanner, "dwa": DynamicWindowPlanner, "oracle": StaticMapPlanner}[name](env_config)
-        return agent.label, agent
-    if spec.endswith(GLOBAL_PLAN_SUFFIX):
-        spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
-    policy = load_policy(spec)
-    if global_plan:
-        agent = GlobalPlanAgent(policy, env_config, label=spec)
-        return agent.label, agent
-    return spec, policy
 
 
 # -- the unseen-world suite: Table II --------------------------------------------------------------------

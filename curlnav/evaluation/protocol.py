@@ -98,7 +98,8 @@ def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: s
     """Run ``policy`` (``obs -> action``, or an ``EpisodeAgent``) greedily once per pair (balls
     placed from ``seed + i``) in an environment of ``env_config`` (default:
     ``evaluation_config()``; pass an evaluation environment). ``on_episode(i, info)`` gets the
-    last step's ``info`` plus ``trajectory`` (the base's ``(x, y)`` at every step, m).
+    last step's ``info`` plus ``trajectory`` (the base's ``(x, y)`` at every step, m) and
+    ``truncated`` (the episode ran out of time). A pair of ``None`` is drawn by the environment.
     ``recorder(i, env, observation)``, if given, is called after each reset and returns a
     ``StepRecorder`` that sees every step of episode ``i`` and is closed when it ends."""
     cfg = env_config if env_config is not None else evaluation_config()
@@ -124,6 +125,7 @@ def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: s
                 if steps is not None:
                     steps.close()
             info["trajectory"] = list(env.trajectory)
+            info["truncated"] = bool(truncated)  # out of time (not ended by the goal or a collision)
             successes += int(info["is_success"])
             collisions += info["base_collisions"]
             ee_collisions += info["end_effector_collisions"]

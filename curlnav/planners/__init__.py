@@ -1,5 +1,134 @@
-"""Planners that drive the robot without learning: the oracle (A* on the true map and pose) and the
-global plan a policy can follow (`oracle`), and the map-less local planners tare-l and dwa on the
-same scan as a policy (`local`). Used by evaluation and by the ROS 2 node."""
+"""Planners that drive the robot without learning, and the registry that names them.
 
-__all__ = ["local", "oracle"]
+Modules: ``oracle`` (A* on the true map and pose, ``StaticMapPlanner``, and the ``GridPlanner``
+behind it), ``global_plan`` (a policy behind an A* path: ``GlobalPlan``, ``GlobalPlanAgent``) and
+``local`` (the map-less ``tare-l`` and ``dwa``, on the same scan as a policy).
+
+``PLANNERS`` names every planner an agent argument may name (``curlnav eval``, ``curlnav
+experiment``; the map-less ones also ``curlnav ros2 run``): a ``Planner`` with its class as an
+entry point (``"module:Class"``, imported only when used, so ``curlnav --help`` does not pay for
+the planners). A planner class takes the environment's ``EnvConfig``, has a ``label`` and is an
+``EpisodeAgent``: ``reset(world, pair)`` at the start of an episode, ``act(observation, info) ->
+action`` each step (``info["pose"]``: the base's ``(x, y, yaw)``). A map-less one uses nothing else
+than the observation and the pose (as odometry): the ROS 2 node calls ``reset(None, None)`` on
+each new goal. To add one: a module here and one ``Planner(...)`` line in ``PLANNERS`` (or
+``register`` at run time).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import import_module
+
+__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "agents_help", "canonical", "global_plan",
+           "local", "make_agent", "make_planner", "oracle", "register"]
+
+
+@dataclass(frozen=True)
+class Planner:
+    """A planner by name: ``entry_point`` is ``"package.module:Class"``; ``map_less`` when it sees
+    only what a policy sees (scan, labels, goal) and odometry, so it can run on a robot."""
+
+    name: str
+    entry_point: str
+    about: str
+    map_less: bool
+
+    def load(self) -> type:
+        """The planner's class (its module imported now)."""
+        module, _, attr = self.entry_point.partition(":")
+        return getattr(import_module(module), attr)
+
+
+#: every planner by name, in the order the help lists them
+PLANNERS: dict[str, Planner] = {}
+
+
+def register(planner: Planner) -> Planner:
+    """Add ``planner`` to ``PLANNERS`` (a name given twice is refused)."""
+    if planner.name in PLANNERS or planner.name in ALIASES:
+        raise ValueError(f"a planner named {planner.name!r} is registered already")
+    if ":" not in planner.entry_point:
+        raise ValueError(f"{planner.name}: entry point {planner.entry_point!r} is not 'module:Class'")
+    PLANNERS[planner.name] = planner
+    return planner
+
+
+#: old names still taken
+ALIASES = {"planner": "oracle"}
+#: appended to a policy argument, puts the policy behind the oracle's A* path (``GlobalPlanAgent``)
+GLOBAL_PLAN_SUFFIX = "+global-plan"
+
+for _planner in (
+    Planner("tare-l", "curlnav.planners.local:TareLocalPlanner", "map-less, after TARE's local planner", True),
+    Planner("dwa", "curlnav.planners.local:DynamicWindowPlanner", "map-less dynamic window approach", True),
+    Planner("oracle", "curlnav.planners.oracle:StaticMapPlanner", "A* on the true map and pose", False),
+):
+    register(_planner)
+
+
+def canonical(name: str) -> str | None:
+    """The registered name ``name`` stands for (an alias resolved), or None when it names no planner."""
+    name = ALIASES.get(name, name)
+    return name if name in PLANNERS else None
+
+
+def make_planner(name: str, env_config) -> object:
+    """The planner ``name`` (or an alias) for an environment of ``env_config``; ``ValueError`` naming
+    the planners when there is none of that name."""
+    key = canonical(name)
+    if key is None:
+        raise ValueError(f"no planner named {name!r}; planners: {', '.join(PLANNERS)}")
+    return PLANNERS[key].load()(env_config)
+
+
+def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
+               global_plan: bool = False) -> tuple[str, object]:
+    """``(label, agent)``: a name in ``PLANNERS`` (or ``ALIASES``) is that planner; anything else is
+    a policy ``load_policy`` loads (its label: the path as given). A policy named with the suffix
+    ``+global-plan``, or any policy when ``global_plan`` is set, follows waypoints on the oracle's
+    A* path (``GlobalPlanAgent``; label ``PATH + global plan``)."""
+    if canonical(spec) is not None:
+        agent = make_planner(spec, env_config)
+        return agent.label, agent
+    if spec.endswith(GLOBAL_PLAN_SUFFIX):
+        spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
+    policy = load_policy(spec)
+    if global_plan:
+        from curlnav.planners.global_plan import GlobalPlanAgent
+
+        agent = GlobalPlanAgent(policy, env_config, label=spec)
+        return agent.label, agent
+    return spec, policy
+
+
+def _planner_list(map_less_only: bool) -> str:
+    old = {}
+    for alias, name in ALIASES.items():
+        old.setdefault(name, []).append(alias)
+    parts = []
+    for p in PLANNERS.values():
+        if map_less_only and not p.map_less:
+            continue
+        also = "".join(f"; `{a}` is its old name" for a in old.get(p.name, []))
+        parts.append(f"`{p.name}` ({p.about}{also})")
+    return ", ".join(parts)
+
+
+def agents_help(map_less_only: bool = False) -> str:
+    """The help of an agent argument: ``curlnav eval``'s (every planner), or with ``map_less_only``
+    ``curlnav ros2 run``'s (a policy artefact or a map-less planner)."""
+    if map_less_only:
+        text = ("policy artefact folder (metadata.json + actor.onnx), or a map-less planner: "
+                + _planner_list(True))
+    else:
+        text = ("policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
+                "a global plan), or a classical planner: " + _planner_list(False))
+    return text.replace("%", "%%")  # argparse formats help with %
+
+
+def __getattr__(name: str):
+    if name in ("global_plan", "local", "oracle"):
+        return import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'curlnav.planners' has no attribute {name!r}")

@@ -7,15 +7,17 @@ import signal
 import sys
 import time
 
+from curlnav.planners import agents_help
+
 
 def add_ros2_commands(sub) -> None:
     """The ``ros2`` command group of ``curlnav``."""
     ros2 = sub.add_parser("ros2", help="the policy as a ROS 2 node and the simulator as a ROS 2 robot, over DDS "
                                        "(ROS 2 type names, rt/ topics, ROS_DOMAIN_ID; no ROS install needed)")
     ros2_sub = ros2.add_subparsers(dest="ros2_command", required=True)
-    p = ros2_sub.add_parser("run", help="POLICY as a node: /scan, /odom, /goal_pose, /goal_cancel (/plan) in; "
+    p = ros2_sub.add_parser("run", help="AGENT as a node: /scan, /odom, /goal_pose, /goal_cancel (/plan) in; "
                                         "/cmd_vel, /arm_cmd, /goal_state out")
-    p.add_argument("policy", help="policy artefact folder (metadata.json + actor.onnx)")
+    p.add_argument("agent", metavar="AGENT", help=agents_help(map_less_only=True))
     p.add_argument("--global-plan", action="store_true", help="follow /plan (nav_msgs/Path) waypoint by waypoint")
     p.add_argument("--rate-hz", type=float, default=None, help="control rate (default: the policy's, 5 Hz)")
     p.add_argument("--silence-s", type=float, default=0.5,
@@ -56,35 +58,56 @@ def _stopper(duration_s: float | None):
     return lambda: bool(stopped) or time.monotonic() >= end
 
 
-def _bus(args):
+def _bus(args, max_sample_bytes: int | None = None):
     from .topics import Bus, domain_id_from_env
 
     domain = args.domain_id if args.domain_id is not None else domain_id_from_env()
     if not 0 <= domain <= 232:
         raise ValueError(f"--domain-id must be 0-232, got {domain}")
-    return Bus(domain, loopback=args.loopback), domain
+    return Bus(domain, loopback=args.loopback, max_sample_bytes=max_sample_bytes), domain
+
+
+def _agent(name: str):
+    """``(agent, layout)`` for ``curlnav ros2 run AGENT``: a map-less planner of the registry
+    (``curlnav.planners.PLANNERS``) on the evaluation environment's scan and robot, or a policy
+    artefact with the layout of its metadata."""
+    from curlnav.planners import PLANNERS, canonical, make_planner
+
+    from .node import ScanLayout
+
+    planner = canonical(name)
+    if planner is not None:
+        if not PLANNERS[planner].map_less:
+            raise ValueError(f"{name} needs the true map and pose, which the node has not; on a robot: a policy "
+                             f"artefact or a map-less planner ({', '.join(p.name for p in PLANNERS.values() if p.map_less)})")
+        from curlnav.config import ExperimentConfig
+
+        env_config = ExperimentConfig().eval_env
+        return make_planner(planner, env_config), ScanLayout.from_env_config(env_config)
+    from curlnav.policy import PolicyArtefact
+
+    policy = PolicyArtefact(name)
+    layout = ScanLayout.of(policy.metadata)
+    if layout.limits_problem():
+        raise ValueError(f"{name}: {layout.limits_problem()}: the node cannot bound its commands")
+    if layout.observation_size != policy.observation_size:
+        raise ValueError(f"{name}: the metadata's layout gives {layout.observation_size} values, the policy "
+                         f"takes {policy.observation_size}")
+    return policy, layout
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from curlnav.policy import PolicyArtefact
+    from .node import NodeConfig, PolicyNode, run_node
+    from .topics import NODE_MAX_SAMPLE_BYTES, NODE_TOPICS, remap
 
-    from .node import NodeConfig, PolicyNode, ScanLayout, run_node
-    from .topics import NODE_TOPICS, remap
-
-    policy = PolicyArtefact(args.policy)
-    layout = ScanLayout.of(policy.metadata)
-    if layout.limits_problem():
-        raise ValueError(f"{args.policy}: {layout.limits_problem()}: the node cannot bound its commands")
-    if layout.observation_size != policy.observation_size:
-        raise ValueError(f"{args.policy}: the metadata's layout gives {layout.observation_size} values, the policy "
-                         f"takes {policy.observation_size}")
+    policy, layout = _agent(args.agent)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m)
     topics = remap(NODE_TOPICS, args.remap)
     node = PolicyNode(policy, layout, config, follow_plan=args.global_plan)
-    bus, domain = _bus(args)
-    print(f"curlnav ros2 run: {args.policy} on domain {domain}, {config.rate_hz:g} Hz; "
+    bus, domain = _bus(args, max_sample_bytes=NODE_MAX_SAMPLE_BYTES)
+    print(f"curlnav ros2 run: {args.agent} on domain {domain}, {config.rate_hz:g} Hz; "
           + ", ".join(f"{k} {t.name}" for k, t in topics.items() if k != "plan" or args.global_plan),
           file=sys.stderr, flush=True)
     latency = run_node(node, bus, topics, stop=_stopper(args.duration_s), stats_every_s=args.stats_every_s)

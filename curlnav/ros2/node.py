@@ -1,5 +1,6 @@
-"""A policy artefact as a ROS 2 node: ``/scan`` + ``/odom`` + ``/goal_pose`` (+ ``/plan``) in,
-``/cmd_vel`` + ``/arm_cmd`` + ``/goal_state`` out, at the policy's control rate.
+"""A policy artefact (or a map-less planner of ``curlnav.planners``) as a ROS 2 node: ``/scan`` +
+``/odom`` + ``/goal_pose`` (+ ``/plan``) in, ``/cmd_vel`` + ``/arm_cmd`` + ``/goal_state`` out, at
+the policy's control rate.
 
 ``PolicyNode`` is the core (no DDS: messages in, ``Command`` out, testable directly);
 ``run_node`` is the shell that wires it to DDS topics and a clock.
@@ -30,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from curlnav.planners.oracle import GlobalPlan, WaypointConfig
+from curlnav.planners.global_plan import GlobalPlan, WaypointConfig
 
 #: A scan of more ranges is refused as malformed (work per message bounded; 2-D scanners give
 #: a few thousand: 3,600 at 0.1 degree over 360)
@@ -64,9 +65,10 @@ class NodeConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
-        if self.silence_s < 1.0 / self.rate_hz:
-            raise ValueError(f"silence_s ({self.silence_s:g} s) must be at least one control period "
-                             f"({1.0 / self.rate_hz:g} s at {self.rate_hz:g} Hz): the watchdog would stop every command")
+        if self.silence_s < 2.0 / self.rate_hz:
+            # commands go out on the first scan after 0.9 period: up to about 1.5 periods apart
+            raise ValueError(f"silence_s ({self.silence_s:g} s) must be at least two control periods "
+                             f"({2.0 / self.rate_hz:g} s at {self.rate_hz:g} Hz): the watchdog would stop between commands")
         if self.max_goal_m > ODOM_BOUND_M:
             raise ValueError(f"max_goal_m must be at most {ODOM_BOUND_M:g} m, got {self.max_goal_m:g}")
 
@@ -101,6 +103,16 @@ class ScanLayout:
                        control_period_s=float(obs.get("control_period_s", 0.2)))
         except (AttributeError, IndexError, KeyError, TypeError, ValueError, OverflowError) as exc:
             raise ValueError(f"metadata: the observation layout or action.scale cannot be read ({exc})") from None
+
+    @classmethod
+    def from_env_config(cls, cfg) -> ScanLayout:
+        """The layout of an environment (``curlnav.sim.EnvConfig``): what a planner built for it sees
+        and commands (the values an artefact exported from it writes in its metadata)."""
+        robot = cfg.robot
+        return cls(beams=cfg.lidar_beams, fov_rad=cfg.lidar_fov, max_range_m=cfg.lidar_max_range,
+                   range_frames=cfg.range_frames, label_frames=cfg.label_frames, goal_frames=cfg.goal_frames,
+                   max_linear_speed=robot.max_linear_speed, max_angular_speed=robot.max_angular_speed,
+                   arm_reach=robot.arm_reach, control_period_s=cfg.control_period)
 
     @property
     def limits(self) -> tuple[float, float, float]:
@@ -271,6 +283,10 @@ class PolicyNode:
     def __init__(self, policy, layout: ScanLayout | None = None, config: NodeConfig | None = None,
                  follow_plan: bool = False) -> None:
         self.policy = policy
+        # a planner (``curlnav.planners``: ``reset(world, pair)``, ``act(observation, info)``) gets
+        # the odometry pose as ``info["pose"]`` and a reset, without world or pair, on each new goal
+        self.agent = policy if callable(getattr(policy, "act", None)) and callable(getattr(policy, "reset", None)) \
+            else None
         self.layout = layout or ScanLayout()
         self.config = config or NodeConfig()
         self.follow_plan = follow_plan
@@ -289,6 +305,7 @@ class PolicyNode:
         self._best_t = -math.inf
         self._ended_goal: tuple[float, float] | None = None
         self._stop_pending = False
+        self._reset_agent = False  # the planner is reset before its first action for a goal
 
     # -- inputs -------------------------------------------------------------------------------------
     def on_scan(self, scan, now: float) -> bool:
@@ -405,8 +422,11 @@ class PolicyNode:
         return True
 
     def _start(self, goal: tuple[float, float]) -> None:
-        self.goal, self._stacks, self._ended_goal = goal, None, None
+        # a stop still pending for a goal that ended in the same pass is superseded by the new
+        # goal's commands: left set, it would make the loop act on every pass, not at rate_hz
+        self.goal, self._stacks, self._ended_goal, self._stop_pending = goal, None, None, False
         self._best, self._best_t = None, -math.inf
+        self._reset_agent = self.agent is not None
 
     def _end(self, state: str) -> None:
         """The goal held (if any) ends as ``state``: one stop goes out, nothing resumes it."""
@@ -470,7 +490,15 @@ class PolicyNode:
             return self.act(now)
         lay = self.layout
         try:
-            action = np.asarray(self.policy(self.observation()), dtype=np.float64).reshape(-1)
+            observation = self.observation()
+            if self.agent is None:
+                action = self.policy(observation)
+            else:
+                if self._reset_agent:  # a new goal: the planner starts afresh (no map, no pair)
+                    self._reset_agent = False
+                    self.agent.reset(None, None)
+                action = self.agent.act(observation, {"pose": self._pose})
+            action = np.asarray(action, dtype=np.float64).reshape(-1)
             if len(action) != 3:
                 raise ValueError(f"{len(action)} values, expected 3")
         except Exception as exc:  # a broken artefact must not end the node while the robot moves
@@ -569,12 +597,22 @@ def run_node(node: PolicyNode, bus, topics: dict, stop=lambda: False, stats_ever
     # what went out last; "idle" is not published (the first /goal_state says what became of a goal)
     sent = {"t": time.monotonic(), "moving": False, "state": node.state, "logged": node.state, "late": False}
 
+    lines: list[str] = []  # log lines written under the lock, printed outside it (a full stderr pipe
+    # must never hold the lock, so that the watchdog's stop always goes out)
+
+    def flush_log() -> None:  # not under lock
+        with lock:
+            out = lines[:]
+            lines.clear()
+        for line in out:
+            log(line)
+
     def write_state(state: str) -> None:  # under lock
         if state != sent["state"]:
             writers["goal_state"].write(build(topics["goal_state"].type, {"data": state}))
             sent["state"] = state
         if state != sent["logged"]:
-            log(f"curlnav ros2 run: {state}")
+            lines.append(f"curlnav ros2 run: {state}")
             sent["logged"] = state
 
     def write_command(command: Command) -> None:  # under lock
@@ -594,6 +632,7 @@ def run_node(node: PolicyNode, bus, topics: dict, stop=lambda: False, stats_ever
                 latency.add(scan_taken, source_ns, time.monotonic(), time.time_ns())
             sent["late"] = False
             write_state(node.state)
+        flush_log()
 
     def watchdog(halt: threading.Event) -> None:
         while not halt.wait(0.05):
@@ -604,8 +643,10 @@ def run_node(node: PolicyNode, bus, topics: dict, stop=lambda: False, stats_ever
                     node.counts["watchdog_stops"] += 1
                     if not sent["late"]:
                         sent["late"] = True
-                        log(f"curlnav ros2 run: watchdog: no /cmd_vel for {quiet:.2f} s (control loop late), stop sent")
+                        lines.append(f"curlnav ros2 run: watchdog: no /cmd_vel for {quiet:.2f} s (control loop late), "
+                                     "stop sent")
                         write_state(f"stopped: control loop late (no /cmd_vel for {silence:g} s)")
+            flush_log()
 
     halt = threading.Event()
     guard_thread = threading.Thread(target=watchdog, args=(halt,), name="curlnav-watchdog", daemon=True)
@@ -615,7 +656,14 @@ def run_node(node: PolicyNode, bus, topics: dict, stop=lambda: False, stats_ever
         while not stop():
             bus.wait(0.05)
             now = time.monotonic()
-            fresh_scan = None
+            fresh_scan, goal_before = None, node.goal
+            # odometry first: a restarted robot ends the goal of before, not a goal sent to the new one;
+            # cancels before goals: "cancel, then a new goal" in one pass keeps the new goal
+            for odom in bus.take(readers["odom"], 64):
+                node.on_odom(odom, now, source=odom.sample_info.publication_handle)
+            if "goal_cancel" in readers:
+                for _ in bus.take(readers["goal_cancel"], 16):
+                    node.on_cancel()
             for goal in bus.take(readers["goal_pose"], 16):
                 if node.on_goal(goal):
                     log(f"curlnav ros2 run: goal ({goal.pose.position.x:.2f}, {goal.pose.position.y:.2f})")
@@ -623,14 +671,12 @@ def run_node(node: PolicyNode, bus, topics: dict, stop=lambda: False, stats_ever
                     with lock:
                         sent["logged"] = None  # each refused goal is logged, one line each
                         write_state(node.state)
-            if "goal_cancel" in readers:
-                for _ in bus.take(readers["goal_cancel"], 16):
-                    node.on_cancel()
             if "plan" in readers:
                 for path in bus.take(readers["plan"], 4):
                     node.on_plan(path)
-            for odom in bus.take(readers["odom"], 64):
-                node.on_odom(odom, now, source=odom.sample_info.publication_handle)
+            if node.goal is not None and node.goal != goal_before:
+                with lock:  # the watchdog counts a new goal's silence from its start, not from the idle time before
+                    sent["t"] = max(sent["t"], time.monotonic())
             for scan in bus.take(readers["scan"], 16):
                 fresh_scan = scan if node.on_scan(scan, now) else None
             now = time.monotonic()
@@ -649,6 +695,7 @@ def run_node(node: PolicyNode, bus, topics: dict, stop=lambda: False, stats_ever
                     publish(command)
             with lock:
                 write_state(node.state)
+            flush_log()
             if now - last_stats >= stats_every_s:
                 last_stats = now
                 log(f"curlnav ros2 run: {dict(node.counts)}; {latency.summary()}")

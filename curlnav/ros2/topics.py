@@ -83,16 +83,33 @@ LOOPBACK_CONFIG = """<CycloneDDS><Domain Id="any">
 </Domain></CycloneDDS>"""
 
 
+#: The largest sample (serialised bytes) the policy node takes: a scan of ``MAX_SCAN_RANGES``
+#: ranges is 128 KiB, a plan of ``MAX_PLAN_POSES`` poses about 1.6 MB. Cyclone drops a bigger
+#: sample before Python sees it, so a hostile publisher cannot make the node decode gigabytes.
+NODE_MAX_SAMPLE_BYTES = 4 << 20
+
+
+def sample_limit_config(max_sample_bytes: int) -> str:
+    """A Cyclone DDS config fragment that drops samples over ``max_sample_bytes``."""
+    return (f'<CycloneDDS><Domain Id="any"><Internal><MaxSampleSize>{int(max_sample_bytes)}B</MaxSampleSize>'
+            '</Internal></Domain></CycloneDDS>')
+
+
 class Bus:
     """One DDS participant on ``domain_id`` with typed readers and writers of ``TopicSpec``s.
     ``loopback`` keeps it on this machine (``LOOPBACK_CONFIG``); otherwise Cyclone's own config
-    (``CYCLONEDDS_URI``) or its default applies."""
+    (``CYCLONEDDS_URI``) or its default applies. ``max_sample_bytes``: samples larger than this
+    are dropped by Cyclone (added to the config in force)."""
 
-    def __init__(self, domain_id: int, loopback: bool = False) -> None:
+    def __init__(self, domain_id: int, loopback: bool = False, max_sample_bytes: int | None = None) -> None:
         from cyclonedds.core import WaitSet
         from cyclonedds.domain import Domain, DomainParticipant
 
-        self.domain = Domain(domain_id, LOOPBACK_CONFIG) if loopback else None
+        parts = [LOOPBACK_CONFIG] if loopback else [os.environ.get("CYCLONEDDS_URI", "").strip()]
+        if max_sample_bytes is not None:
+            parts.append(sample_limit_config(max_sample_bytes))
+        config = ",".join(p for p in parts if p)
+        self.domain = Domain(domain_id, config) if config and (loopback or max_sample_bytes is not None) else None
         self.participant = DomainParticipant(domain_id)
         self.waitset = WaitSet(self.participant)
         self._topics: dict[str, object] = {}

@@ -208,14 +208,14 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
     from curlnav.config import ExperimentConfig
     from curlnav.evaluation.compare import (
         Comparison,
+        comparison_table,
         draw_trajectories,
-        make_agent,
         summarise,
-        table,
         table_ii,
         write_csv,
     )
-    from curlnav.planners.oracle import GlobalPlanAgent
+    from curlnav.planners import make_agent
+    from curlnav.planners.global_plan import GlobalPlanAgent
     from curlnav.policy import PolicyArtefact
     from curlnav.sim import get_world
 
@@ -245,7 +245,7 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
     folder.mkdir(parents=True, exist_ok=True)
     write_csv(episodes, summaries, folder)
     draw_trajectories(episodes, worlds, folder / "trajectories", env_config.robot.base_width / 2)
-    (folder / "table.txt").write_text(table(summaries) + "\n")
+    (folder / "table.txt").write_text(comparison_table(summaries) + "\n")
     (folder / "table2.md").write_text(table_ii(summaries) + "\n")
     (folder / "agents.json").write_text(json.dumps(key, indent=2))
     return folder

@@ -1,0 +1,172 @@
+"""``curlnav eval``, ``curlnav policy run`` and ``curlnav rollout``: the parsers and their handlers.
+
+Imported when the parser is built, so only the planner registry (``curlnav.planners``, no planner
+module) loads here; the handlers import what they run. The MCAP recorder (``curlnav.ros2.recording``)
+is handed to the comparison and the episode loop from here: the evaluation library does not import it.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from curlnav.planners import agents_help
+
+#: every world argument takes the same forms (one resolver, ``curlnav.worlds.builtin.get_world``)
+WORLD_HELP = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
+
+
+def _load_policy(path: str):
+    """``curlnav.learner.artefact.load_policy``, imported when a policy is named (not for planners alone)."""
+    from curlnav.learner.artefact import load_policy
+
+    return load_policy(path)
+
+
+def _mcap_file(path, env, observation):
+    """The MCAP recorder of ``--mcap``: ROS 2 schemas (``curlnav.ros2.recording.EpisodeMcap``)."""
+    from curlnav.ros2.recording import EpisodeMcap
+
+    return EpisodeMcap(path, env, observation)
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    """Evaluate one or more agents (policies and the planners of ``curlnav.planners.PLANNERS``) side
+    by side (``curlnav.evaluation.compare``)."""
+    from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.compare import (
+        OVERALL,
+        SUITES,
+        Comparison,
+        comparison_table,
+        draw_trajectories,
+        episode_pairs,
+        summarise,
+        table_ii,
+        write_csv,
+    )
+    from curlnav.planners import make_agent
+    from curlnav.sim import get_world
+    from curlnav.worlds.pairs import check_pairs_possible
+
+    suite = SUITES[args.suite] if args.suite else None
+    if suite is not None:
+        given = [flag for flag, value in (("--world", args.world), ("--pair", args.pair), ("--pairs", args.pairs),
+                                          ("--episodes", args.episodes), ("--seeds", args.seeds)) if value is not None]
+        if given:
+            raise ValueError(f"--suite {suite.name} fixes the worlds, pairs and ball placements; drop {', '.join(given)}")
+        args.seeds = 1  # the suite's pairs list a pair once per ball placement
+        print(f"suite {suite.name}: {suite.about}")
+    args.seeds = 1 if args.seeds is None else args.seeds
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be at least 1, got {args.seeds}")
+    env_config = ExperimentConfig().eval_env
+    worlds = [get_world(spec) for spec in (suite.worlds if suite else args.world or ["open-room"])]
+    for world in worlds:
+        check_pairs_possible(world)
+    agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
+    if len(agents) < len(args.agents):
+        raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
+    pairs_of = suite.pairs_of if suite else lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes)
+    comparison = Comparison(agents, worlds, pairs_of, env_config)
+    from tqdm import tqdm
+
+    with tqdm(total=comparison.episode_count(args.seeds), unit="episode", desc="eval", disable=None) as bar:
+        episodes = comparison.run(args.seeds, on_episode=lambda e: bar.update(), mcap=args.mcap,
+                                  recorder=_mcap_file if args.mcap else None)
+    summaries = summarise(episodes)
+    for s in summaries:
+        if s.world != OVERALL or len(worlds) > 1:
+            print(s.line())
+    if suite is not None:
+        print(table_ii(summaries))
+    elif len(agents) > 1 or len(worlds) > 1:
+        print(comparison_table(summaries))
+    if args.mcap:
+        print(f"wrote {len(episodes)} MCAP episodes in {args.mcap}")
+    if args.out:
+        files = write_csv(episodes, summaries, args.out)
+        if suite is not None:
+            (Path(args.out) / "table2.md").write_text(f"Suite {suite.name}: {suite.about}.\n\n{table_ii(summaries)}\n")
+        pictures = draw_trajectories(episodes, worlds, Path(args.out) / "trajectories", env_config.robot.base_width / 2)
+        print(f"wrote {files['episodes']}, {files['summary']} and {len(pictures)} trajectory pictures in "
+              f"{Path(args.out) / 'trajectories'}")
+    return 0
+
+
+def _cmd_policy_run(args: argparse.Namespace) -> int:
+    from curlnav.evaluation.animation import drive_and_draw
+    from curlnav.evaluation.protocol import evaluation_config
+    from curlnav.policy import PolicyArtefact
+
+    policy = PolicyArtefact(args.artefact)
+    return drive_and_draw(policy, args.world, args.pair, args.seed, evaluation_config(), args.out,
+                          f"policy-v{policy.version}", gif=args.gif, mcap=args.mcap,
+                          recorder=_mcap_file if args.mcap else None)
+
+
+def _cmd_rollout(args: argparse.Namespace) -> int:
+    """Drive the goal-seeking controller for one episode and draw it."""
+    from curlnav.evaluation.animation import drive_and_draw
+    from curlnav.sim import EnvConfig
+    from curlnav.sim.controllers import GoalSeekingController
+
+    cfg = EnvConfig(max_episode_steps=args.steps, end_on_base_collision=False)
+    return drive_and_draw(GoalSeekingController(cfg).act, args.world, args.pair, args.seed, cfg, args.out, "rollout")
+
+
+def add_commands(sub) -> None:
+    """``eval`` and ``policy run`` (``rollout``: ``add_rollout_command``, listed with the worlds)."""
+    p = sub.add_parser("eval", help="greedy evaluation on held-out start/goal pairs; several agents side by side",
+                       epilog="e.g. curlnav eval tare-l dwa oracle runs/x/policy-best --world namo-office:0 --world "
+                              "namo-indoor:0 --pairs 10 --seeds 2 --out results/")
+    p.add_argument("agents", nargs="+", metavar="AGENT", help=agents_help())
+    p.add_argument("--global-plan", action="store_true",
+                   help="every policy's goal input is a waypoint 3 m ahead on the oracle's A* path of the static "
+                        "map, advanced as it goes, instead of the final goal (a learned local planner in a "
+                        "navigation stack)")
+    p.add_argument("--world", action="append",
+                   help="built-in world name, world YAML path or FAMILY:SEED; repeat for several (default: open-room)")
+    p.add_argument("--pair", action="append", help="start/goal pair name or index; repeat for several "
+                                                    "(default: held-out pairs)")
+    p.add_argument("--pairs", type=int, default=None, help="the first N held-out pairs of each world, once per seed")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="episodes per world and seed: held-out pairs (default: 50), or the --pair pairs in turn "
+                        "(default: one each)")
+    p.add_argument("--seeds", type=int, default=None,
+                   help="runs of every pair, each with its own ball places (worlds that re-place balls on reset; "
+                        "default 1)")
+    p.add_argument("--suite", choices=["unseen"], default=None,
+                   help="a fixed set of worlds nobody trains on (unseen: NAMO office, indoor and auditorium at seeds "
+                        "300 and 301, barn-3x3 and slam-office at seed 300; 8 trials each: pairs x ball placements); prints "
+                        "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
+                        "writes table2.md beside the CSV files and pictures")
+    p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")
+    p.add_argument("--mcap", default=None, metavar="DIR",
+                   help="also write every episode of every agent to an MCAP file with ROS 2 schemas in DIR "
+                        "(AGENT__WORLD__PAIR__NNN.mcap; Foxglove opens them), as `curlnav policy run --mcap`")
+    p.set_defaults(func=_cmd_eval)
+
+    policy = sub.add_parser("policy", help="use exported policy artefacts")
+    policy_sub = policy.add_subparsers(dest="policy_command", required=True)
+    p = policy_sub.add_parser("run", help="drive the robot with an artefact and draw the trajectory")
+    p.add_argument("artefact", help="artefact folder (with metadata.json, actor.onnx)")
+    p.add_argument("--world", default="open-room", help=WORLD_HELP)
+    p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
+    p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
+    p.add_argument("--out", default="runs/policy-run", help="folder for the picture")
+    p.add_argument("--gif", action="store_true", help="also write an animated GIF of the episode beside the picture")
+    p.add_argument("--mcap", default=None, metavar="FILE",
+                   help="also write the episode to an MCAP file with ROS 2 schemas (Foxglove opens it)")
+    p.set_defaults(func=_cmd_policy_run)
+
+
+def add_rollout_command(sub) -> None:
+    """``rollout``: the goal-seeking controller for one episode, drawn."""
+    p = sub.add_parser("rollout", help="drive a reactive controller for one episode and draw the trajectory")
+    p.add_argument("--world", default="door-corridor", help=WORLD_HELP)
+    p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
+    p.add_argument("--steps", type=int, default=300, help="episode length limit (steps of 0.2 s)")
+    p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
+    p.add_argument("--out", default="runs/rollout", help="folder for the picture")
+    p.set_defaults(func=_cmd_rollout)
