@@ -351,13 +351,25 @@ def test_the_hosts_bench_gives_each_actor_only_its_identity_and_no_actor_host_th
                                            f"tls/{router_name}.pem", f"tls/{router_name}.key"}, name
             load_router(folder)
             load_tls(folder, router_name)
+            host = int(router_name.removeprefix("h"))
+            services = {"replay", "learner", "scheduler"} if host == 0 else \
+                {f"actor-{n}" for n in range(4) if cluster.host_of(f"actor-{n}") == host}
+            dictionary = dict(line.split(":", 1) for line in (folder / "users.txt").read_text().splitlines())
+            # the users this router authenticates: its host's services, and the other routers' links
+            assert set(dictionary) == services | {"router"}, f"{name}: {sorted(dictionary)}"
+            assert all(secret[user] == password for user, password in dictionary.items()), name
     for host, held in held_by_host.items():
         names = {Path(p).name for p in held}
         assert "ca.key" not in names, f"host {host} holds the CA key"
         assert {f"h{i}.key" for i in range(3)} & names == {f"h{host}.key"}, f"host {host}: {sorted(names)}"
-        if host > 0:  # an actor host: only its actors' passwords, besides its router's dictionary
-            users = {Path(p).parent.name for p in held if Path(p).name == "user.json"} - {"router"}
-            assert users == {f"actor-{n}" for n in range(4) if cluster.host_of(f"actor-{n}") == host}, host
+        own = {"replay", "learner", "scheduler"} if host == 0 else \
+            {f"actor-{n}" for n in range(4) if cluster.host_of(f"actor-{n}") == host}
+        users = {Path(p).parent.name for p in held if Path(p).name == "user.json"} - {"router"}
+        assert users == own, host
+        # no file of the host, its router's dictionary included, holds another host's service's password
+        others = {user: password for user, password in secret.items() if user not in own | {"router"}}
+        texts = "".join(Path(p).read_text() for p in held)
+        assert [user for user, password in others.items() if password in texts] == [], f"host {host}"
 
 
 BUS_CLIENT = textwrap.dedent('''

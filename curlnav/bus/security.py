@@ -426,15 +426,22 @@ def host_credentials(source: str | Path, dest: str | Path, users: list[str] | tu
     too) and, with ``router`` (its name in ``source/tls``), ``dest/router/tls/`` with the CA's
     certificate and that router's own certificate and key, never the CA's key nor another
     router's. Each service is then given its own ``dest/<user>`` (``load_router`` and ``load_tls``
-    read ``dest/router``). Returns ``dest``."""
+    read ``dest/router``). The router's dictionary keeps only the users it authenticates: ``users``
+    (its host's services) and ``router`` (the other routers' links), so a host never holds another
+    host's services' passwords. Returns ``dest``."""
     source, dest = Path(source), _private_dir(Path(dest))
+    admitted = {*users, "router"}
     for user in users:
         folder = source / user
         _not_a_link(folder)
         for path in sorted(folder.iterdir()):
             if path.name.startswith("."):
                 continue  # an interrupted write's temporary file
-            _write_private(_private_dir(dest / user) / path.name, _read_private(path))
+            text = _read_private(path)
+            if user == "router" and path.name == "users.txt":
+                text = "".join(line for line in text.splitlines(keepends=True)
+                               if line.split(":", 1)[0] in admitted)
+            _write_private(_private_dir(dest / user) / path.name, text)
     if router:
         for name in ("ca.pem", f"{router}.pem", f"{router}.key"):
             _write_private(_private_dir(dest / "router" / "tls") / name, _read_private(source / "tls" / name))
