@@ -436,3 +436,97 @@ def test_a_goal_is_not_resumed_on_a_restarted_simulator(curlnav, domain_id):  # 
     out = stop(node)
     assert "Traceback" not in out
     stop(sim)
+
+
+# -- after review (issue 35): the loop's rate, the watchdog at a goal's start, oversized samples ----------------
+def test_a_goal_refused_then_a_good_one_leaves_no_stop_pending_so_the_policy_keeps_its_rate():
+    """A bad /goal_pose ends the goal held (a stop pending), a good one in the same pass starts a
+    new goal: the pending stop is superseded, else the shell would act on every pass (4x rate_hz)."""
+    from curlnav.ros2.node import PolicyNode
+
+    node = PolicyNode(lambda obs: np.array([1.0, 0.0, 0.0]))
+    node.on_goal(goal_of(8.0, 0.0))
+    assert not step(node, 0.0, (0.0, 0.0, 0.0), source=1).is_stop
+    assert not node.on_goal(goal_of(1.7e308, 1.7e308))
+    assert node.stop_pending
+    assert node.on_goal(goal_of(6.0, 1.0))
+    assert not node.stop_pending and node.goal == (6.0, 1.0)
+
+
+def test_silence_must_cover_two_control_periods():
+    from curlnav.ros2.node import NodeConfig
+
+    with pytest.raises(ValueError, match="two control periods"):
+        NodeConfig(rate_hz=2.1, silence_s=0.5)  # commands up to ~0.7 s apart: a stop between each pair
+    NodeConfig(rate_hz=5.0, silence_s=0.5)
+
+
+def test_a_goal_after_idle_time_starts_without_a_watchdog_stop(domain_id):  # noqa: F811
+    """The watchdog measures silence from a new goal's start, not from the last command before an
+    idle spell: a goal sent after 2 s idle gives no 'control loop late' line and no stop."""
+    from curlnav.policy import PolicyArtefact
+    from curlnav.ros2.node import PolicyNode, ScanLayout, run_node
+    from curlnav.ros2.topics import NODE_TOPICS, Bus
+
+    robot = Robot(domain_id)
+    policy = PolicyArtefact(POLICY)
+    node = PolicyNode(policy, ScanLayout.of(policy.metadata))
+    bus, halt, lines = Bus(domain_id), threading.Event(), []
+    shell = threading.Thread(target=run_node, args=(node, bus, NODE_TOPICS),
+                             kwargs={"stop": halt.is_set, "log": lines.append}, daemon=True)
+    shell.start()
+    try:
+        robot.run_for(2.0)  # idle: scans and odometry, no goal
+        robot.send_goal(6.0, 1.0, until=lambda state: state == "active")
+        robot.run_for(1.5)
+    finally:
+        halt.set()
+        shell.join(10)
+    assert node.counts["watchdog_stops"] == 0 and not any("watchdog" in line for line in lines), lines
+    assert not any(s.startswith("stopped: control loop late") for s in robot.states), robot.states
+
+
+_PUBLISH_SCANS = """
+import sys, time
+from curlnav.ros2.messages import build
+from curlnav.ros2.topics import SCAN, Bus
+bus = Bus(int(sys.argv[1]), loopback=True)
+writer = bus.writer(SCAN)
+end = time.monotonic() + 20
+while time.monotonic() < end:
+    for n in (241, 20_000):
+        writer.write(build(SCAN.type, {"header": {"frame_id": "base_link"}, "ranges": [1.0] * n,
+                                       "intensities": [0.0] * n}))
+        time.sleep(0.1)
+"""
+
+
+@pytest.mark.parametrize("limit", [None, 64 << 10])
+def test_a_bus_with_a_sample_limit_drops_bigger_samples_before_python_decodes_them(limit, tmp_path):
+    """The node's bus (``max_sample_bytes``) has Cyclone drop a scan larger than the limit (20,000
+    ranges: 160 kB against 64 KiB) while small scans still arrive; without a limit both arrive."""
+    import subprocess
+    import sys
+
+    domain = 100 + (hash((limit, str(tmp_path))) % 100)
+    reader_code = f"""
+import sys, time
+from curlnav.ros2.topics import SCAN, Bus
+bus = Bus({domain}, loopback=True, max_sample_bytes={limit!r})
+reader = bus.reader(SCAN)
+sizes = set()
+end = time.monotonic() + 15
+while time.monotonic() < end and not (241 in sizes and (20_000 in sizes or time.monotonic() > end - 8)):
+    bus.wait(0.2)
+    sizes |= {{len(s.ranges) for s in bus.take(reader, 16)}}
+print(sorted(sizes), flush=True)
+"""
+    publisher = subprocess.Popen([sys.executable, "-c", _PUBLISH_SCANS, str(domain)])
+    try:
+        out = subprocess.run([sys.executable, "-c", reader_code], capture_output=True, text=True, timeout=60)
+    finally:
+        publisher.kill()
+        publisher.wait()
+    assert out.returncode == 0, out.stderr[-2000:]
+    sizes = out.stdout.strip().splitlines()[-1]
+    assert sizes == ("[241]" if limit else "[241, 20000]"), sizes
