@@ -155,6 +155,36 @@ def test_the_config_bounds_network_sizes():
 
 # -- actor.onnx: no external data, a bounded first action ------------------------------------------
 
+def test_the_image_requirements_are_at_least_the_project_floors():
+    """docker/requirements.txt installs the image (curlnav itself with --no-deps): no floor or pin
+    there may be below pyproject.toml's (onnxruntime>=1.18 let an escaping external path through)."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.version import Version
+
+    root = Path(__file__).resolve().parents[1]
+
+    def lowest(requirement: Requirement) -> Version | None:
+        floors = [Version(s.version) for s in requirement.specifier if s.operator in (">=", "==", "~=", "===")]
+        return max(floors, default=None)
+
+    project = {r.name.lower(): r for r in map(Requirement,
+                                               tomllib.loads((root / "pyproject.toml").read_text())["project"]["dependencies"])}
+    image = {}
+    for line in (root / "docker" / "requirements.txt").read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            requirement = Requirement(line)
+            image[requirement.name.lower()] = requirement
+    assert "onnxruntime" in image and "onnxruntime" in project
+    low = [f"{name}: image {image[name].specifier or 'any'}, project {project[name].specifier}"
+           for name in sorted(image.keys() & project.keys())
+           if lowest(project[name]) is not None
+           and (lowest(image[name]) is None or lowest(image[name]) < lowest(project[name]))]
+    assert low == []
+
+
 def external_data_model(folder: Path, location: str) -> None:
     """Replace ``folder/actor.onnx`` by a model whose one initializer is external data at
     ``location`` (relative to the folder): action = the first 3 floats of that file."""
