@@ -44,7 +44,7 @@ def test_bf16_autocast_keeps_the_critic_loss_of_float32_training_within_a_few_pe
 
 
 def test_a_learner_or_replay_host_imports_its_service_without_the_simulator():
-    code = ("import sys; import curlnav.learner.service, curlnav.replay.service, curlnav.learner.bench, "
+    code = ("import sys; import curlnav.learner.service, curlnav.replay.service, curlnav.bench.learner, "
             "curlnav.bench.transport; print('pybullet' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
