@@ -11,16 +11,6 @@ from pathlib import Path
 #: every world argument takes the same forms (one resolver, ``curlnav.sim.get_world``)
 WORLD_HELP = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
 
-DEFAULT_BENCH_WORLDS = ("bench-36m", "barn-3x3:0", "slam-office:0")
-
-
-def _cmd_bench_env(args: argparse.Namespace) -> int:
-    from curlnav.sim.bench import run_env_bench
-
-    specs = args.world or list(DEFAULT_BENCH_WORLDS)
-    run_env_bench(steps=args.steps, worlds=[_world_from_spec(spec) for spec in specs], pin=not args.no_pin)
-    return 0
-
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from curlnav.run.train import run_train
@@ -32,15 +22,6 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     from curlnav.run.train import show_config
 
     return show_config(args)
-
-
-def _cmd_bench_learner(args: argparse.Namespace) -> int:
-    from curlnav.learner.bench import run_learner_bench
-
-    run_learner_bench(presets=args.presets.split(","), seconds=args.seconds, batch_size=args.batch, threads=args.threads,
-                      device=args.device, variants=args.variants.split(","), check_amp=args.check_amp,
-                      check_steps=args.check_steps)
-    return 0
 
 
 def _world_from_spec(spec: str):
@@ -169,77 +150,6 @@ def _cmd_status(args: argparse.Namespace) -> int:
     return run_status(args.target, raw_json=args.json)
 
 
-def _cmd_bench_transport(args: argparse.Namespace) -> int:
-    from curlnav.bench.transport import run_transport_bench
-
-    run_transport_bench(publishers=args.publishers, batches=args.batches, paths=tuple(args.paths.split(",")),
-                        in_flight=args.in_flight, insert_rates=tuple(float(r) for r in args.insert_rates.split(",")),
-                        per_request=args.per_request, learner_device=args.learner_device,
-                        learner_variant=args.learner_variant)
-    return 0
-
-
-def _cmd_bench_draws(args: argparse.Namespace) -> int:
-    from curlnav.bench.draws import run_draw_bench
-
-    every = tuple(int(k) for k in args.every.split(","))
-    run_draw_bench(args.distribution, steps=args.steps, episode_steps=args.episode_steps, every=every,
-                   repeats=args.repeats)
-    return 0
-
-
-def _cmd_bench_actor(args: argparse.Namespace) -> int:
-    from curlnav.bench.actor import run_actor_bench
-
-    try:
-        envs = tuple(int(k) for k in args.envs.split(","))
-    except ValueError:
-        raise SystemExit(f"curlnav: error: --envs takes whole numbers separated by commas, got {args.envs[:40]!r}") from None
-    if not envs or min(envs) < 1 or args.steps < 1 or args.episode_steps < 1 or args.repeats < 1:
-        raise SystemExit("curlnav: error: --envs, --steps, --episode-steps and --repeats must be at least 1")
-    backends = tuple(args.inference.split(","))
-    if not set(backends) <= {"onnx", "torch"}:
-        raise SystemExit(f"curlnav: error: --inference takes onnx and/or torch, got {args.inference[:40]!r}")
-    run_actor_bench(args.world, envs=envs, steps=args.steps, episode_steps=args.episode_steps, repeats=args.repeats,
-                    inference=backends)
-    return 0
-
-
-def _cmd_bench_faults(args: argparse.Namespace) -> int:
-    from curlnav.bench.faults import run_fault_bench
-
-    rows = run_fault_bench(actors=args.actors, warm_s=args.warm_s, run_dir=args.run_dir)
-    return 0 if all(r.get("lost", 0) == 0 and r.get("forward", True) and r.get("back_s") is not None
-                    for r in rows) else 1
-
-
-def _cmd_bench_chaos(args: argparse.Namespace) -> int:
-    from curlnav.bench.chaos import run_chaos_bench
-
-    result = run_chaos_bench(args.minutes, actors=args.actors, every_s=args.every_s, seed=args.seed,
-                             run_dir=args.run_dir)  # bad input: ValueError, one line, exit 2
-    return 0 if result.ok else 1
-
-
-def _cmd_bench_hosts(args: argparse.Namespace) -> int:
-    from curlnav.bench.hosts import run_hosts_bench
-    from curlnav.bench.netns import unavailable
-
-    why = unavailable()
-    if why:
-        raise SystemExit(f"curlnav: error: bench hosts needs network namespaces: {why}")
-    result = run_hosts_bench(hosts=args.hosts, actors_per_host=args.actors_per_host, partition_s=args.partition_s,
-                             minutes=args.minutes, run_dir=args.run_dir, netem=args.netem)
-    return 0 if result["lost"] == 0 else 1
-
-
-def _cmd_bench_metrics(args: argparse.Namespace) -> int:
-    from curlnav.worlds.bench import run_metrics_bench
-
-    run_metrics_bench(per_setting=args.per_setting)
-    return 0
-
-
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Help that shows each option's default (unless it has none to show or says it itself)."""
 
@@ -280,7 +190,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_training_commands(sub)
     _add_bus_commands(sub)
     _add_world_commands(sub)
-    _add_bench_commands(sub)
+    from curlnav.bench.commands import add_commands as add_bench_commands
+
+    add_bench_commands(sub)
     _add_ablation_commands(sub)
     _add_experiment_command(sub)
     from curlnav.ros2.commands import add_ros2_commands
@@ -498,91 +410,6 @@ def _add_world_commands(sub) -> None:
     p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")
     p.add_argument("--out", default="runs/ranking", help="folder for the table (CSV, JSON) and the picture")
     p.set_defaults(func=_cmd_worlds_rank)
-
-
-def _add_bench_commands(sub) -> None:
-    """Benchmarks that print their figures."""
-    bench = sub.add_parser("bench", help="benchmarks that print their figures")
-    bench_sub = bench.add_subparsers(dest="bench", required=True)
-    p = bench_sub.add_parser("env", help="environment steps/s on one core vs a bare PyBullet loop")
-    p.add_argument("--steps", type=int, default=5000, help="timed environment steps per world")
-    p.add_argument("--world", action="append",
-                   help="world to measure (repeat for several): built-in, YAML or FAMILY:SEED "
-                        f"(default: {', '.join(DEFAULT_BENCH_WORLDS)})")
-    p.add_argument("--no-pin", action="store_true", help="do not pin the process to one CPU core")
-    p.set_defaults(func=_cmd_bench_env)
-    p = bench_sub.add_parser("learner", help="D4PG learner updates/s per preset")
-    p.add_argument("--presets", default="default,paper", help="comma-separated config presets")
-    p.add_argument("--seconds", type=float, default=20.0, help="timed seconds per preset")
-    p.add_argument("--batch", type=int, default=256, help="batch size")
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: cuda when present)")
-    p.add_argument("--variants", default="eager", help="how the update runs, comma-separated: eager, async, compile, "
-                                                      "cudagraphs, bf16, bf16+compile (see curlnav.learner.bench)")
-    p.add_argument("--check-amp", action="store_true", help="also train float32 and bf16 side by side and compare "
-                                                           "their critic losses")
-    p.add_argument("--check-steps", type=int, default=500, help="updates of the amp check")
-    p.set_defaults(func=_cmd_bench_learner)
-    p = bench_sub.add_parser("transport", help="replay service throughput from 4 publishers, sampling, weight latency")
-    p.add_argument("--publishers", type=int, default=4, help="publishing processes")
-    p.add_argument("--batches", type=int, default=400, help="batches of 64 transitions per publisher")
-    p.add_argument("--paths", default="plain,shm", help="sampling paths to measure: plain (sockets), shm (Zenoh "
-                                                       "shared memory), comma-separated")
-    p.add_argument("--in-flight", type=int, default=4, help="sample requests the learner keeps outstanding")
-    p.add_argument("--per-request", type=int, default=4, help="batches of 256 in one sample request (the learner "
-                                                              "service's batches_per_request)")
-    p.add_argument("--learner-device", default=None, help="also step a D4PG learner on each sampled batch, on this "
-                                                         "device (cpu, cuda)")
-    p.add_argument("--learner-variant", default="async", help="how that learner runs (curlnav bench learner --variants)")
-    p.add_argument("--insert-rates", default="0,12500", help="insert rates to measure sampling beside, transitions/s in all, "
-                                                       "comma-separated; 0: the publishers as fast as they go")
-    p.set_defaults(func=_cmd_bench_transport)
-    p = bench_sub.add_parser("metrics", help="difficulty metrics: 240 x 240 timing and the BARN parameter grid")
-    p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
-    p.set_defaults(func=_cmd_bench_metrics)
-    p = bench_sub.add_parser("draws", help="episode-loop steps/s drawing a new world per episode (or every K) vs one world")
-    p.add_argument("distribution", nargs="?", default="barn-3x3:0-99", help="a world distribution, FAMILY:LO-HI(...)")
-    p.add_argument("--steps", type=int, default=3000, help="timed environment steps per row")
-    p.add_argument("--episode-steps", type=int, default=150, help="steps per episode")
-    p.add_argument("--every", default="1,4", help="comma-separated episodes per fresh world, one row each")
-    p.add_argument("--repeats", type=int, default=1, help="runs per row, taken in turn; the fastest is shown")
-    p.set_defaults(func=_cmd_bench_draws)
-    p = bench_sub.add_parser("actor", help="an actor process's steps/s with K environments on one core vs the bare "
-                                           "environment (run it as: taskset -c 0 curlnav bench actor)")
-    p.add_argument("--world", default="barn-3x3:0", help="world: built-in, YAML or FAMILY:SEED")
-    p.add_argument("--envs", default="1,2,4,8", help="comma-separated environments per process, one row each")
-    p.add_argument("--steps", type=int, default=4000, help="timed environment steps per row")
-    p.add_argument("--episode-steps", type=int, default=200, help="steps per episode")
-    p.add_argument("--repeats", type=int, default=1, help="runs per row; the fastest is shown")
-    p.add_argument("--inference", default="onnx", help="the policy network's backend(s), comma-separated: onnx (the "
-                                                       "actors' default, actor.inference), torch")
-    p.set_defaults(func=_cmd_bench_actor)
-    p = bench_sub.add_parser("faults", help="kill -9 replay, learner and scheduler of a local run: what was lost")
-    p.add_argument("--actors", type=int, default=2)
-    p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")
-    p.add_argument("--run-dir", default="runs/bench-faults")
-    p.set_defaults(func=_cmd_bench_faults)
-    p = bench_sub.add_parser("chaos", help="a long local run under chaos: kill -9 of a random service (router, replay, "
-                                          "learner, scheduler, an actor) or a stall, every few tens of seconds; "
-                                          "what was lost, whether versions, curriculum and policy stayed intact")
-    p.add_argument("--minutes", type=float, required=True, metavar="M", help="minutes of chaos (after the run has started)")
-    p.add_argument("--actors", type=int, default=2, metavar="N", help="actor processes")
-    p.add_argument("--every-s", type=float, default=30.0, metavar="S",
-                   help="mean seconds between faults (each gap uniform in [S/2, 3S/2])")
-    p.add_argument("--seed", type=int, default=0, metavar="K", help="the fault schedule's and the run's seed")
-    p.add_argument("--run-dir", default="runs/bench-chaos", metavar="DIR",
-                   help="a new folder, or one this bench made (cleared)")
-    p.set_defaults(func=_cmd_bench_chaos)
-    p = bench_sub.add_parser("hosts", help="a run over network namespaces (a router per host, TLS between them): "
-                                          "cut an actor host off, heal, train on; what was lost (root)")
-    p.add_argument("--hosts", type=int, default=3, help="namespaces: host 0 runs replay, learner and scheduler")
-    p.add_argument("--actors-per-host", type=int, default=2, help="actors on each of hosts 1..H-1")
-    p.add_argument("--partition-s", type=float, default=20.0, help="seconds host 1 stays cut off (its link down)")
-    p.add_argument("--minutes", type=float, default=None, help="the whole run (default: 30 s before and after)")
-    p.add_argument("--netem", default="", help="latency and loss on the actor hosts' links, as tc netem takes "
-                                               "them (e.g. 'delay 20ms loss 1%%'), where the kernel has netem")
-    p.add_argument("--run-dir", default="runs/bench-hosts")
-    p.set_defaults(func=_cmd_bench_hosts)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -209,7 +209,7 @@ LAYERS = {  # module prefix -> layer (0: bottom)
     "curlnav.run.experiment": 2,
     "curlnav.bench.transport": 2, "curlnav.bench.faults": 2, "curlnav.bench.draws": 2, "curlnav.bench.hosts": 2,
     "curlnav.bench.actor": 2, "curlnav.bench.chaos": 2,
-    "curlnav.learner.bench": 2, "curlnav.sim.bench": 2, "curlnav.worlds.bench": 2,
+    "curlnav.bench.learner": 2, "curlnav.bench.env": 2, "curlnav.bench.metrics": 2,
     "curlnav.ros2": 2,
 }
 FOLDERS = {"curlnav": "curlnav", "proto": "curlnav.proto", "replay": "curlnav.replay", "learner": "curlnav.learner",

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
+from curlnav.bench.metrics import barn_parameter_grid
 from curlnav.sim import StartGoal, World
-from curlnav.worlds.bench import barn_parameter_grid
 from curlnav.worlds.families import FAMILIES, generate
 from curlnav.worlds.generators import barn_cellular_automaton, cspace
 from curlnav.worlds.metrics import (
@@ -220,6 +220,7 @@ def test_a_pair_blocked_in_c_space_is_named():
         measure(w2)
 
 
+@pytest.mark.slow
 def test_worlds_commands_generate_show_and_rank(tmp_path):
     run = [sys.executable, "-m", "curlnav.cli", "worlds"]
     out = subprocess.run(run + ["generate", "t-maze", "--seed", "1", "--out", str(tmp_path / "w")], capture_output=True,

@@ -17,21 +17,38 @@ Rows, each the same number of environment steps after a warm-up episode, episode
 
 from __future__ import annotations
 
+import argparse
 import time
 from dataclasses import dataclass
 
-import numpy as np
-import torch
-from safetensors.torch import save as safetensors_save
+LOW, HIGH = (0.0, -1.0, 0.0), (1.0, 1.0, 1.0)  # the action box
+HELP = ("an actor process's steps/s with K environments on one core vs the bare environment (run it as: taskset -c 0 "
+        "curlnav bench actor)")
 
-from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
-from curlnav.config import D4PGConfig
-from curlnav.layout import ObservationLayout
-from curlnav.learner.networks import Actor, BehaviourPolicy
-from curlnav.proto.messages import TransitionBatch
-from curlnav.sim import EnvConfig, NamoEnv
 
-LOW, HIGH = np.array([0.0, -1.0, 0.0]), np.array([1.0, 1.0, 1.0])
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--world", default="barn-3x3:0", help="world: built-in, YAML or FAMILY:SEED")
+    p.add_argument("--envs", default="1,2,4,8", help="comma-separated environments per process, one row each")
+    p.add_argument("--steps", type=int, default=4000, help="timed environment steps per row")
+    p.add_argument("--episode-steps", type=int, default=200, help="steps per episode")
+    p.add_argument("--repeats", type=int, default=1, help="runs per row; the fastest is shown")
+    p.add_argument("--inference", default="onnx", help="the policy network's backend(s), comma-separated: onnx (the "
+                                                       "actors' default, actor.inference), torch")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        envs = tuple(int(k) for k in args.envs.split(","))
+    except ValueError:
+        raise SystemExit(f"curlnav: error: --envs takes whole numbers separated by commas, got {args.envs[:40]!r}") from None
+    if not envs or min(envs) < 1 or args.steps < 1 or args.episode_steps < 1 or args.repeats < 1:
+        raise SystemExit("curlnav: error: --envs, --steps, --episode-steps and --repeats must be at least 1")
+    backends = tuple(args.inference.split(","))
+    if not set(backends) <= {"onnx", "torch"}:
+        raise SystemExit(f"curlnav: error: --inference takes onnx and/or torch, got {args.inference[:40]!r}")
+    run_actor_bench(args.world, envs=envs, steps=args.steps, episode_steps=args.episode_steps, repeats=args.repeats,
+                    inference=backends)
+    return 0
 
 
 @dataclass(frozen=True)
@@ -47,6 +64,10 @@ class ActorBenchRow:
 
 
 def bare_env(world: str, steps: int, episode_steps: int, seed: int = 0) -> ActorBenchRow:
+    import numpy as np
+
+    from curlnav.sim import EnvConfig, NamoEnv
+
     cfg = EnvConfig(max_episode_steps=episode_steps, end_on_base_collision=False)
     env = NamoEnv(world, cfg)
     rng = np.random.default_rng(seed)
@@ -67,6 +88,16 @@ def bare_env(world: str, steps: int, episode_steps: int, seed: int = 0) -> Actor
 
 def actor_process(world: str, envs: int, steps: int, episode_steps: int, batch_steps: int = 24,
                   seed: int = 0, inference: str = "onnx") -> ActorBenchRow:
+    import numpy as np
+    from safetensors.torch import save as safetensors_save
+
+    from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
+    from curlnav.config import D4PGConfig
+    from curlnav.layout import ObservationLayout
+    from curlnav.learner.networks import Actor, BehaviourPolicy
+    from curlnav.proto.messages import TransitionBatch
+    from curlnav.sim import EnvConfig, NamoEnv
+
     cfg = EnvConfig(max_episode_steps=episode_steps, end_on_base_collision=False)
     layout = ObservationLayout.from_env_config(cfg)
     d4pg = D4PGConfig()
@@ -110,6 +141,8 @@ def run_actor_bench(world: str = "barn-3x3:0", envs: tuple[int, ...] = (1, 2, 4,
                     episode_steps: int = 200, repeats: int = 1, say=print,
                     inference: tuple[str, ...] = ("onnx",)) -> list[tuple[ActorBenchRow, float]]:
     """Print the bare environment's steps/s, then each K's, with its ratio; return the rows."""
+    import torch
+
     torch.set_num_threads(1)
     say(f"# curlnav bench actor: {world}, {steps} timed environment steps per row, episodes of {episode_steps} "
         f"steps, torch threads 1, fastest of {repeats}")

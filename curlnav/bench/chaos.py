@@ -50,6 +50,7 @@ did not report its final flush. The pure parts (``fault_schedule``, ``went_back`
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import random
@@ -66,6 +67,24 @@ from pathlib import Path
 FAULT_KINDS = ("router", "replay", "learner", "scheduler", "actor", "stall")
 STALL_S = (3.0, 15.0)  # a stall lasts uniform in this range (s): below and beyond Zenoh's 10 s lease
 MARKER = "chaos.json"  # in a run folder this bench made (it refuses to clear any other)
+HELP = ("a long local run under chaos: kill -9 of a random service (router, replay, learner, scheduler, an actor) or "
+        "a stall, every few tens of seconds; what was lost, whether versions, curriculum and policy stayed intact")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--minutes", type=float, required=True, metavar="M", help="minutes of chaos (after the run has started)")
+    p.add_argument("--actors", type=int, default=2, metavar="N", help="actor processes")
+    p.add_argument("--every-s", type=float, default=30.0, metavar="S",
+                   help="mean seconds between faults (each gap uniform in [S/2, 3S/2])")
+    p.add_argument("--seed", type=int, default=0, metavar="K", help="the fault schedule's and the run's seed")
+    p.add_argument("--run-dir", default="runs/bench-chaos", metavar="DIR",
+                   help="a new folder, or one this bench made (cleared)")
+
+
+def main(args: argparse.Namespace) -> int:
+    result = run_chaos_bench(args.minutes, actors=args.actors, every_s=args.every_s, seed=args.seed,
+                             run_dir=args.run_dir)  # bad input: ValueError, one line, exit 2
+    return 0 if result.ok else 1
 
 
 # -- the pure core ---------------------------------------------------------------------------------

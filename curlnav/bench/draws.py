@@ -9,17 +9,27 @@ generation and scene building, which is what drawing costs.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import time
 from dataclasses import dataclass
 
-import numpy as np
+HELP = "episode-loop steps/s drawing a new world per episode (or every K) vs one world"
 
-from curlnav.actor.loop import EpisodeLoop
-from curlnav.layout import ObservationLayout
-from curlnav.replay import NStepWriter
-from curlnav.sim import EnvConfig, NamoEnv
-from curlnav.worlds.distribution import WorldDistribution, WorldDraws
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("distribution", nargs="?", default="barn-3x3:0-99", help="a world distribution, FAMILY:LO-HI(...)")
+    p.add_argument("--steps", type=int, default=3000, help="timed environment steps per row")
+    p.add_argument("--episode-steps", type=int, default=150, help="steps per episode")
+    p.add_argument("--every", default="1,4", help="comma-separated episodes per fresh world, one row each")
+    p.add_argument("--repeats", type=int, default=1, help="runs per row, taken in turn; the fastest is shown")
+
+
+def main(args: argparse.Namespace) -> int:
+    every = tuple(int(k) for k in args.every.split(","))
+    run_draw_bench(args.distribution, steps=args.steps, episode_steps=args.episode_steps, every=every,
+                   repeats=args.repeats)
+    return 0
 
 
 @dataclass(frozen=True)
@@ -41,6 +51,14 @@ class DrawBenchRow:
 
 
 def _measure(mode: str, spec, steps: int, episode_steps: int, seed: int) -> DrawBenchRow:
+    import numpy as np
+
+    from curlnav.actor.loop import EpisodeLoop
+    from curlnav.layout import ObservationLayout
+    from curlnav.replay import NStepWriter
+    from curlnav.sim import EnvConfig, NamoEnv
+    from curlnav.worlds.distribution import WorldDraws
+
     cfg = EnvConfig(max_episode_steps=episode_steps, end_on_base_collision=False)
     layout = ObservationLayout.from_env_config(cfg)
     rng = np.random.default_rng(seed)
@@ -73,6 +91,8 @@ def run_draw_bench(distribution: str = "barn-3x3:0-99", steps: int = 3000, episo
     """One row for the distribution's first world alone, then one per ``every`` (episodes per
     fresh world); each the fastest of ``repeats`` runs taken in turn (on a shared machine the
     other load only ever slows a run down); prints them."""
+    from curlnav.worlds.distribution import WorldDistribution
+
     dist = WorldDistribution.parse(distribution)
     modes = [(f"one world ({dist.family} seed {dist.lo})", dist.world(dist.lo))]
     for k in every:

@@ -9,23 +9,35 @@ PyBullet rays costs) and the physics alone.
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:
+    from curlnav.sim.config import EnvConfig
+    from curlnav.worlds.world import World
 
-from curlnav.worlds.pairs import check_pairs_possible
-from curlnav.worlds.world import World
+HELP = "environment steps/s on one core vs a bare PyBullet loop"
+DEFAULT_WORLDS = ("bench-36m", "barn-3x3:0", "slam-office:0")
 
-from .bullet import import_pybullet
-from .config import EnvConfig
-from .env import NamoEnv
-from .geometry import merge_cells_into_rectangles
-from .scene import RAY_MASK, Scene
 
-pb = import_pybullet()
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--steps", type=int, default=5000, help="timed environment steps per world")
+    p.add_argument("--world", action="append",
+                   help="world to measure (repeat for several): built-in, YAML or FAMILY:SEED "
+                        f"(default: {', '.join(DEFAULT_WORLDS)})")
+    p.add_argument("--no-pin", action="store_true", help="do not pin the process to one CPU core")
+
+
+def main(args: argparse.Namespace) -> int:
+    from curlnav.worlds.builtin import get_world
+
+    specs = args.world or list(DEFAULT_WORLDS)
+    run_env_bench(steps=args.steps, worlds=[get_world(spec) for spec in specs], pin=not args.no_pin)
+    return 0
 
 
 @dataclass(frozen=True)
@@ -55,6 +67,10 @@ def _pin_to_one_core() -> str:
 
 
 def _start_pose(world: World, cfg: EnvConfig) -> tuple[float, float, float]:
+    import numpy as np
+
+    from curlnav.worlds.pairs import check_pairs_possible
+
     if world.pairs:
         pair = world.pairs[0]
     else:
@@ -66,6 +82,12 @@ def _start_pose(world: World, cfg: EnvConfig) -> tuple[float, float, float]:
 def bare_pybullet_steps_per_second(world: World, cfg: EnvConfig, steps: int, rays: bool = True) -> float:
     """The floor: the same world's bodies, the same physics substeps, and (``rays``) one
     241-ray batch through the full geometry, nothing else; the robot moves as in the env."""
+    import numpy as np
+
+    from curlnav.sim.bullet import import_pybullet
+    from curlnav.sim.scene import RAY_MASK, Scene
+
+    pb = import_pybullet()
     scene = Scene(world, cfg)
     x, y, yaw = _start_pose(world, cfg)
     scene.reset((x, y, yaw), [(b.x, b.y) for b in world.balls])
@@ -91,6 +113,10 @@ def bare_pybullet_steps_per_second(world: World, cfg: EnvConfig, steps: int, ray
 def env_steps_per_second(world: World | str, cfg: EnvConfig, steps: int, seed: int = 0) -> tuple[float, int]:
     """Full ``NamoEnv.step`` (physics, contacts, LiDAR, reward, stacked observation), with a
     wandering action sequence, resets included. Returns (steps/s, episodes)."""
+    import numpy as np
+
+    from curlnav.sim.env import NamoEnv
+
     env = NamoEnv(world, cfg)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
@@ -109,6 +135,9 @@ def env_steps_per_second(world: World | str, cfg: EnvConfig, steps: int, seed: i
 
 def bench_world(world: World, cfg: EnvConfig, steps: int) -> EnvBenchResult:
     """Measure one world (see the module docstring) and print its lines."""
+    from curlnav.sim.geometry import merge_cells_into_rectangles
+    from curlnav.sim.scene import Scene
+
     rectangles = len(merge_cells_into_rectangles(world.occupancy))
     scene = Scene(world, cfg)  # raises StaticGeometryError if PyBullet lost a wall face
     segments, held, meshes = len(scene.static_segments), scene.static_segments_in_physics, scene.static_mesh_count
@@ -136,6 +165,10 @@ def bench_world(world: World, cfg: EnvConfig, steps: int) -> EnvBenchResult:
 def run_env_bench(steps: int = 5000, worlds: list[World] | None = None, cfg: EnvConfig | None = None,
                   pin: bool = True) -> list[EnvBenchResult]:
     """Benchmark each of ``worlds`` (default: bench-36m, barn-3x3-0 and slam-office-0)."""
+    from curlnav.sim.bullet import import_pybullet
+    from curlnav.sim.config import EnvConfig
+
+    pb = import_pybullet()
     cfg = cfg or EnvConfig()
     if worlds is None:
         from curlnav.worlds.builtin import get_world

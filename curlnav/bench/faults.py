@@ -15,11 +15,24 @@ Figures per kill:
 
 from __future__ import annotations
 
+import argparse
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from curlnav.run.launch import http_json_or_none
+HELP = "kill -9 replay, learner and scheduler of a local run: what was lost"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--actors", type=int, default=2)
+    p.add_argument("--warm-s", type=float, default=60.0, help="s of training before the first kill")
+    p.add_argument("--run-dir", default="runs/bench-faults")
+
+
+def main(args: argparse.Namespace) -> int:
+    rows = run_fault_bench(actors=args.actors, warm_s=args.warm_s, run_dir=args.run_dir)
+    return 0 if all(r.get("lost", 0) == 0 and r.get("forward", True) and r.get("back_s") is not None
+                    for r in rows) else 1
 
 
 def poll(predicate: Callable[[], object], timeout: float, every: float = 0.2):
@@ -44,6 +57,8 @@ class FaultTarget:
 
 def measure_kill(target: FaultTarget, status_url: str, timeout: float = 180.0) -> dict:
     """Kill ``target`` (SIGKILL), start it again, and measure through the scheduler's status."""
+    from curlnav.run.launch import http_json_or_none
+
     status = lambda: http_json_or_none(status_url)  # noqa: E731
     before = poll(lambda: (s := status()) and (s.get("replay") or {}).get("accepted") is not None and s, 30) or {}
     replay_before = before.get("replay") or {}

@@ -27,6 +27,7 @@ V0 -> V1: the learner's version when the partition began and at the end.
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import sys
@@ -40,6 +41,29 @@ from curlnav.bus.mesh import LOCAL_ROUTER, router_flags
 from curlnav.run.launch import LocalCluster, http_json_or_none
 
 SCHEDULER_PORT, LEARNER_PORT = 8080, 8081  # on host 0's address (each host has its own ports)
+HELP = ("a run over network namespaces (a router per host, TLS between them): cut an actor host off, heal, train on; "
+        "what was lost (root)")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--hosts", type=int, default=3, help="namespaces: host 0 runs replay, learner and scheduler")
+    p.add_argument("--actors-per-host", type=int, default=2, help="actors on each of hosts 1..H-1")
+    p.add_argument("--partition-s", type=float, default=20.0, help="seconds host 1 stays cut off (its link down)")
+    p.add_argument("--minutes", type=float, default=None, help="the whole run (default: 30 s before and after)")
+    p.add_argument("--netem", default="", help="latency and loss on the actor hosts' links, as tc netem takes "
+                                               "them (e.g. 'delay 20ms loss 1%%'), where the kernel has netem")
+    p.add_argument("--run-dir", default="runs/bench-hosts")
+
+
+def main(args: argparse.Namespace) -> int:
+    from curlnav.bench.netns import unavailable
+
+    why = unavailable()
+    if why:
+        raise SystemExit(f"curlnav: error: bench hosts needs network namespaces: {why}")
+    result = run_hosts_bench(hosts=args.hosts, actors_per_host=args.actors_per_host, partition_s=args.partition_s,
+                             minutes=args.minutes, run_dir=args.run_dir, netem=args.netem)
+    return 0 if result["lost"] == 0 else 1
 
 
 class HostsCluster(LocalCluster):

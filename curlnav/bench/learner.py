@@ -20,17 +20,18 @@ relative difference: whether mixed precision keeps the losses equal.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import os
 import platform
 import time
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
-from curlnav.config import ExperimentConfig
-from curlnav.layout import ObservationLayout
-
-from .d4pg import TensorBatch, compile_networks, init_state, read_metrics, set_amp, sgd_step
+    from curlnav.layout import ObservationLayout
+    from curlnav.learner.d4pg import TensorBatch
 
 VARIANTS = {  # name -> (compile mode, amp, sync)
     "eager": ("off", "off", True),
@@ -41,8 +42,34 @@ VARIANTS = {  # name -> (compile mode, amp, sync)
     "bf16+compile": ("default", "bf16", False),
 }
 
+HELP = "D4PG learner updates/s per preset"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--presets", default="default,paper", help="comma-separated config presets")
+    p.add_argument("--seconds", type=float, default=20.0, help="timed seconds per preset")
+    p.add_argument("--batch", type=int, default=256, help="batch size")
+    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: cuda when present)")
+    p.add_argument("--variants", default="eager", help="how the update runs, comma-separated: eager, async, compile, "
+                                                      "cudagraphs, bf16, bf16+compile (see curlnav.bench.learner)")
+    p.add_argument("--check-amp", action="store_true", help="also train float32 and bf16 side by side and compare "
+                                                           "their critic losses")
+    p.add_argument("--check-steps", type=int, default=500, help="updates of the amp check")
+
+
+def main(args: argparse.Namespace) -> int:
+    run_learner_bench(presets=args.presets.split(","), seconds=args.seconds, batch_size=args.batch, threads=args.threads,
+                      device=args.device, variants=args.variants.split(","), check_amp=args.check_amp,
+                      check_steps=args.check_steps)
+    return 0
+
 
 def random_batch(layout: ObservationLayout, b: int, device: torch.device, seed: int = 0) -> TensorBatch:
+    import torch
+
+    from curlnav.learner.d4pg import TensorBatch
+
     g = torch.Generator().manual_seed(seed)
     return TensorBatch((torch.rand(b, layout.size, generator=g) * 5).to(device), torch.rand(b, 3, generator=g).to(device),
                        torch.randn(b, generator=g).to(device), torch.full((b,), 0.95).to(device),
@@ -50,6 +77,8 @@ def random_batch(layout: ObservationLayout, b: int, device: torch.device, seed: 
 
 
 def _sync(device: torch.device) -> None:
+    import torch
+
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
@@ -57,6 +86,10 @@ def _sync(device: torch.device) -> None:
 def updates_per_second(preset: str, seconds: float, batch_size: int, device: str | None = None,
                        variant: str = "eager") -> tuple[float, int]:
     """(updates/s, parameters of actor + critic) of ``variant`` (``VARIANTS``)."""
+    from curlnav.config import ExperimentConfig
+    from curlnav.layout import ObservationLayout
+    from curlnav.learner.d4pg import compile_networks, init_state, read_metrics, set_amp, sgd_step
+
     compile_mode, amp, sync = VARIANTS[variant]
     cfg = dataclasses.replace(ExperimentConfig.preset(preset).d4pg, batch_size=batch_size)
     layout = ObservationLayout()
@@ -81,6 +114,12 @@ def updates_per_second(preset: str, seconds: float, batch_size: int, device: str
 def amp_loss_check(preset: str, steps: int, batch_size: int, device: str | None = None) -> tuple[float, float, float]:
     """Critic loss, mean of the last 50 of ``steps`` updates, in float32 and in bf16 from the same
     initial networks and batches; and their relative difference."""
+    import torch
+
+    from curlnav.config import ExperimentConfig
+    from curlnav.layout import ObservationLayout
+    from curlnav.learner.d4pg import init_state, set_amp, sgd_step
+
     layout = ObservationLayout()
     cfg = dataclasses.replace(ExperimentConfig.preset(preset).d4pg, batch_size=batch_size)
     out = []
@@ -99,6 +138,8 @@ def amp_loss_check(preset: str, steps: int, batch_size: int, device: str | None 
 def run_learner_bench(presets: list[str], seconds: float = 20.0, batch_size: int = 256, threads: int = 2,
                       device: str | None = None, variants: list[str] | None = None, check_amp: bool = False,
                       check_steps: int = 500) -> dict:
+    import torch
+
     torch.set_num_threads(threads)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     variants = variants or ["eager"]

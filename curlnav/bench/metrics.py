@@ -3,15 +3,25 @@ BARN parameter grid's metric ranges."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import time
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
-from .generators import barn, barn_3x3
-from .metrics import METRIC_NAMES, MetricMaps
-from .rank import measure, world_paths
+HELP = "difficulty metrics: 240 x 240 timing and the BARN parameter grid"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--per-setting", type=int, default=25, help="worlds per fill/smoothing setting (BARN: 25)")
+
+
+def main(args: argparse.Namespace) -> int:
+    run_metrics_bench(per_setting=args.per_setting)
+    return 0
 
 REFERENCE = {  # the real BARN set, recomputed with the specification (min, median, mean, max)
     "distance": (1.18, 2.13, 2.37, 6.96), "visibility": (2.92, 5.28, 5.91, 12.16),
@@ -22,6 +32,12 @@ REFERENCE = {  # the real BARN set, recomputed with the specification (min, medi
 
 def barn_parameter_grid(per_setting: int = 25) -> tuple[np.ndarray, list[int]]:
     """Metrics of ``per_setting`` worlds for each fill_pct x smooth_iter setting of BARN's set."""
+    import numpy as np
+
+    from curlnav.worlds.generators import barn
+    from curlnav.worlds.metrics import MetricMaps
+    from curlnav.worlds.rank import world_paths
+
     rows, lengths = [], []
     for fi, fill in enumerate((0.15, 0.20, 0.25, 0.30)):
         for smooth in (2, 3, 4):
@@ -34,6 +50,12 @@ def barn_parameter_grid(per_setting: int = 25) -> tuple[np.ndarray, list[int]]:
 
 
 def run_metrics_bench(per_setting: int = 25, repeats: int = 5) -> None:
+    import numpy as np
+
+    from curlnav.worlds.generators import barn_3x3
+    from curlnav.worlds.metrics import METRIC_NAMES
+    from curlnav.worlds.rank import measure
+
     print(f"machine: {platform.machine()} cpus={os.cpu_count()} python={platform.python_version()}")
     world = barn_3x3(seed=0, pairs=10)
     rows, cols = world.occupancy.shape

@@ -9,6 +9,7 @@ batch sequence number is missing.
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import subprocess
@@ -17,12 +18,37 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
+HELP = "replay service throughput from 4 publishers, sampling, weight latency"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--publishers", type=int, default=4, help="publishing processes")
+    p.add_argument("--batches", type=int, default=400, help="batches of 64 transitions per publisher")
+    p.add_argument("--paths", default="plain,shm", help="sampling paths to measure: plain (sockets), shm (Zenoh "
+                                                       "shared memory), comma-separated")
+    p.add_argument("--in-flight", type=int, default=4, help="sample requests the learner keeps outstanding")
+    p.add_argument("--per-request", type=int, default=4, help="batches of 256 in one sample request (the learner "
+                                                              "service's batches_per_request)")
+    p.add_argument("--learner-device", default=None, help="also step a D4PG learner on each sampled batch, on this "
+                                                         "device (cpu, cuda)")
+    p.add_argument("--learner-variant", default="async", help="how that learner runs (curlnav bench learner --variants)")
+    p.add_argument("--insert-rates", default="0,12500", help="insert rates to measure sampling beside, transitions/s in all, "
+                                                       "comma-separated; 0: the publishers as fast as they go")
+
+
+def main(args: argparse.Namespace) -> int:
+    run_transport_bench(publishers=args.publishers, batches=args.batches, paths=tuple(args.paths.split(",")),
+                        in_flight=args.in_flight, insert_rates=tuple(float(r) for r in args.insert_rates.split(",")),
+                        per_request=args.per_request, learner_device=args.learner_device,
+                        learner_variant=args.learner_variant)
+    return 0
 
 
 def _publisher(router: str, run: str, actor_id: str, batches: int, per_batch: int, rate: float = 0.0) -> None:
     """``batches`` batches of ``per_batch`` transitions, as fast as the bus takes them (``rate``
     0) or paced at ``rate`` transitions/s."""
+    import numpy as np
+
     from curlnav.bus.transport import open_session, reliable_publisher
     from curlnav.layout import ObservationLayout
     from curlnav.proto.messages import TransitionBatch
@@ -172,12 +198,12 @@ def _insert_and_sample(run_dir: Path, path: str, publishers: int, batches: int, 
 
 def _bench_learner(device: str, variant: str):
     """(state, assembler, step(tensors), finish()) of a D4PG learner on ``device`` run as
-    ``variant`` (``curlnav.learner.bench.VARIANTS``)."""
+    ``variant`` (``curlnav.bench.learner.VARIANTS``)."""
     import torch
 
+    from curlnav.bench.learner import VARIANTS
     from curlnav.config import D4PGConfig
     from curlnav.layout import ObservationLayout
-    from curlnav.learner.bench import VARIANTS
     from curlnav.learner.d4pg import compile_networks, init_state, read_metrics, set_amp, sgd_step
     from curlnav.learner.feed import BatchAssembler, resolve_device
 
@@ -211,6 +237,8 @@ def _rejection_reasons(url: str) -> dict[str, int]:
 
 def _weights_latency(session, router: str, topo) -> float:
     """The default network's weights broadcast through the router: one-way latency (ms)."""
+    import numpy as np
+
     from curlnav.bus.transport import open_session, reliable_publisher
     from curlnav.config import D4PGConfig
     from curlnav.layout import ObservationLayout
