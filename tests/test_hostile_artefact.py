@@ -296,6 +296,28 @@ def serve_big_files(learner: HostileLearner, artefact: Path, sizes: dict[str, in
     learner.serve_artefact(artefact, listing_changes=big)
 
 
+def test_a_pull_refuses_bad_metadata_before_any_other_file_comes_down(learner, artefact, tmp_path):  # noqa: F811
+    """The inf/NaN metadata, listed with a 200 MiB file (right sha256s): refused from metadata.json
+    alone; no other file is requested, so nothing of the 200 MiB comes down."""
+    from curlnav.run.pull import pull_policy
+
+    folder = copy_artefact(artefact, tmp_path, HOSTILE_METADATA["scale-inf-nan"][0])
+    serve_big_files(learner, folder, {"big.bin": 200 * MIB})
+    requested = []
+    for path, (status, headers, body) in list(learner.routes.items()):
+        if path.startswith("/files/"):
+            def record(wfile, path=path, body=body):
+                requested.append(path)
+                body(wfile) if callable(body) else wfile.write(body)
+            learner.routes[path] = (status, headers if callable(body) else {**headers, "Content-Length": str(len(body))},
+                                    record)
+    out = tmp_path / "pulled" / "policy"
+    with pytest.raises(ValueError, match="action.scale"):
+        pull_policy(learner.url, out)
+    assert requested == ["/files/meta"]
+    assert not out.exists() and not list((tmp_path / "pulled").iterdir())
+
+
 def test_a_pull_of_three_200_mib_files_is_refused_with_nothing_kept(learner, artefact, tmp_path):  # noqa: F811
     serve_big_files(learner, artefact, {"a.bin": 200 * MIB, "b.bin": 200 * MIB, "c.bin": 200 * MIB})
     out = tmp_path / "pulled" / "policy"

@@ -2,7 +2,8 @@
 
 The learner is not trusted with the local disk (issue 26 H5): only plain file names that the
 artefact's own ``metadata.json`` lists (plus ``metadata.json``), each with a sha256; downloads
-streamed to disk with a size cap; no redirect to another origin; the artefact built and checked
+streamed to disk with a size cap; no redirect to another origin; metadata.json fetched first and
+its every field checked (``check_metadata``) before any other file; the artefact built and checked
 (checksums, ONNX model) in a temporary folder beside ``--out``, which is replaced only then, and
 only if it is a policy artefact folder itself (or empty).
 
@@ -27,7 +28,7 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-from curlnav.files import FileRefused, is_plain_file_name, loads_json, shown
+from curlnav.files import FileRefused, is_plain_file_name, loads_json, read_json, shown
 
 MAX_FILE_BYTES = 256 << 20  # one artefact file (an actor of 1024 x 1024 layers is a few MB)
 MAX_LISTING_BYTES = 4 << 20  # the JSON listing of a version
@@ -261,7 +262,7 @@ def pull_policy(base_url: str, out_dir: str | Path, version: str = "latest", tim
 
 
 def _pull(base_url: str, out_dir: Path, version: str, timeout: float, budget: PullBudget) -> Path:
-    from curlnav.policy import PolicyArtefact
+    from curlnav.policy import PolicyArtefact, check_metadata
 
     base = base_url.rstrip("/")
     if not _replaceable(out_dir):
@@ -276,6 +277,8 @@ def _pull(base_url: str, out_dir: Path, version: str, timeout: float, budget: Pu
     try:
         _fetch_file(base, "metadata.json", *files["metadata.json"], tmp, timeout, budget)
         listed = PolicyArtefact.listed_files(tmp)  # the artefact's own list (plain names, checked)
+        # every field checked now: an inf/NaN artefact is refused before any other file comes down
+        check_metadata(read_json(tmp / "metadata.json", what="metadata.json"), tmp / "metadata.json")
         unlisted = sorted(set(files) - set(listed) - {"metadata.json"})
         if unlisted:
             raise ValueError(f"listing {where}: {shown(unlisted)} not in the artefact's metadata.json; refused")
