@@ -209,15 +209,15 @@ def check_metadata(metadata: dict, meta_path: Path) -> None:
 
 
 def _external_tensors(graph) -> list[str]:
-    """Names of the tensors of ``graph`` (an ``onnx.GraphProto``, its nodes' attributes and their
-    subgraphs) whose data lies in an external file."""
+    """Names of the tensors of ``graph`` (an ``onnx.GraphProto`` or ``FunctionProto``, its nodes'
+    attributes and their subgraphs) whose data lies in an external file."""
     from onnx import AttributeProto, TensorProto
 
     def external(tensor) -> bool:
         return tensor.data_location == TensorProto.EXTERNAL or len(tensor.external_data) > 0
 
-    found = [t.name for t in graph.initializer if external(t)]
-    for sparse in graph.sparse_initializer:
+    found = [t.name for t in getattr(graph, "initializer", ()) if external(t)]  # a FunctionProto has none
+    for sparse in getattr(graph, "sparse_initializer", ()):
         found += [t.name or "a sparse initializer" for t in (sparse.values, sparse.indices) if external(t)]
     for node in graph.node:
         for attr in node.attribute:
@@ -245,18 +245,17 @@ def _check_self_contained(path: Path) -> None:
     except (DecodeError, ValueError, RuntimeError, RecursionError) as exc:
         raise ArtefactError(f"{path}: not a loadable ONNX model ({shown(str(exc), 120)[1:-1]})") from None
     external = _external_tensors(model.graph)
-    for function in model.functions:
-        for node in function.node:
-            for attr in node.attribute:
-                if attr.t.data_location == onnx.TensorProto.EXTERNAL:
-                    external.append(f"{function.name} {node.op_type}")
+    for function in model.functions:  # the same walk: tensors, sparse tensors, subgraphs
+        external += [f"{function.name}: {name}" for name in _external_tensors(function)]
     if external:
         raise ArtefactError(f"{path}: {len(external)} tensor(s) with external data ({shown(external[:3], 120)}); a policy "
                             "actor.onnx must hold all its weights itself; refused")
 
 
 _FIRST_ACTION = """import resource, sys
-resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[3]), int(sys.argv[3])))
+hard = resource.getrlimit(resource.RLIMIT_AS)[1]  # never above a lower limit of the parent's (ulimit -v)
+bound = int(sys.argv[3]) if hard == resource.RLIM_INFINITY else min(int(sys.argv[3]), hard)
+resource.setrlimit(resource.RLIMIT_AS, (bound, bound))
 import numpy as np
 import onnxruntime as ort
 
@@ -269,14 +268,22 @@ print(repr(action.shape), repr([float(v) for v in np.ravel(action)[:8]]))
 """
 
 
+_FIRST_ACTION_PASSED: set[tuple[str, int]] = set()  # (sha256 of actor.onnx, observation size) checked in this process
+
+
 def _first_action_bounded(path: Path, size: int) -> None:
     """Open ``path`` and run its first action (a zero observation) in a child process whose
-    address space is ``FIRST_ACTION_MEMORY_BYTES``, within ``FIRST_ACTION_TIMEOUT_S``: a graph
-    that allocates gigabytes at session start or at its first action is refused here, in one
-    line, instead of taking this process (a robot's node) down. The action must be (1, 3), finite."""
+    address space is ``FIRST_ACTION_MEMORY_BYTES`` (or the lower hard limit this process has),
+    within ``FIRST_ACTION_TIMEOUT_S``: a graph that allocates gigabytes at session start or at its
+    first action is refused here, in one line, instead of taking this process (a robot's node)
+    down. The action must be (1, 3), finite. A pass is remembered for the process by the sha256 of
+    ``path`` and ``size``: loading the same artefact again does not run the child again."""
     import subprocess
     import sys
 
+    key = (sha256_of(path), size)
+    if key in _FIRST_ACTION_PASSED:
+        return
     bound = f"{FIRST_ACTION_MEMORY_BYTES >> 20} MiB"
     try:
         result = subprocess.run([sys.executable, "-c", _FIRST_ACTION, str(path), str(size), str(FIRST_ACTION_MEMORY_BYTES)],
@@ -291,6 +298,7 @@ def _first_action_bounded(path: Path, size: int) -> None:
     out = result.stdout.strip()
     if not out.startswith("(1, 3) [") or any(word in out for word in ("nan", "inf")):
         raise ArtefactError(f"{path}: its first action is {shown(out, 120)}, expected 3 finite numbers; refused")
+    _FIRST_ACTION_PASSED.add(key)
 
 
 def _onnx_session(path: Path, size: int):

@@ -259,6 +259,115 @@ def test_a_graph_that_allocates_1e10_floats_at_its_first_action_is_refused_in_on
     assert peak_mb < 1000
 
 
+FIRST_ACTION_CHILD = """import sys
+from pathlib import Path
+from curlnav.policy import _first_action_bounded
+_first_action_bounded(Path(sys.argv[1]), int(sys.argv[2]))
+print("first action ran")
+"""
+
+
+def test_the_first_action_check_runs_under_a_lower_hard_memory_limit():
+    """A process whose hard address-space limit is already below the 1 GiB bound (``ulimit -v``,
+    some containers): the child keeps that limit instead of failing to raise it (ValueError)."""
+    import resource
+    import subprocess
+    import sys
+
+    from curlnav.policy import FIRST_ACTION_MEMORY_BYTES
+
+    folder = Path(__file__).resolve().parents[1] / "policies" / "namo-general"
+    size = json.loads((folder / "metadata.json").read_text())["observation"]["size"]
+    limit = FIRST_ACTION_MEMORY_BYTES - (64 << 20)
+
+    def lower_hard_limit():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    result = subprocess.run([sys.executable, "-c", FIRST_ACTION_CHILD, str(folder / "actor.onnx"), str(size)],
+                            capture_output=True, text=True, timeout=120, preexec_fn=lower_hard_limit)
+    assert result.returncode == 0 and "first action ran" in result.stdout, result.stderr[-600:]
+
+
+def function_model(path: Path, hidden) -> None:
+    """An actor.onnx whose graph calls a local function, ``hidden(function)`` putting external
+    data somewhere in that function's nodes."""
+    from onnx import FunctionProto
+
+    function = FunctionProto(name="scaled", domain="local", input=["x"], output=["y"])
+    function.node.append(helper.make_node("Identity", ["x"], ["y"]))
+    function.opset_import.append(helper.make_opsetid("", 17))
+    hidden(function)
+    graph = helper.make_graph([helper.make_node("scaled", ["observation"], ["action"], domain="local")], "g",
+                              [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", 3])],
+                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", 3])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid("local", 1)],
+                              functions=[function])
+    path.write_bytes(model.SerializeToString())
+
+
+def external_tensor(name: str = "w") -> TensorProto:
+    tensor = TensorProto(name=name, data_type=TensorProto.FLOAT, dims=[3])
+    tensor.data_location = TensorProto.EXTERNAL
+    for key, value in (("location", "../secret.txt"), ("offset", "0"), ("length", "12")):
+        entry = tensor.external_data.add()
+        entry.key, entry.value = key, value
+    return tensor
+
+
+def _in_tensors(function) -> None:
+    attr = helper.make_attribute("weights", [external_tensor()])
+    function.node.append(helper.make_node("Identity", ["x"], ["unused"]))
+    function.node[-1].attribute.append(attr)
+
+
+def _in_sparse(function) -> None:
+    sparse = helper.make_sparse_tensor(external_tensor("values"), numpy_helper.from_array(np.array([0], np.int64), "i"),
+                                       [3])
+    function.node.append(helper.make_node("Constant", [], ["unused"], sparse_value=sparse))
+
+
+def _in_subgraph(function) -> None:
+    branch = helper.make_graph([helper.make_node("Constant", [], ["out"], value=external_tensor())], "branch", [],
+                               [helper.make_tensor_value_info("out", TensorProto.FLOAT, [3])])
+    function.node.append(helper.make_node("If", ["x"], ["unused"], then_branch=branch, else_branch=branch))
+
+
+@pytest.mark.parametrize("where", [_in_tensors, _in_sparse, _in_subgraph], ids=["tensors", "sparse", "subgraph"])
+def test_external_data_anywhere_in_an_onnx_function_is_refused(tmp_path, where):
+    from curlnav.policy import ArtefactError, _check_self_contained
+
+    path = tmp_path / "actor.onnx"
+    function_model(path, where)
+    with pytest.raises(ArtefactError, match="external data"):
+        _check_self_contained(path)
+
+
+def test_loading_the_same_artefact_again_does_not_rerun_the_first_action_check(artefact, tmp_path, monkeypatch):  # noqa: F811
+    """The first-action child (about 1.5 s) runs once per actor.onnx content and observation size
+    in a process: a second load of the same artefact skips it, a changed actor.onnx does not."""
+    import subprocess
+
+    from curlnav.policy import _FIRST_ACTION, PolicyArtefact
+
+    children = []
+    run = subprocess.run
+
+    def counted(args, *more, **kwargs):
+        if _FIRST_ACTION in args:
+            children.append(args)
+        return run(args, *more, **kwargs)
+
+    monkeypatch.setattr(subprocess, "run", counted)
+    folder = copy_artefact(artefact, tmp_path)
+    PolicyArtefact(folder)
+    PolicyArtefact(copy_artefact(artefact, tmp_path, name="again"))
+    assert len(children) == 1
+    bomb_model(folder, 10)  # another actor.onnx: checked again
+    relist(folder)
+    PolicyArtefact(folder)
+    assert len(children) == 2
+
+
 # -- curlnav pull: a total, a file count and a deadline --------------------------------------------
 
 MIB = 1 << 20
