@@ -8,9 +8,6 @@ import os
 import sys
 from pathlib import Path
 
-#: every world argument takes the same forms (one resolver, ``curlnav.sim.get_world``)
-WORLD_HELP = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
-
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from curlnav.run.train import run_train
@@ -22,106 +19,6 @@ def _cmd_config_show(args: argparse.Namespace) -> int:
     from curlnav.run.train import show_config
 
     return show_config(args)
-
-
-def _world_from_spec(spec: str):
-    """A world argument, resolved as everywhere else (``curlnav.sim.get_world``): a built-in
-    name, a world YAML path, or FAMILY:SEED for a generated world."""
-    from curlnav.sim import get_world
-
-    return get_world(spec)
-
-
-def _parse_params(items: list[str]) -> dict:
-    params = {}
-    for item in items or []:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--param takes KEY=VALUE, got {item!r}")
-        params[key.replace("-", "_")] = float(value) if any(ch in value for ch in ".e") else int(value)
-    return params
-
-
-def _cmd_worlds_generate(args: argparse.Namespace) -> int:
-    from curlnav.sim import save_world
-    from curlnav.worlds.families import generate
-
-    out = Path(args.out)
-    for seed in range(args.seed, args.seed + args.count):
-        world = generate(args.family, seed, **_parse_params(args.param))
-        path = save_world(world, out / f"{world.name}.yaml")
-        print(f"{path}: {world.size[0]:.1f} m x {world.size[1]:.1f} m, {len(world.pairs)} pairs, "
-              f"{len(world.balls)} balls, {len(world.doors)} doors")
-    return 0
-
-
-def _cmd_worlds_show(args: argparse.Namespace) -> int:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from curlnav.sim.render import draw_world
-    from curlnav.worlds.rank import measure, measured_pairs, path_points, world_paths
-
-    world = _world_from_spec(args.world)
-    pairs = measured_pairs(world)
-    _, paths = world_paths(world)
-    d = measure(world)
-    x0, y0, x1, y1 = world.bounds
-    fig, ax = plt.subplots(figsize=(8, 8 * (y1 - y0) / max(x1 - x0, 1e-9) + 0.6), dpi=110)
-    draw_world(ax, world, pairs=pairs)
-    for path in paths:
-        ax.plot(*path_points(world, path), "-", lw=1, color="tab:green")
-    ax.set_title(f"{world.name}: Dist {d.distance:.2f}  Vis {d.visibility:.2f}  Disp {d.dispersion:.2f}  "
-                 f"CD {d.characteristic_dimension:.2f}  Tor {d.tortuosity:.2f}", fontsize=9)
-    out = Path(args.out or f"runs/worlds/{world.name}.png")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(out)
-    plt.close(fig)
-    drawn = "" if world.pairs else " (seeded random: the map has none)"
-    print(f"{world.name}: {world.size[0]:.1f} m x {world.size[1]:.1f} m, {len(pairs)} pairs{drawn}; picture: {out}")
-    return 0
-
-
-def _cmd_worlds_scatter_balls(args: argparse.Namespace) -> int:
-    from curlnav.sim import save_world
-    from curlnav.worlds.scatter import scatter_balls
-
-    world = _world_from_spec(args.world)
-    out = Path(args.out)
-    if out.suffix not in (".yaml", ".yml"):
-        raise ValueError(f"--out must be a world YAML path (.yaml), got {args.out!r}")
-    task = scatter_balls(world, args.count, seed=args.seed, radius=args.radius, mass=args.mass, pairs=args.pairs)
-    path = save_world(task.with_changes(name=out.stem), out)
-    print(f"{path}: {len(task.balls) - len(world.balls)} balls on the shortest paths of {len(task.pairs)} pairs "
-          f"({', '.join(p.name for p in task.pairs)}) of {world.name}")
-    return 0
-
-
-def _check_world(spec: str) -> None:
-    """Fail fast, before any service or PyBullet scene starts: the world loads and, when it
-    draws random pairs, a pair is possible (one-line ``WorldError`` otherwise)."""
-    from curlnav.sim import get_world
-    from curlnav.worlds.pairs import check_pairs_possible
-
-    check_pairs_possible(get_world(spec))
-
-
-def _cmd_worlds_rank(args: argparse.Namespace) -> int:
-    import time as _time
-
-    from curlnav.worlds.rank import rank, ranking_table, write_outputs
-
-    worlds = [_world_from_spec(spec) for spec in args.worlds]
-    t0 = _time.perf_counter()
-    rows = rank(worlds)
-    elapsed = _time.perf_counter() - t0
-    print(ranking_table(rows))
-    files = write_outputs(rows, args.out)
-    print(f"measured {len(worlds)} worlds in {elapsed:.2f} s; wrote {files['csv']}, {files['json']}, {files['png']}")
-    return 0
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -377,39 +274,12 @@ def _add_bus_commands(sub) -> None:
 
 
 def _add_world_commands(sub) -> None:
-    """rollout and worlds (generate, show, scatter-balls, rank)."""
+    """rollout (curlnav.evaluation.commands) and worlds (curlnav.worlds.commands)."""
     from curlnav.evaluation.commands import add_rollout_command
+    from curlnav.worlds.commands import add_commands as add_worlds_commands
 
     add_rollout_command(sub)
-
-    worlds = sub.add_parser("worlds", help="generate, draw and rank worlds")
-    worlds_sub = worlds.add_subparsers(dest="worlds_command", required=True)
-    p = worlds_sub.add_parser("generate", help="write generated worlds as world files")
-    from curlnav.worlds.families import FAMILIES
-
-    p.add_argument("family", help=", ".join(FAMILIES))
-    p.add_argument("--seed", type=int, default=0, help="seed of the first world")
-    p.add_argument("--count", type=int, default=1, help="worlds with seeds seed, seed+1, ...")
-    p.add_argument("--param", action="append", help="generator parameter KEY=VALUE (e.g. fill_pct=0.3)")
-    p.add_argument("--out", default="worlds", help="folder for the world files")
-    p.set_defaults(func=_cmd_worlds_generate)
-    p = worlds_sub.add_parser("show", help="draw a world with its pairs and their shortest paths")
-    p.add_argument("world", help="built-in name, world YAML, or FAMILY:SEED")
-    p.add_argument("--out", default=None, help="PNG path")
-    p.set_defaults(func=_cmd_worlds_show)
-    p = worlds_sub.add_parser("scatter-balls", help="a NAMO task from any map: balls on the shortest paths of its pairs")
-    p.add_argument("world", help="built-in name, world YAML (e.g. a plain ROS SLAM map), or FAMILY:SEED")
-    p.add_argument("--count", type=int, default=6, help="balls to add")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random pairs (plain maps) and of the places")
-    p.add_argument("--pairs", type=int, default=3, help="random pairs to draw when the map has none")
-    p.add_argument("--radius", type=float, default=0.25, help="ball radius (m)")
-    p.add_argument("--mass", type=float, default=0.5, help="ball mass (kg)")
-    p.add_argument("--out", required=True, help="world YAML to write (its image is written beside it)")
-    p.set_defaults(func=_cmd_worlds_scatter_balls)
-    p = worlds_sub.add_parser("rank", help="Table I and the MDS picture for a set of worlds")
-    p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")
-    p.add_argument("--out", default="runs/ranking", help="folder for the table (CSV, JSON) and the picture")
-    p.set_defaults(func=_cmd_worlds_rank)
+    add_worlds_commands(sub)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,7 +2,8 @@
 pairs (`pairs`), the resolver of world specs and the built-in worlds (`builtin`), world families
 (the registry `families`; `generators`, `namo`, `tmaze`, `slam_like`, `scatter`), distributions of
 worlds (`distribution`), the held-out seeds (`heldout`), curriculum levels (`levels`), the BARN
-navigation-difficulty metrics (`metrics`) and the ranking that orders a curriculum (`rank`). Submodules are imported on use."""
+navigation-difficulty metrics (`metrics`), the ranking that orders a curriculum (`rank`), a world's
+picture (`picture`) and the `curlnav worlds` commands (`commands`). Submodules are imported on use."""
 
-__all__ = ["builtin", "distribution", "families", "generators", "heldout", "levels", "metrics", "namo", "pairs", "rank",
-           "scatter", "slam_like", "tmaze", "world"]
+__all__ = ["builtin", "commands", "distribution", "families", "generators", "heldout", "levels", "metrics", "namo", "pairs",
+           "picture", "rank", "scatter", "slam_like", "tmaze", "world"]

@@ -100,6 +100,9 @@ BUILTIN_WORLDS: dict[str, Callable[[], World]] = {
     "bench-36m": bench_world,
 }
 
+#: the forms every world argument takes (one resolver, ``get_world``): for command-line help
+WORLD_FORMS = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
+
 _CACHE: dict[str, World] = {}
 _DISTRIBUTION = re.compile(r"^[a-z0-9][a-z0-9-]*:\d+-\d+(\(.*\))?$")
 
