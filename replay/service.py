@@ -189,7 +189,9 @@ class ReplayService:
         if through > self.accepted_total:  # saved beside another log (this one was cleared): not ours
             through, saved = 0, {}
         segments = self.log.segments()
-        count_from = max(through, segments[1][0] if len(segments) > 1 and segments[0][0] > 0 else 0)
+        count_from = through
+        if segments and segments[0][0] > 0:  # pruned: its first segment's drops are never counted, even alone
+            count_from = max(through, segments[1][0] if len(segments) > 1 else self.accepted_total)
         counted = dict(saved)
         ends = [before for _, before in drops[1:]] + [self.table.dropped]  # after a record: before the next
         for (first, before), after in zip(drops, ends):

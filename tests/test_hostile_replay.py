@@ -153,7 +153,13 @@ def test_the_chaos_bench_counts_the_replays_drops_as_lost():
 
 def test_a_pruned_log_does_not_count_its_first_segments_transitions_again(tmp_path):
     """A log pruned while it ran starts with a segment whose transitions name frames of the one
-    deleted before it: they left the table long ago, and were counted (or stored) then."""
+    deleted before it: they left the table long ago, and were counted (or stored) then. So too
+    when that first segment is the only one left."""
+    for pruned in (1, 5):  # of 6 segments: 5 left, or 1
+        pruned_log_counts_nothing(tmp_path / f"pruned-{pruned}", pruned)
+
+
+def pruned_log_counts_nothing(tmp_path, pruned: int) -> None:
     from curlnav.replay.nstep import NStepWriter
     from curlnav.replay.wal import SegmentLog
 
@@ -169,7 +175,8 @@ def test_a_pruned_log_does_not_count_its_first_segments_transitions_again(tmp_pa
     log.close()
     segments = sorted((tmp_path / "wal").glob("seg-*.log"))
     assert len(segments) == 6
-    segments[0].unlink()  # pruned, as drop_before does
+    for segment in segments[:pruned]:
+        segment.unlink()  # pruned, as drop_before does
     (tmp_path / "dropped.json").write_text('{"through": 1000000, "dropped": {"unknown_frame": 7}}')  # another log's
     service = replay_in(tmp_path)
     assert service.table.dropped.get("unknown_frame", 0) > 0  # the first kept segment named deleted frames
