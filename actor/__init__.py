@@ -1,5 +1,6 @@
-"""curlnav actor: the one episode loop (`loop.EpisodeLoop`, no network) and its service shell
-(`service`: assignments from the scheduler, weights from the learner, batches to the replay).
-Submodules are imported on use."""
+"""curlnav actor: the one episode loop (`loop.EpisodeLoop`, no network), the same for K environments
+with one batched policy call (`vector`), the batches kept until the replay acknowledges them
+(`resend`) and its service shell (`service`: assignments from the scheduler, weights from the
+learner, batches to the replay). Submodules are imported on use."""
 
-__all__ = ["loop", "service"]
+__all__ = ["loop", "resend", "service", "vector"]

@@ -32,7 +32,7 @@ class EpisodeEnd:
         return bool(self.info["is_success"])
 
 
-def draw_world(env: NamoEnv, draws: WorldDraws, options: dict | None) -> dict | None:
+def next_world_options(env: NamoEnv, draws: WorldDraws, options: dict | None) -> dict | None:
     """``options`` with a world distribution's key replaced by the world ``draws`` draws for this
     episode (``WorldDraws``: never a held-out seed); ``env`` keeps the scenes of the draws' pool
     built. Other options are returned as they are."""
@@ -63,7 +63,7 @@ class EpisodeLoop:
         """Reset the environment (``options``: world and pair) and start a new trajectory. A
         world distribution's key as the world draws this episode's world (``WorldDraws``: never a
         held-out seed); its scenes stay built in the environment's scene cache."""
-        options = draw_world(self.env, self.worlds, options)
+        options = next_world_options(self.env, self.worlds, options)
         self.obs, _ = self.env.reset(seed=seed, options=options)
         self.writer.first(self.obs)
         self.episode_return = 0.0

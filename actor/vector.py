@@ -24,7 +24,7 @@ from curlnav.replay.nstep import NStepWriter
 from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
 
-from .loop import EpisodeEnd, draw_world
+from .loop import EpisodeEnd, next_world_options
 
 
 class VectorNStepWriter:
@@ -97,7 +97,7 @@ class VectorEpisodeLoop:
     def begin(self, k: int, seed: int, options: dict | None = None) -> np.ndarray:
         """Reset environment ``k`` (``options``: world and pair; a distribution's key draws a world)."""
         env = self.envs[k]
-        options = draw_world(env, self.worlds, options)
+        options = next_world_options(env, self.worlds, options)
         self.drawn[k] = self.worlds.take_last()  # None unless a distribution drew this episode's world
         obs, _ = env.reset(seed=seed, options=options)
         self.writer[k].first(obs)

@@ -1,7 +1,7 @@
 """curlnav replay: the replay table core (n-step writer, table, rate limiter) and its service shell."""
 
 from .nstep import FrameBatch, NStepWriter
-from .table import RateLimiterTimeout, ReplayInputError, ReplayTable, SampleBatch, SampleToInsertRatio
+from .table import RateLimiterTimeout, ReplayInputError, ReplaySample, ReplayTable, SampleToInsertRatio
 
-__all__ = ["FrameBatch", "NStepWriter", "RateLimiterTimeout", "ReplayInputError", "ReplayTable", "SampleBatch",
+__all__ = ["FrameBatch", "NStepWriter", "RateLimiterTimeout", "ReplayInputError", "ReplaySample", "ReplayTable",
            "SampleToInsertRatio"]

@@ -121,7 +121,7 @@ class SampleToInsertRatio:
 
 
 @dataclass
-class SampleBatch:
+class ReplaySample:
     """A sampled batch. ``obs`` and ``next_obs`` (float32, (B, layout.size)), ``action`` (B, 3),
     ``reward`` and ``discount`` (B,), ``keys`` (int64), ``probabilities`` (of being drawn),
     ``priorities``, ``times_sampled``."""
@@ -320,10 +320,10 @@ class ReplayTable:
         with self._cond:
             return self.rate_limiter.can_insert(self.size, n)
 
-    def sample(self, batch_size: int, timeout: float | None = None) -> SampleBatch:
+    def sample(self, batch_size: int, timeout: float | None = None) -> ReplaySample:
         """Draw ``batch_size`` transitions (with replacement); blocks on the rate limiter."""
         f = self.sample_frames(batch_size, timeout)
-        return SampleBatch(keys=f["keys"], probabilities=f["probabilities"].astype(np.float64),
+        return ReplaySample(keys=f["keys"], probabilities=f["probabilities"].astype(np.float64),
                            priorities=f["priorities"], times_sampled=f["times_sampled"],
                            obs=stack_frames(f["obs_ranges"], f["obs_labels"], f["obs_goal"]), action=f["action"],
                            reward=f["reward"], discount=f["discount"],

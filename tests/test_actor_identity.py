@@ -79,6 +79,7 @@ def replicas(tmp_path):
         r.close()
 
 
+@pytest.mark.slow
 def test_replicas_starting_together_claim_distinct_identities_and_the_rest_stop_with_one_line(replicas):
     lines = replicas.start(6)
     claimed = sorted(line.split()[1] for line in lines if line.startswith("claimed"))
@@ -89,6 +90,7 @@ def test_replicas_starting_together_claim_distinct_identities_and_the_rest_stop_
                in line for line in lines if line.startswith("refused")), lines
 
 
+@pytest.mark.slow
 def test_a_dead_replicas_identity_is_taken_by_the_next_one(replicas):
     lines = replicas.start(4)
     assert sorted(lines) == [f"claimed actor-{n}" for n in range(4)]
@@ -153,6 +155,7 @@ def test_serve_actor_claims_an_identity_from_a_folder_of_them_and_keeps_the_old_
     assert index is None and re.fullmatch(r".+-\d+", ident) and not ident.startswith("actor-")
 
 
+@pytest.mark.slow
 def test_the_compose_file_mints_an_identity_per_replica_and_no_shared_actor_user(tmp_path):
     compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
     credentials, actor = compose["services"]["credentials"], compose["services"]["actor"]
@@ -175,6 +178,7 @@ def test_the_compose_file_mints_an_identity_per_replica_and_no_shared_actor_user
     assert SHARED_ACTOR not in users and not (out / SHARED_ACTOR).exists()
 
 
+@pytest.mark.slow
 def test_a_replica_beyond_the_identities_stops_with_one_line_and_exit_2(tmp_path):
     make_credentials(tmp_path, RUN, actors=1)
     held = claim_actor_identity(tmp_path)  # the one replica there is

@@ -6,6 +6,7 @@ role, so these tests can fail. Every wait polls with a deadline; every process i
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import socket
@@ -19,8 +20,8 @@ from types import SimpleNamespace
 
 import pytest
 import zenoh
+from conftest import wait_for
 
-from curlnav.bench.faults import poll
 from curlnav.bus import identity
 from curlnav.bus.security import (
     ALLOWED,
@@ -45,10 +46,7 @@ TOPO = Topology(RUN)
 REFUSAL_TIMEOUT_S = 3.0  # how long a refused session tries before it gives up
 
 
-def wait_for(what, check, timeout=20.0):
-    value = poll(check, timeout, every=0.05)
-    assert value, f"timed out after {timeout} s waiting for {what}"
-    return value
+wait_for = functools.partial(wait_for, timeout=20.0, every=0.05)  # the bus answers within ms: poll often
 
 
 # -- the credentials and the table, without a router ------------------------------------------------
@@ -127,6 +125,7 @@ def test_the_table_names_only_topology_keys_and_the_acl_is_default_deny():
         "replay", "scheduler"]
 
 
+@pytest.mark.slow
 def test_cli_writes_credentials(tmp_path):
     out = tmp_path / "bus"
     result = subprocess.run([sys.executable, "-m", "curlnav.cli", "bus", "credentials", "--out", str(out),
@@ -232,6 +231,8 @@ def deliver_until(publisher_put, payload: bytes, inbox: Inbox, what: str) -> Non
         time.sleep(0.2)
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_a_session_without_credentials_is_refused_and_its_weights_never_arrive(bus):
     inbox = Inbox()
     bus.session("actor").declare_subscriber(TOPO.weights, inbox)
@@ -256,6 +257,8 @@ def test_a_session_without_credentials_is_refused_and_its_weights_never_arrive(b
     assert not any(inbox.has(weights(v)) for v in range(100, 110))
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_a_wrong_password_or_another_runs_credentials_are_refused(bus, tmp_path):
     actor = bus.user("actor")
     assert bus.refused(BusUser("actor", "actor", actor.password + "x", RUN))
@@ -265,6 +268,8 @@ def test_a_wrong_password_or_another_runs_credentials_are_refused(bus, tmp_path)
     assert not bus.refused(actor)  # the control: the right password gets in
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_actor_credentials_cannot_forge_weights_status_priorities_or_credit(bus):
     actor, learner, replay = bus.session("actor"), bus.session("learner"), bus.session("replay")
     listeners = {"weights": (bus.session("actor"), TOPO.weights), "status": (bus.session("scheduler"), TOPO.status()),
@@ -290,6 +295,8 @@ def test_actor_credentials_cannot_forge_weights_status_priorities_or_credit(bus)
         {name: [] for name in forged}  # 80 forged puts, none believed
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_learner_credentials_cannot_forge_episodes_or_transitions(bus):
     scheduler, replay = bus.session("scheduler"), bus.session("replay")
     episodes, transitions = Inbox(), Inbox()
@@ -306,6 +313,8 @@ def test_learner_credentials_cannot_forge_episodes_or_transitions(bus):
     assert not episodes.has(report + b"forged") and not transitions.has(b"forged")
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_an_actor_cannot_write_under_another_actors_id(bus):
     """One identity per actor (issue 30): actor-1's own credentials put nothing under actor-0's id
     (transitions, episode reports); the control: actor-0 puts under its own."""
@@ -328,6 +337,8 @@ def test_an_actor_cannot_write_under_another_actors_id(bus):
     assert not any(b"forged" in item for item in transitions.items + episodes.items)
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_compose_replicas_claim_their_own_identity_and_cannot_write_under_each_others_id(bus):
     """Compose replicas (issue 30): each claims an identity from the folder of every actor's
     credentials (the ``bus-actors`` volume; ``curlnav serve actor`` without --actor-id) and
@@ -363,6 +374,8 @@ def test_compose_replicas_claim_their_own_identity_and_cannot_write_under_each_o
     assert not any(b"forged" in item for item in transitions.items + episodes.items)
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_only_the_replay_answers_samples_and_only_the_learner_asks(bus):
     learner = bus.session("learner")
 
@@ -387,6 +400,8 @@ def test_only_the_replay_answers_samples_and_only_the_learner_asks(bus):
     assert [r.ok for r in other.get(TOPO.weights_latest, timeout=1.5) if r.ok is not None] == []
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_fake_liveliness_tokens_are_not_seen_by_the_scheduler(bus):
     def watch(role: str, key: str) -> Inbox:
         seen = Inbox()
@@ -416,6 +431,7 @@ def test_fake_liveliness_tokens_are_not_seen_by_the_scheduler(bus):
     assert watcher.items == []
 
 
+@pytest.mark.slow
 def test_a_service_with_another_runs_credentials_stops_with_one_line(tmp_path):
     make_credentials(tmp_path / "bus", "other")
     env = {k: v for k, v in os.environ.items() if not k.startswith("CURLNAV_")}

@@ -9,15 +9,14 @@ import http.server
 import importlib.metadata
 import json
 import os
-import socket
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_one_line_error, closed_port
+from conftest import run_curlnav as curlnav
 
 from curlnav.cli import build_parser
 from curlnav.layout import ObservationLayout
@@ -28,38 +27,8 @@ REPO = Path(__file__).resolve().parent.parent
 BANNER = "pybullet build time"
 
 
-def curlnav(*args: str, cwd: Path | None = None, timeout: float = 180) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "curlnav.cli", *args], capture_output=True, text=True,
-                          timeout=timeout, cwd=cwd)
-
-
-def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str) -> None:
-    assert result.returncode == 2, (result.returncode, result.stderr[-2000:])
-    assert "Traceback" not in result.stderr
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("curlnav: error: "), result.stderr
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, lines[0])
-
-
-def closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture(scope="module")
-def artefact(tmp_path_factory) -> Path:
-    """A freshly exported (untrained) policy artefact."""
-    from curlnav.config import D4PGConfig
-    from curlnav.learner.artefact import export_policy
-    from curlnav.learner.d4pg import init_state
-
-    state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
-    return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])
-
-
 # -- banner, version, help -------------------------------------------------------------------------
+@pytest.mark.slow
 def test_version_prints_the_package_version_and_no_banner():
     result = curlnav("--version")
     assert result.returncode == 0, result.stderr
@@ -67,6 +36,7 @@ def test_version_prints_the_package_version_and_no_banner():
     assert BANNER not in result.stdout + result.stderr
 
 
+@pytest.mark.slow
 def test_a_command_that_builds_a_pybullet_scene_prints_no_banner(tmp_path):
     result = curlnav("rollout", "--world", "open-room", "--steps", "5", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr[-2000:]
@@ -92,6 +62,7 @@ def test_sub_command_help_shows_the_defaults(capsys, monkeypatch, command, shown
     assert "(default: None)" not in text and "(default: False)" not in text
 
 
+@pytest.mark.slow
 def test_eval_help_from_the_command_line_shows_the_episode_default():
     result = curlnav("eval", "--help")
     assert result.returncode == 0
@@ -99,17 +70,20 @@ def test_eval_help_from_the_command_line_shows_the_episode_default():
 
 
 # -- one-line errors for user mistakes ----------------------------------------------------------------
+@pytest.mark.slow
 def test_eval_of_a_missing_folder(tmp_path):
     missing = tmp_path / "no-such-policy"
     assert_one_line_error(curlnav("eval", str(missing)), str(missing), "expected a policy artefact folder")
 
 
+@pytest.mark.slow
 def test_eval_of_a_text_file_named_safetensors(tmp_path):
     fake = tmp_path / "x.safetensors"
     fake.write_text("not a checkpoint\n")
     assert_one_line_error(curlnav("eval", str(fake)), str(fake), "not a safetensors file")
 
 
+@pytest.mark.slow
 def test_eval_of_a_safetensors_file_that_is_no_curlnav_checkpoint(tmp_path):
     import torch
     from safetensors.torch import save_file
@@ -119,6 +93,7 @@ def test_eval_of_a_safetensors_file_that_is_no_curlnav_checkpoint(tmp_path):
     assert_one_line_error(curlnav("eval", str(other)), str(other), "checkpoint")
 
 
+@pytest.mark.slow
 def test_eval_of_a_folder_with_garbage_metadata(tmp_path, artefact):
     folder = tmp_path / "policy"
     folder.mkdir()
@@ -128,6 +103,7 @@ def test_eval_of_a_folder_with_garbage_metadata(tmp_path, artefact):
     assert_one_line_error(curlnav("eval", str(folder)), str(folder / "metadata.json"), "not valid JSON")
 
 
+@pytest.mark.slow
 def test_eval_of_a_folder_with_a_corrupt_onnx_model(tmp_path, artefact):
     folder = tmp_path / "policy"
     folder.mkdir()
@@ -139,17 +115,20 @@ def test_eval_of_a_folder_with_a_corrupt_onnx_model(tmp_path, artefact):
     assert_one_line_error(curlnav("eval", str(folder)), str(folder / "actor.onnx"), "not a loadable ONNX model")
 
 
+@pytest.mark.slow
 def test_policy_run_on_a_file_instead_of_a_folder(tmp_path, artefact):
     assert_one_line_error(curlnav("policy", "run", str(artefact / "actor.onnx"), "--out", str(tmp_path)),
                           str(artefact / "actor.onnx"), "not a folder")
 
 
+@pytest.mark.slow
 def test_policy_run_on_a_missing_folder(tmp_path):
     missing = tmp_path / "gone"
     assert_one_line_error(curlnav("policy", "run", str(missing), "--out", str(tmp_path)), str(missing),
                           "no such folder")
 
 
+@pytest.mark.slow
 def test_pull_from_an_unreachable_learner(tmp_path):
     assert_one_line_error(curlnav("pull", "--from", "http://127.0.0.1:1", "--out", str(tmp_path / "p")),
                           "cannot reach http://127.0.0.1:1")
@@ -157,6 +136,7 @@ def test_pull_from_an_unreachable_learner(tmp_path):
 
 
 # -- policy run --gif ------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_policy_run_with_gif_writes_an_animation_beside_the_picture(tmp_path, artefact):
     from PIL import Image
 
@@ -224,6 +204,8 @@ def assert_status_text(text: str) -> None:
     assert "epoch 1: to stage S2 sub-step 0 after 0 episodes (forced by admin)" in text
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_status_from_the_scheduler_url(scheduler_status):
     url, _ = scheduler_status
     result = curlnav("status", url)  # no path: /status is added
@@ -231,6 +213,8 @@ def test_status_from_the_scheduler_url(scheduler_status):
     assert_status_text(result.stdout)
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_status_json_prints_the_scheduler_status_as_it_is(scheduler_status):
     url, status = scheduler_status
     result = curlnav("status", url + "/status", "--json")
@@ -238,6 +222,8 @@ def test_status_json_prints_the_scheduler_status_as_it_is(scheduler_status):
     assert json.loads(result.stdout) == status
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_status_of_a_run_folder_and_of_the_newest_run_by_default(tmp_path, scheduler_status):
     url, _ = scheduler_status
     old, new = tmp_path / "runs" / "old-run", tmp_path / "runs" / "new-run"
@@ -257,6 +243,7 @@ def test_status_of_a_run_folder_and_of_the_newest_run_by_default(tmp_path, sched
     assert_one_line_error(curlnav("status", str(old)), "cannot reach http://127.0.0.1:", "is the run still going?")
 
 
+@pytest.mark.slow
 def test_status_of_a_folder_without_run_json(tmp_path):
     serial = tmp_path / "serial-run"
     serial.mkdir()
@@ -264,6 +251,8 @@ def test_status_of_a_folder_without_run_json(tmp_path):
                           "serial runs have no scheduler")
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_status_of_an_unreachable_scheduler():
     port = closed_port()
     assert_one_line_error(curlnav("status", f"http://127.0.0.1:{port}"),

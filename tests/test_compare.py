@@ -36,6 +36,7 @@ def read_csv(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow  # more than 5 s
 def test_eval_puts_the_planner_and_a_policy_side_by_side_on_the_same_pairs_and_seeds(tmp_path, capsys,
                                                                                       untrained_policy):
     out = tmp_path / "results"

@@ -4,7 +4,6 @@ cannot do, the imports point down, and curlnav shares an environment with proto-
 
 from __future__ import annotations
 
-import ast
 import json
 import subprocess
 import sys
@@ -106,6 +105,8 @@ def test_a_service_with_another_config_is_refused_naming_the_field():
     assert "d4pg.batch_size 256 vs 512" in message and "learner" in message and "\n" not in message
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_a_joining_service_with_another_config_exits_2_with_one_line(tmp_path):
     """Real processes: a router and a replay on one config; a learner on another refuses to join."""
     port = free_port()
@@ -186,6 +187,7 @@ def test_train_refuses_to_start_over_a_saved_run_without_resume(tmp_path, capsys
     assert "add --resume" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_curlnav_and_proto_plus_install_and_import_side_by_side():
     code = ("import proto, curlnav.proto.messages as m; assert hasattr(proto, 'Message'), proto.__file__; "
             "assert m.Weights.KIND == 'weights'; print(proto.__file__)")
@@ -194,108 +196,7 @@ def test_curlnav_and_proto_plus_install_and_import_side_by_side():
     assert "site-packages" in result.stdout
 
 
-# -- layering: imports point down only ------------------------------------------------------------
-LAYERS = {  # module prefix -> layer (0: bottom)
-    "curlnav.sim": 0, "curlnav.worlds": 0, "curlnav.proto": 0, "curlnav.layout": 0, "curlnav.config": 0, "curlnav.files": 0,
-    "curlnav.bus": 0, "curlnav.bus.transport": 0, "curlnav.bus.security": 0, "curlnav.bus.identity": 0,
-    "curlnav.bus.mesh": 0, "curlnav.policy": 0,
-    "curlnav.run": 0, "curlnav.run.record": 0, "curlnav.evaluation": 0, "curlnav.bench": 0,
-    "curlnav.replay": 1, "curlnav.learner": 1, "curlnav.scheduler": 1, "curlnav.actor": 1, "curlnav.builder": 1,
-    "curlnav.bus.service": 1, "curlnav.evaluation.protocol": 1, "curlnav.planners": 1,
-    "curlnav.cli": 2, "curlnav.run.launch": 2, "curlnav.run.train": 2, "curlnav.run.serial": 2,
-    "curlnav.run.pull": 2, "curlnav.run.evaluator": 2, "curlnav.run.supervise": 2, "curlnav.run.status": 2,
-    "curlnav.run.options": 2, "curlnav.evaluation.plots": 2, "curlnav.evaluation.animation": 2,
-    "curlnav.evaluation.compare": 2, "curlnav.evaluation.commands": 2, "curlnav.run.ablation": 2,
-    "curlnav.run.experiment": 2,
-    "curlnav.bench.transport": 2, "curlnav.bench.faults": 2, "curlnav.bench.draws": 2, "curlnav.bench.hosts": 2,
-    "curlnav.bench.actor": 2, "curlnav.bench.chaos": 2,
-    "curlnav.bench.learner": 2, "curlnav.bench.env": 2, "curlnav.bench.metrics": 2,
-    "curlnav.ros2": 2,
-}
-FOLDERS = {"curlnav": "curlnav", "proto": "curlnav.proto", "replay": "curlnav.replay", "learner": "curlnav.learner",
-           "actor": "curlnav.actor", "scheduler": "curlnav.scheduler"}
-
-
-def layer_of(module: str) -> int | None:
-    if module == "curlnav":
-        return 0  # the package itself: a docstring and a version
-    best = max((p for p in LAYERS if module == p or module.startswith(p + ".")), key=len, default=None)
-    return None if best is None else LAYERS[best]
-
-
-def project_modules():
-    for folder, package in FOLDERS.items():
-        for path in sorted((ROOT / folder).rglob("*.py")):
-            rel = path.relative_to(ROOT / folder).with_suffix("")
-            parts = [p for p in rel.parts if p != "__init__"]
-            yield ".".join([package, *parts]), path, path.name == "__init__.py"
-
-
-def imports_of(module: str, path: Path, is_package: bool) -> set[str]:
-    out = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            out |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = module.split(".")[: len(module.split(".")) - node.level + (1 if is_package else 0)]
-                name = ".".join(base + ([node.module] if node.module else []))
-            else:
-                name = node.module or ""
-            out.add(name)
-    return {name for name in out if name.startswith("curlnav")}
-
-
-def test_imports_point_down_only():
-    upward = []
-    for module, path, is_package in project_modules():
-        own = layer_of(module)
-        assert own is not None, f"{module} is in no layer"
-        for target in imports_of(module, path, is_package):
-            their = layer_of(target)
-            if their is not None and their > own:
-                upward.append(f"{module} (layer {own}) imports {target} (layer {their})")
-            if module.startswith("curlnav.proto") and not target.startswith("curlnav.proto"):
-                upward.append(f"{module}: the wire schemas import {target}")
-            if module.startswith("curlnav.actor") and target.startswith("curlnav.learner") \
-                    and target != "curlnav.learner.networks":
-                upward.append(f"{module} imports learner internals ({target}), not the networks module")
-    assert not upward, "\n".join(upward)
-
-
-def test_no_import_circle_between_modules():
-    """A circle (a imports b imports a, at import time or for type checking) makes a module
-    impossible to read or move alone; `sim/env.py` <-> `sim/render.py` was one."""
-    graph = {module: {t for t in imports_of(module, path, is_package)} for module, path, is_package in project_modules()}
-    graph = {m: {t for t in targets if t in graph and t != m} for m, targets in graph.items()}
-    state: dict[str, int] = {}
-    circles = []
-
-    def visit(module: str, stack: list[str]) -> None:
-        state[module] = 1
-        for target in sorted(graph[module]):
-            if state.get(target) == 1:
-                circles.append(" -> ".join(stack[stack.index(target):] + [target]))
-            elif target not in state:
-                visit(target, stack + [target])
-        state[module] = 2
-
-    for module in sorted(graph):
-        if module not in state:
-            visit(module, [module])
-    # a package's face importing its own submodules is not a circle a reader trips on
-    circles = [c for c in circles if not any(c.startswith(p + " ->") for p in graph if c.split(" -> ")[1].startswith(p + "."))]
-    assert not circles, "\n".join(circles)
-
-
-def test_curlnav_keeps_at_most_twelve_modules_at_its_top_level_and_packages_declare_all():
+# -- layering: tests/test_layers.py ---------------------------------------------------------------
+def test_curlnav_keeps_at_most_twelve_modules_at_its_top_level():
     top = sorted(p.name for p in (ROOT / "curlnav").glob("*.py"))
     assert len(top) <= 12, top
-    for folder in ["curlnav", *FOLDERS]:
-        for init in (ROOT / folder).rglob("__init__.py"):
-            tree = ast.parse(init.read_text())
-            names = {t.id for node in tree.body if isinstance(node, ast.Assign) for t in node.targets
-                     if isinstance(t, ast.Name)}
-            if init.parent == ROOT / "curlnav":
-                continue  # the namespace itself: a docstring and a version
-            assert "__all__" in names, f"{init.relative_to(ROOT)} declares no __all__"

@@ -10,6 +10,8 @@ import subprocess
 
 import pytest
 
+pytestmark = [pytest.mark.docker, pytest.mark.slow]
+
 
 def engine_running() -> bool:
     """Whether a Docker engine answers, asked through the Docker SDK (the `docker` dependency)."""

@@ -11,21 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_proto_and_cores import a_batch
-from test_service import wait_for
+from conftest import SMALL, a_batch, replay_in, wait_for
 
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment
 from curlnav.config import resolve_config
-from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.replay.service import ReplayService
 from curlnav.replay.wal import SegmentLog
 from curlnav.run.launch import http_json_or_none
-
-SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])
-
-
-def replay_in(folder: Path, experiment=SMALL) -> ReplayService:
-    return D4PGBuilder(experiment).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(folder))))
 
 
 def table_contents(service: ReplayService) -> dict[str, np.ndarray]:
@@ -152,6 +145,8 @@ def test_a_restarted_learner_numbers_its_weights_above_every_version_published(t
 
 # -- real processes ---------------------------------------------------------------------------------
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_kill_9_of_replay_learner_and_scheduler_loses_nothing_accepted(tmp_path):
     """A training cluster of real processes; each stateful service is killed with SIGKILL and
     started again: the replay holds every transition it had accepted, the learner's versions

@@ -127,6 +127,7 @@ evaluate:
 """
 
 
+@pytest.mark.slow
 def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_resumes_at_its_stage(tmp_path):
     import csv
     import subprocess
@@ -181,6 +182,7 @@ def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_res
     assert [r["evaluation"] for r in rows] == ["1", "2", "3"], "each evaluation keeps a number of its own"
 
 
+@pytest.mark.slow
 def test_ablation_run_trains_each_condition_skips_finished_runs_and_writes_the_report(tmp_path):
     import csv
     import subprocess
@@ -207,12 +209,13 @@ def test_ablation_run_trains_each_condition_skips_finished_runs_and_writes_the_r
     assert again.returncode == 0 and again.stdout.count("skipped") == 2, again.stdout[-2000:]
 
 
+@pytest.mark.slow
 def test_stopping_ablation_run_with_sigterm_stops_its_training_runs_in_order_and_leaves_none_behind(tmp_path):
     import signal
     import subprocess
     import sys
 
-    from test_service import wait_for
+    from conftest import wait_for
 
     direct = tmp_path / "direct.yaml"
     direct.write_text("name: direct\nstages: [{worlds: [door-corridor], substeps: [through-door]}]\n")

@@ -10,13 +10,13 @@ import sys
 import numpy as np
 import pytest
 import torch
+from conftest import random_batch
 
 from curlnav.config import D4PGConfig, ExperimentConfig
 from curlnav.layout import ObservationLayout
 from curlnav.learner.artefact import export_policy
 from curlnav.learner.d4pg import (
     NETWORK_FIELDS,
-    TensorBatch,
     act,
     adopt_training_config,
     categorical_projection,
@@ -63,12 +63,7 @@ def test_categorical_projection_matches_brute_force():
     assert torch.allclose(means[:20][inside], expected[:20][inside], atol=0.3)
 
 
-def random_batch(b=64, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    return TensorBatch(torch.rand(b, LAYOUT.size, generator=g) * 5, torch.rand(b, 3, generator=g),
-                       torch.randn(b, generator=g) * 10, torch.full((b,), 0.95), torch.rand(b, LAYOUT.size, generator=g) * 5)
-
-
+@pytest.mark.slow  # more than 5 s
 def test_critic_loss_falls_on_a_fixed_batch():
     torch.set_num_threads(2)
     state = init_state(D4PGConfig(seed=1, critic_lr=1e-3, actor_lr=1e-3), LAYOUT, "cpu")
@@ -93,6 +88,7 @@ def test_target_networks_are_hard_copies_every_period():
     assert all(torch.equal(a, b) for a, b in zip(state.critic.parameters(), state.target_critic.parameters()))
 
 
+@pytest.mark.slow  # more than 5 s
 def test_exploration_noise_stays_inside_the_action_bounds():
     state = init_state(D4PGConfig(), LAYOUT, "cpu")
     obs = np.random.default_rng(0).uniform(0, 10, LAYOUT.size).astype(np.float32)
@@ -104,6 +100,7 @@ def test_exploration_noise_stays_inside_the_action_bounds():
     assert actions.std(0).min() > 0.1
 
 
+@pytest.mark.slow  # more than 5 s
 @pytest.mark.parametrize("preset", ["default", "paper"])
 def test_checkpoint_round_trip_restores_networks_and_optimisers(tmp_path, preset):
     state = init_state(dataclasses.replace(ExperimentConfig.preset(preset).d4pg, batch_size=8), LAYOUT, "cpu")
@@ -203,6 +200,7 @@ def test_a_tampered_artefact_is_refused(tmp_path):
         PolicyArtefact(tmp_path)
 
 
+@pytest.mark.slow
 def test_serial_training_smoke_run_writes_logs_checkpoint_and_artefact_and_resumes(tmp_path):
     run = tmp_path / "run"
     base = [sys.executable, "-m", "curlnav.cli", "train", "--serial", "--run-dir", str(run), "--max-env-steps", "400",

@@ -6,6 +6,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from curlnav.run.experiment import BUDGETS, fig4_plan, write_experiment_report
 from curlnav.run.record import EVAL_FIELDS, CsvLog
 from curlnav.sim import get_world
@@ -38,6 +40,7 @@ def test_the_report_states_finding_1_from_table_i_runs_and_picks_the_fine_tuning
     assert source == rows[0].name and hard and all(h not in easy for h in hard)
 
 
+@pytest.mark.slow
 def test_report_only_without_runs_is_one_line_and_exit_2(tmp_path):
     result = subprocess.run([sys.executable, "-m", "curlnav.cli", "experiment", "--out", str(tmp_path),
                              "--report-only"], capture_output=True, text=True, timeout=120)
@@ -45,6 +48,7 @@ def test_report_only_without_runs_is_one_line_and_exit_2(tmp_path):
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_report_only_names_the_budget_the_runs_were_made_with(tmp_path):
     import json
 

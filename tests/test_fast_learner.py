@@ -9,12 +9,13 @@ import sys
 
 import pytest
 import torch
-from test_d4pg import LAYOUT, random_batch
+from conftest import LAYOUT, random_batch
 
 from curlnav.config import D4PGConfig
 from curlnav.learner.d4pg import compile_networks, init_state, read_metrics, set_amp, sgd_step
 
 
+@pytest.mark.slow  # more than 5 s
 def test_an_update_that_leaves_its_metrics_on_the_device_computes_the_same_update():
     cfg = D4PGConfig(seed=3, hidden=(64, 64))
     waiting, not_waiting = init_state(cfg, LAYOUT, "cpu"), init_state(cfg, LAYOUT, "cpu")
@@ -28,6 +29,7 @@ def test_an_update_that_leaves_its_metrics_on_the_device_computes_the_same_updat
         assert torch.equal(a, b)
 
 
+@pytest.mark.slow  # more than 5 s
 def test_bf16_autocast_keeps_the_critic_loss_of_float32_training_within_a_few_percent():
     cfg = D4PGConfig(seed=4, hidden=(64, 64), critic_lr=1e-3)
     losses = {}
@@ -43,6 +45,7 @@ def test_bf16_autocast_keeps_the_critic_loss_of_float32_training_within_a_few_pe
         compile_networks(init_state(cfg, LAYOUT, "cpu"), "fast")
 
 
+@pytest.mark.slow
 def test_a_learner_or_replay_host_imports_its_service_without_the_simulator():
     code = ("import sys; import curlnav.learner.service, curlnav.replay.service, curlnav.bench.learner, "
             "curlnav.bench.transport; print('pybullet' in sys.modules)")

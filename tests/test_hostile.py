@@ -12,11 +12,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import resource
 import shutil
 import socket
 import subprocess
-import sys
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -24,48 +22,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_one_line_error, run_curlnav
 
 from curlnav.bus.transport import HttpServer, json_response
-from curlnav.layout import ObservationLayout
-from curlnav.sim import EnvConfig
 
 MEMORY_CAP = 3 << 30  # address space of a CLI subprocess: a bomb fails the test instead of the machine
-RUNNER = """\
-import resource, sys, time
-t0 = time.monotonic()
-from curlnav.cli import main
-try:
-    rc = main(sys.argv[1:])
-finally:
-    # VmHWM, not ru_maxrss: ru_maxrss outlives exec, so a child forked from a big pytest process
-    # (preexec_fn forks) reported the test runner's own peak (453-527 MB late in a full run)
-    hwm_kb = next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:"))
-    print("peak_rss_mb %.0f wall_s %.2f" % (hwm_kb / 1024, time.monotonic() - t0))
-sys.exit(rc)
-"""
 
 
 def curlnav(*args: str, timeout: float = 120) -> tuple[subprocess.CompletedProcess, float, float]:
     """Run the CLI under the memory cap: (result, peak RSS in MB, wall s inside the process)."""
-    def cap():
-        resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
-
-    result = subprocess.run([sys.executable, "-c", RUNNER, *args], capture_output=True, text=True,
-                            timeout=timeout, preexec_fn=cap)
-    figures = [line.split() for line in result.stdout.splitlines() if line.startswith("peak_rss_mb")]
-    peak, wall = (float(figures[-1][1]), float(figures[-1][3])) if figures else (float("nan"),) * 2
-    return result, peak, wall
-
-
-def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str, max_len: int = 600) -> str:
-    assert result.returncode == 2, (result.returncode, result.stderr[-1500:])
-    assert "Traceback" not in result.stderr, result.stderr[-1500:]
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("curlnav: error: "), result.stderr[:1500]
-    assert len(lines[0]) <= max_len, f"{len(lines[0])} characters: {lines[0][:300]}"
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, lines[0])
-    return lines[0]
+    result = run_curlnav(*args, timeout=timeout, limit_mb=MEMORY_CAP >> 20)
+    return result, result.peak_mb, result.wall_s
 
 
 # -- H4: slow clients --------------------------------------------------------------------------------
@@ -120,6 +87,7 @@ def status_routes():
     return {("GET", "/status"): lambda r: json_response({"stage": "S1"})}
 
 
+@pytest.mark.net
 def test_status_answers_within_1_s_while_80_clients_trickle_one_byte_every_5_s():
     server = HttpServer("127.0.0.1", 0, status_routes())  # the services' defaults
     attack = Trickler(server.port, 80, every_s=5.0)
@@ -134,6 +102,7 @@ def test_status_answers_within_1_s_while_80_clients_trickle_one_byte_every_5_s()
         server.close()
 
 
+@pytest.mark.net
 def test_a_request_head_or_body_trickled_past_the_deadline_is_dropped_at_the_deadline():
     server = HttpServer("127.0.0.1", 0, status_routes() | {("POST", "/echo"): lambda r: json_response({})},
                         timeout_s=1.0)
@@ -165,6 +134,7 @@ def test_a_request_head_or_body_trickled_past_the_deadline_is_dropped_at_the_dea
         server.close()
 
 
+@pytest.mark.net
 def test_a_request_head_above_64_kb_in_all_is_refused_with_431():
     server = HttpServer("127.0.0.1", 0, status_routes())
     try:
@@ -180,6 +150,7 @@ def test_a_request_head_above_64_kb_in_all_is_refused_with_431():
         server.close()
 
 
+@pytest.mark.net
 def test_one_client_address_holds_at_most_max_per_client_slow_connections():
     server = HttpServer("127.0.0.1", 0, status_routes(), max_per_client=4)
     try:
@@ -262,17 +233,6 @@ class HostileLearner:
         self.server.server_close()
 
 
-@pytest.fixture(scope="module")
-def artefact(tmp_path_factory) -> Path:
-    """A freshly exported (untrained) policy artefact."""
-    from curlnav.config import D4PGConfig
-    from curlnav.learner.artefact import export_policy
-    from curlnav.learner.d4pg import init_state
-
-    state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
-    return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])
-
-
 @pytest.fixture
 def learner():
     server = HostileLearner()
@@ -288,6 +248,8 @@ def evil_files(root: Path) -> list[Path]:
     return [p for p in root.rglob("*evil*") if p.is_file()]
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_pull_of_an_honest_listing_still_works(learner, artefact, tmp_path):
     learner.serve_artefact(artefact)
     result = pull(learner, tmp_path / "out" / "policy")
@@ -295,6 +257,8 @@ def test_pull_of_an_honest_listing_still_works(learner, artefact, tmp_path):
     assert sorted(p.name for p in (tmp_path / "out" / "policy").iterdir()) == sorted(p.name for p in artefact.iterdir())
 
 
+@pytest.mark.net
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["../../evil.txt", "ABSOLUTE", "sub/evil.txt", "..", "evil\\..\\x", ".evil"])
 def test_pull_writes_no_file_outside_out_whatever_the_listing_names(learner, artefact, tmp_path, name):
     name = str(tmp_path / "abs-evil.txt") if name == "ABSOLUTE" else name
@@ -305,6 +269,8 @@ def test_pull_writes_no_file_outside_out_whatever_the_listing_names(learner, art
     assert evil_files(tmp_path) == [] and not out.exists()
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_pull_follows_no_redirect_to_another_origin(learner, artefact, tmp_path):
     other = HostileLearner()  # another origin (port) with a listing that names ../../evil.txt
     try:
@@ -318,6 +284,8 @@ def test_pull_follows_no_redirect_to_another_origin(learner, artefact, tmp_path)
         other.close()
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_pull_requires_a_sha256_for_every_file(learner, artefact, tmp_path):
     def drop_sha(listing):
         del listing["files"]["policy.safetensors"]["sha256"]
@@ -328,6 +296,8 @@ def test_pull_requires_a_sha256_for_every_file(learner, artefact, tmp_path):
     assert not (tmp_path / "policy").exists()
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_pull_refuses_a_file_the_artefact_does_not_list(learner, artefact, tmp_path):
     learner.serve_artefact(artefact, extra={"run.sh": b"#!/bin/sh\necho pwned\n"})
     result = pull(learner, tmp_path / "policy")
@@ -335,6 +305,8 @@ def test_pull_refuses_a_file_the_artefact_does_not_list(learner, artefact, tmp_p
     assert not (tmp_path / "policy").exists()
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_pull_refuses_a_body_above_the_size_cap_without_holding_it_in_memory(learner, artefact, tmp_path):
     from curlnav.run.pull import MAX_FILE_BYTES
 
@@ -372,6 +344,8 @@ def test_pull_refuses_a_body_above_the_size_cap_without_holding_it_in_memory(lea
     assert time.monotonic() - began < 20
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_pull_checks_the_artefact_before_replacing_out(learner, artefact, tmp_path):
     out = tmp_path / "policy"
     shutil.copytree(artefact, out)
@@ -389,6 +363,8 @@ def test_pull_checks_the_artefact_before_replacing_out(learner, artefact, tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["policy"]
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_pull_never_deletes_a_folder_that_is_not_an_artefact(learner, artefact, tmp_path):
     out = tmp_path / "home"
     out.mkdir()
@@ -399,6 +375,8 @@ def test_pull_never_deletes_a_folder_that_is_not_an_artefact(learner, artefact, 
     assert (out / "thesis.tex").read_text() == "years of work"
 
 
+@pytest.mark.net
+@pytest.mark.slow
 @pytest.mark.parametrize("body", [b"not json", b"[]", b"{}", b'{"files": []}', b'{"files": {"actor.onnx": "x"}}',
                                   b'{"files": {"actor.onnx": {"sha256": 5, "url": 7}}}',
                                   b"[" * 100_000 + b"]" * 100_000, b'{"version": 1e400, "files": {}}',
@@ -433,6 +411,7 @@ def world_show(path: Path, tmp_path: Path):
     return curlnav("worlds", "show", str(path), "--out", str(tmp_path / "shown.png"))
 
 
+@pytest.mark.slow
 def test_an_alias_bomb_world_file_ends_fast_in_one_short_line(tmp_path):
     plain_map(tmp_path)
     path = tmp_path / "bomb.yaml"
@@ -444,6 +423,7 @@ def test_an_alias_bomb_world_file_ends_fast_in_one_short_line(tmp_path):
     assert wall < 5 and peak_mb < 1000
 
 
+@pytest.mark.slow
 def test_an_alias_bomb_curriculum_ends_fast_in_one_short_line(tmp_path):
     path = tmp_path / "bomb.yaml"
     path.write_text("stages:\n- name: s1\n  worlds: [open-room]\n  sampler: [" + ", ".join(alias_bomb()) + "]\n")
@@ -455,6 +435,7 @@ def test_an_alias_bomb_curriculum_ends_fast_in_one_short_line(tmp_path):
     assert wall < 5 and peak_mb < 1000
 
 
+@pytest.mark.slow
 def test_an_alias_bomb_experiment_config_ends_in_one_short_line(tmp_path):
     path = tmp_path / "bomb.yaml"
     path.write_text("d4pg:\n  hidden: [" + ", ".join(alias_bomb()) + "]\n")
@@ -463,6 +444,7 @@ def test_an_alias_bomb_experiment_config_ends_in_one_short_line(tmp_path):
     assert wall < 5 and peak_mb < 1000
 
 
+@pytest.mark.slow
 def test_long_user_values_are_cut_short_in_error_messages(tmp_path):
     plain_map(tmp_path)
     path = tmp_path / "long.yaml"
@@ -478,6 +460,7 @@ def test_long_user_values_are_cut_short_in_error_messages(tmp_path):
     assert_one_line_error(result, "sampler must be one of", max_len=400)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["world", "curriculum"])
 def test_deeply_nested_yaml_is_a_one_line_error(tmp_path, kind):
     path = tmp_path / f"deep-{kind}.yaml"
@@ -493,6 +476,7 @@ def test_deeply_nested_yaml_is_a_one_line_error(tmp_path, kind):
     assert_one_line_error(result, str(path), "deep")
 
 
+@pytest.mark.slow
 def test_a_yaml_file_above_the_size_cap_is_refused_without_parsing(tmp_path):
     plain_map(tmp_path)
     path = tmp_path / "huge.yaml"
@@ -506,6 +490,7 @@ def test_a_yaml_file_above_the_size_cap_is_refused_without_parsing(tmp_path):
     assert wall < 3
 
 
+@pytest.mark.slow
 def test_a_100000_x_100000_pgm_header_is_a_one_line_error(tmp_path):
     (tmp_path / "m.pgm").write_bytes(b"P5\n100000 100000\n255\n" + b"\xfe" * 1000)
     path = tmp_path / "bomb.yaml"
@@ -515,6 +500,7 @@ def test_a_100000_x_100000_pgm_header_is_a_one_line_error(tmp_path):
     assert peak_mb < 1000
 
 
+@pytest.mark.slow
 def test_a_map_image_above_the_file_size_cap_is_refused(tmp_path):
     from PIL import Image
 
@@ -541,6 +527,7 @@ def copy_with_metadata(artefact: Path, tmp_path: Path, change) -> Path:
     return folder
 
 
+@pytest.mark.slow
 def test_metadata_with_1e400_is_a_one_line_error(artefact, tmp_path):
     def huge(meta):
         return json.dumps(meta).replace(f'"size": {meta["observation"]["size"]}', '"size": 1e400', 1)
@@ -550,12 +537,14 @@ def test_metadata_with_1e400_is_a_one_line_error(artefact, tmp_path):
     assert_one_line_error(policy_run(folder, tmp_path), "metadata.json")
 
 
+@pytest.mark.slow
 def test_deeply_nested_metadata_is_a_one_line_error(artefact, tmp_path):
     folder = copy_with_metadata(artefact, tmp_path, lambda meta: '{"format": "curlnav-policy", "x": '
                                 + "[" * 100_000 + "]" * 100_000 + "}")
     assert_one_line_error(policy_run(folder, tmp_path), "metadata.json", "deep")
 
 
+@pytest.mark.slow
 def test_metadata_above_the_size_cap_is_refused(artefact, tmp_path):
     def padded(meta):
         return json.dumps(meta) + " " * (20 << 20)
@@ -564,6 +553,7 @@ def test_metadata_above_the_size_cap_is_refused(artefact, tmp_path):
     assert_one_line_error(policy_run(folder, tmp_path), "metadata.json", "above")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["../secret.bin", "SECRET_ABSOLUTE", "sub/../../secret.bin"])
 def test_metadata_names_no_file_outside_its_folder_and_no_outside_checksum_is_shown(artefact, tmp_path, name):
     secret = tmp_path / "secret.bin"

@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
+from conftest import assert_one_line_error
 from onnx import TensorProto, helper, numpy_helper
-from test_hostile import HostileLearner, artefact, assert_one_line_error, curlnav, learner  # noqa: F401 (fixtures)
+from test_hostile import HostileLearner, curlnav, learner  # noqa: F401 (fixtures)
 
 from curlnav.config import D4PGConfig
 from curlnav.layout import ObservationLayout
@@ -77,6 +78,7 @@ HOSTILE_METADATA = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(HOSTILE_METADATA))
 def test_hostile_metadata_is_refused_by_policy_run_in_one_line(artefact, tmp_path, case):  # noqa: F811
     change, field = HOSTILE_METADATA[case]
@@ -84,6 +86,7 @@ def test_hostile_metadata_is_refused_by_policy_run_in_one_line(artefact, tmp_pat
     assert_one_line_error(policy_run(folder, tmp_path), "metadata.json", field)
 
 
+@pytest.mark.slow
 def test_the_inf_nan_artefact_is_refused_by_eval_ros2_run_and_pull(artefact, tmp_path, learner):  # noqa: F811
     folder = copy_artefact(artefact, tmp_path, HOSTILE_METADATA["scale-inf-nan"][0])
     result = curlnav("eval", str(folder), "--world", "open-room", "--episodes", "1")[0]
@@ -119,6 +122,7 @@ def tiny_checkpoint(path: Path, config: dict, layout: dict) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_12000_wide_checkpoint_is_refused_fast_and_small(tmp_path):
     path = tiny_checkpoint(tmp_path / "wide.safetensors", D4PGConfig().to_dict() | {"hidden": [12000, 12000]},
                            ObservationLayout().to_dict())
@@ -126,9 +130,23 @@ def test_a_12000_wide_checkpoint_is_refused_fast_and_small(tmp_path):
     print(f"{path.stat().st_size}-byte checkpoint of d4pg.hidden [12000, 12000]: {wall:.1f} s, peak {peak_mb:.0f} MB, "
           f"rc {result.returncode}: {result.stderr.strip()[:300]}")
     assert_one_line_error(result, str(path), "d4pg.hidden")
-    assert wall < 10 and peak_mb < 1000
+    # wall: the CLI's own time, its imports (torch) included: loose on a loaded machine; the
+    # refusal itself is timed in-process below. The memory bound stays strict.
+    assert wall < 20 and peak_mb < 1000
 
 
+def test_the_refusal_of_a_12000_wide_checkpoint_itself_takes_under_10_s(tmp_path):
+    from curlnav.learner.d4pg import load_checkpoint
+
+    path = tiny_checkpoint(tmp_path / "wide.safetensors", D4PGConfig().to_dict() | {"hidden": [12000, 12000]},
+                           ObservationLayout().to_dict())
+    started = time.monotonic()
+    with pytest.raises(ValueError, match="d4pg.hidden"):
+        load_checkpoint(path, "cpu")
+    assert time.monotonic() - started < 10
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("layout", [{"beams": 10 ** 7}, {"range_frames": 10 ** 6}, {"max_range": float("nan")},
                                     {"beams": "241"}])
 def test_a_checkpoint_with_a_hostile_layout_is_refused_in_one_line(tmp_path, layout):
@@ -209,6 +227,7 @@ def external_data_model(folder: Path, location: str) -> None:
     (folder / "actor.onnx").write_bytes(model.SerializeToString())
 
 
+@pytest.mark.slow
 def test_actor_onnx_with_external_data_in_its_own_folder_is_refused(artefact, tmp_path):  # noqa: F811
     folder = copy_artefact(artefact, tmp_path)
     (folder / "weights.bin").write_bytes(np.array([7.0, 7.0, 7.0], np.float32).tobytes())
@@ -217,6 +236,7 @@ def test_actor_onnx_with_external_data_in_its_own_folder_is_refused(artefact, tm
     assert_one_line_error(policy_run(folder, tmp_path), "actor.onnx", "external data")
 
 
+@pytest.mark.slow
 def test_actor_onnx_reading_a_file_outside_its_folder_never_shows_it(artefact, tmp_path):  # noqa: F811
     (tmp_path / "secret.txt").write_bytes(b"SECRETS!" * 4)
     folder = copy_artefact(artefact, tmp_path)
@@ -248,6 +268,7 @@ def bomb_model(folder: Path, floats: int) -> None:
     (folder / "actor.onnx").write_bytes(model.SerializeToString())
 
 
+@pytest.mark.slow
 def test_a_graph_that_allocates_1e10_floats_at_its_first_action_is_refused_in_one_line(artefact, tmp_path):  # noqa: F811
     folder = copy_artefact(artefact, tmp_path)
     bomb_model(folder, 10 ** 10)
@@ -427,6 +448,7 @@ def test_a_pull_refuses_bad_metadata_before_any_other_file_comes_down(learner, a
     assert not out.exists() and not list((tmp_path / "pulled").iterdir())
 
 
+@pytest.mark.slow
 def test_a_pull_of_three_200_mib_files_is_refused_with_nothing_kept(learner, artefact, tmp_path):  # noqa: F811
     serve_big_files(learner, artefact, {"a.bin": 200 * MIB, "b.bin": 200 * MIB, "c.bin": 200 * MIB})
     out = tmp_path / "pulled" / "policy"
@@ -436,6 +458,7 @@ def test_a_pull_of_three_200_mib_files_is_refused_with_nothing_kept(learner, art
     assert not out.exists() and not list((tmp_path / "pulled").iterdir())
 
 
+@pytest.mark.slow
 def test_a_pull_of_more_files_than_max_files_is_refused(learner, artefact, tmp_path):  # noqa: F811
     serve_big_files(learner, artefact, {f"part{i}.bin": MIB for i in range(5)})
     out = tmp_path / "pulled" / "policy"
@@ -444,6 +467,7 @@ def test_a_pull_of_more_files_than_max_files_is_refused(learner, artefact, tmp_p
     assert not (tmp_path / "pulled").exists()  # refused from the listing, before any folder
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", ["listing", "file"])
 def test_a_pull_from_a_server_that_drips_a_byte_every_4_s_ends_at_the_deadline(learner, artefact, tmp_path, where):  # noqa: F811
     stop = []
@@ -477,6 +501,7 @@ def test_a_pull_from_a_server_that_drips_a_byte_every_4_s_ends_at_the_deadline(l
     assert not (tmp_path / "pulled").exists() or not list((tmp_path / "pulled").iterdir())
 
 
+@pytest.mark.slow
 def test_pull_flags_refuse_nonsense(learner, artefact, tmp_path):  # noqa: F811
     learner.serve_artefact(artefact)
     for flag, value in (("--max-bytes", "0"), ("--max-files", "-1"), ("--deadline-s", "nan"), ("--deadline-s", "0")):

@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import re
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
-from test_proto_and_cores import a_batch
+from conftest import a_batch, metrics, replay_in, wait_for
 
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, check_agreement
@@ -24,19 +23,12 @@ from curlnav.config import ExperimentConfig, resolve_config
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, RunConfig, TransitionBatch
 from curlnav.proto.topology import Topology
-from curlnav.replay.service import ReplayService, ReplayServiceConfig
 from curlnav.replay.wal import SegmentLog
 from curlnav.run.launch import http_json_or_none
-
-SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])
 
 
 def now_us() -> int:
     return time.time_ns() // 1000
-
-
-def replay_in(folder: Path) -> ReplayService:
-    return D4PGBuilder(SMALL).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(folder))))
 
 
 # -- H1: one batch must not block an actor ----------------------------------------------------------
@@ -206,29 +198,6 @@ RUN = "hostile"
 TOPO = Topology(RUN)
 
 
-def wait_for(what, check, timeout=120.0, every=0.5):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            value = check()
-        except OSError:
-            value = None
-        if value:
-            return value
-        time.sleep(every)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-
-
-def metrics(url: str) -> dict[str, float]:
-    text = urllib.request.urlopen(url, timeout=3).read().decode()
-    out = {}
-    for line in text.splitlines():
-        m = re.match(r"^([a-zA-Z_:][\w:]*(?:\{[^}]*\})?) (\S+)$", line)
-        if m:
-            out[m.group(1)] = float(m.group(2))
-    return out
-
-
 class Run:
     """A real run and the figures that say whether it trains."""
 
@@ -308,6 +277,8 @@ def run(tmp_path_factory):
         print("\n".join(r.figures))
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_real_run_h1_a_forged_seq_does_not_stall_the_actor(run):
     s = run.session()
     s.put(TOPO.transitions("actor-0"), a_batch("actor-0", seq=2**62, steps=3).encode())
@@ -323,6 +294,8 @@ def test_real_run_h1_a_forged_seq_does_not_stall_the_actor(run):
     run.keeps_training("H1 seq=now+120 s")
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_real_run_h3_the_credit_message_stays_small(run):
     s = run.session()
     sizes = []
@@ -349,6 +322,8 @@ def test_real_run_h3_the_credit_message_stays_small(run):
     run.keeps_training("H3 300 x 10 KB ids + 300 ghost ids")
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_real_run_h2_an_actors_config_answer_does_not_stop_a_restarting_service(run):
     s = run.session()
     forged = RunConfig("actor", "mallory", "0" * 64, "{}").encode()
@@ -365,6 +340,8 @@ def test_real_run_h2_an_actors_config_answer_does_not_stop_a_restarting_service(
     run.keeps_training("H2 forged config answer + replay kill -9")
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_real_run_forged_reports_from_a_ghost_are_not_counted(run):
     s = run.session()
     token = s.liveliness().declare_token(TOPO.alive("actor", "ghost-r"))
@@ -380,6 +357,8 @@ def test_real_run_forged_reports_from_a_ghost_are_not_counted(run):
     token.undeclare()
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_real_run_ghost_tokens_do_not_lock_out_a_restarted_actor(run):
     run.cluster.kill_process("actor-0")
     s = run.session()
@@ -395,6 +374,8 @@ def test_real_run_ghost_tokens_do_not_lock_out_a_restarted_actor(run):
         t.undeclare()
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_real_run_access_control_denials_are_counted_in_the_router_log(run):
     log = run.dir / "logs" / "router.log"
 

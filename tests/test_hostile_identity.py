@@ -27,6 +27,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from conftest import stop_all as stop
 from test_stack_file import Namespaces
 
 from curlnav.bench.faults import poll
@@ -42,19 +43,6 @@ ROOT = Path(__file__).resolve().parent.parent
 RUN = "identity"
 TOPO = Topology(RUN)
 CLI = [sys.executable, "-m", "curlnav.cli"]
-
-
-def stop(procs: list[subprocess.Popen]) -> None:
-    """SIGTERM to every process still running, then wait for each (SIGKILL after 10 s)."""
-    for proc in procs:
-        if proc.poll() is None:
-            proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 @pytest.fixture(autouse=True)
@@ -112,6 +100,7 @@ def serve_args(credentials: Path, actor_id: str = "") -> SimpleNamespace:
     return SimpleNamespace(actor_id=actor_id, bus_credentials=str(credentials), actor_slot=0)
 
 
+@pytest.mark.slow
 def test_an_explicit_actor_id_is_refused_while_another_process_holds_that_identity(tmp_path, holders):
     bus = tmp_path / "bus"
     make_credentials(bus, RUN, actors=2)
@@ -127,6 +116,7 @@ def test_an_explicit_actor_id_is_refused_while_another_process_holds_that_identi
     assert str(bus / "actor-1") in identity._HELD
 
 
+@pytest.mark.slow
 def test_serve_actor_with_a_held_explicit_id_stops_with_one_line_and_exit_2(tmp_path, holders):
     bus = tmp_path / "bus"
     make_credentials(bus, RUN, actors=1)
@@ -141,6 +131,7 @@ def test_serve_actor_with_a_held_explicit_id_stops_with_one_line_and_exit_2(tmp_
         f"runs once; give this actor another --actor-id, or none to claim a free one"]
 
 
+@pytest.mark.slow
 def test_a_claiming_replica_never_takes_an_identity_an_explicit_id_holds(tmp_path, holders):
     bus = tmp_path / "bus"
     make_credentials(bus, RUN, actors=2)
@@ -172,6 +163,7 @@ def test_credentials_refuse_an_identity_not_named_actor_n(tmp_path, name):
     assert identity.actor_identities(bus) == ["actor-0", "actor-1"]  # and no replica claims it
 
 
+@pytest.mark.slow
 def test_the_cli_refuses_a_planted_wildcard_identity_with_one_line(tmp_path):
     bus = tmp_path / "bus"
     make_credentials(bus, RUN, actors=2)
@@ -234,6 +226,8 @@ class Inbox:
             return item in self.items
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_a_planted_wildcard_identity_puts_nothing_under_other_actors_at_a_real_router(tmp_path):
     """The red team's probe: ``DIR/actor-$*/user.json`` planted, ``curlnav bus credentials`` run
     again, the router started on DIR. The planted user must not get in, and nothing it puts under
@@ -312,6 +306,8 @@ def started(cluster) -> dict[str, list[str]]:
     return out
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_local_runs_give_each_actor_only_its_own_identity(tmp_path):
     from curlnav.run.launch import LocalCluster
 
@@ -393,6 +389,7 @@ BUS_CLIENT = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(unavailable() is not None, reason=f"no network namespaces here: {unavailable()}")
 def test_the_hosts_bench_credentials_link_two_hosts_without_the_ca_key(tmp_path):
     """A short real run of what the bench gives each host: two namespaces, each router with only

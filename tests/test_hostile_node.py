@@ -14,6 +14,7 @@ from types import SimpleNamespace as ns
 
 import numpy as np
 import pytest
+from conftest import output_of, stop
 from test_ros2 import (  # noqa: F401  (fixtures)
     POLICY,
     Client,
@@ -25,8 +26,6 @@ from test_ros2 import (  # noqa: F401  (fixtures)
     good_scan,
     header,
     odometry,
-    output_of,
-    stop,
     wait_for,
 )
 
@@ -322,6 +321,7 @@ class Robot:
         wait_for(f"/goal_state after the goal ({x:g}, {y:g})", sent, 40)
 
 
+@pytest.mark.net
 def test_over_dds_a_huge_goal_gives_no_non_finite_cmd_vel_and_goal_state_says_refused(curlnav, domain_id):  # noqa: F811
     node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
     robot = Robot(domain_id)
@@ -340,6 +340,7 @@ def test_over_dds_a_huge_goal_gives_no_non_finite_cmd_vel_and_goal_state_says_re
     assert "Traceback" not in out
 
 
+@pytest.mark.net
 def test_over_dds_after_a_narrow_huge_scan_the_robot_is_never_a_second_without_a_command(curlnav, domain_id):  # noqa: F811
     node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
     robot = Robot(domain_id)
@@ -360,6 +361,7 @@ def test_over_dds_after_a_narrow_huge_scan_the_robot_is_never_a_second_without_a
     assert "Traceback" not in out
 
 
+@pytest.mark.net
 def test_the_watchdog_stops_the_robot_while_the_control_loop_is_blocked(domain_id):  # noqa: F811
     """The shell (``run_node``) on a real bus, with a policy that blocks the control loop for
     2.5 s at its 6th action: stops go out meanwhile, so no gap over ``silence_s`` + a margin."""
@@ -397,6 +399,7 @@ def test_the_watchdog_stops_the_robot_while_the_control_loop_is_blocked(domain_i
     assert node.counts["watchdog_stops"] >= 1 and any("watchdog" in line for line in lines), lines
 
 
+@pytest.mark.net
 def test_a_goal_is_not_resumed_on_a_restarted_simulator(curlnav, domain_id):  # noqa: F811
     sim = curlnav("ros2", "sim", "open-room", "--pair", "diagonal", "--domain-id", str(domain_id), "--loopback")
     node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
@@ -461,6 +464,7 @@ def test_silence_must_cover_two_control_periods():
     NodeConfig(rate_hz=5.0, silence_s=0.5)
 
 
+@pytest.mark.net
 def test_a_goal_after_idle_time_starts_without_a_watchdog_stop(domain_id):  # noqa: F811
     """The watchdog measures silence from a new goal's start, not from the last command before an
     idle spell: a goal sent after 2 s idle gives no 'control loop late' line and no stop."""
@@ -501,6 +505,7 @@ while time.monotonic() < end:
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("limit", [None, 64 << 10])
 def test_a_bus_with_a_sample_limit_drops_bigger_samples_before_python_decodes_them(limit, tmp_path):
     """The node's bus (``max_sample_bytes``) has Cyclone drop a scan larger than the limit (20,000

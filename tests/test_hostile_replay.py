@@ -13,22 +13,19 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
+from conftest import SMALL, metrics, replay_in, wait_for
 from prometheus_client import generate_latest
-from test_hostile_bus import metrics, wait_for
 
 from curlnav.bench.chaos import Incarnation, account, summary_line
-from curlnav.builder import D4PGBuilder
-from curlnav.bus.service import Deployment
-from curlnav.config import resolve_config
 from curlnav.layout import ObservationLayout
 from curlnav.proto.frames import FrameBatch
 from curlnav.proto.messages import TransitionBatch
 from curlnav.proto.topology import Topology
-from curlnav.replay.service import ReplayService, ReplayServiceConfig
+from curlnav.replay.service import ReplayService
 from curlnav.replay.table import ReplayTable
 from curlnav.run.launch import http_json_or_none
 
-SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])
 LAYOUT = ObservationLayout()
 
 
@@ -59,10 +56,6 @@ def forgotten_frames_batches(actor: str = "actor-0", seq: int | None = None) -> 
     first = frames_and_transitions(range(300), [(296, 297), (297, 298), (298, 299)])
     second = frames_and_transitions(range(300, 302), [(0, 1), (299, 300), (300, 301)])
     return [TransitionBatch(actor, seq, 1, first).encode(), TransitionBatch(actor, seq + 1, 1, second).encode()]
-
-
-def replay_in(folder) -> ReplayService:
-    return D4PGBuilder(SMALL).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(folder))))
 
 
 def dropped_metric(service: ReplayService, reason: str) -> float | None:
@@ -109,6 +102,8 @@ def test_a_transition_whose_frame_was_overwritten_is_not_stored_with_another_wri
     assert table.info()["dropped"] == {"frame_overwritten": 1}
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_a_real_replay_shows_its_drops_on_its_http_status_and_metrics(tmp_path):
     """The replay as a process behind a router: an actor's stream whose frames it forgot."""
     from curlnav.run.launch import LocalCluster

@@ -11,6 +11,7 @@ import sys
 import textwrap
 
 import pytest
+from conftest import stop_all
 
 from curlnav.bench.netns import Hosts, unavailable
 from curlnav.bus.mesh import LOCAL_ROUTER, MESH_PORT, router_flags
@@ -59,6 +60,7 @@ LISTENER = textwrap.dedent('''
 ''')
 
 
+@pytest.mark.slow
 def test_a_plain_tcp_or_wrong_ca_router_cannot_join_the_mesh(tmp_path):
     bus, evil = tmp_path / "bus", tmp_path / "evil"
     with Hosts(4, tag=f"t{tmp_path.name[-3:]}") as net:
@@ -96,12 +98,4 @@ def test_a_plain_tcp_or_wrong_ca_router_cannot_join_the_mesh(tmp_path):
             assert received[2] == 0, "a router with another CA's certificate was linked"
             assert received[3] == 0, "a plain-TCP router was linked"
         finally:
-            for proc in procs:
-                if proc.poll() is None:
-                    proc.terminate()
-            for proc in procs:
-                try:
-                    proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+            stop_all(procs)

@@ -49,6 +49,7 @@ def get(port: int, path: str = "/ok", timeout: float = 5.0) -> tuple[int, dict, 
     return exchange(port, f"GET {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode(), timeout)
 
 
+@pytest.mark.net
 def test_a_content_length_that_is_no_number_is_400_json_and_the_server_answers_the_next_request(server):
     for value in ("abc", "-1", "1.5", "3, 4", "٣"):
         status, headers, body = exchange(server.port, f"POST /echo HTTP/1.1\r\nContent-Length: {value}\r\n\r\nabc"
@@ -60,6 +61,7 @@ def test_a_content_length_that_is_no_number_is_400_json_and_the_server_answers_t
     assert get(server.port)[0] == 200
 
 
+@pytest.mark.net
 def test_a_huge_content_length_is_413_without_reading_the_body(server):
     start = time.monotonic()
     status, headers, body = exchange(server.port, b"POST /echo HTTP/1.1\r\nContent-Length: 10000000000\r\n\r\n")
@@ -68,12 +70,14 @@ def test_a_huge_content_length_is_413_without_reading_the_body(server):
     assert get(server.port)[0] == 200
 
 
+@pytest.mark.net
 def test_malformed_request_lines_are_400_json_with_a_status_line(server):
     for line in (b"garbage\r\n\r\n", b"GET /ok HTTP/9.x\r\n\r\n"):
         status, headers, body = exchange(server.port, line)
         assert status == 400 and headers["Content-Type"] == "application/json" and "error" in json.loads(body)
 
 
+@pytest.mark.net
 def test_other_methods_are_405_json_and_unknown_paths_404(server):
     for method in ("PUT", "DELETE", "PATCH", "OPTIONS", "BREW"):
         status, headers, body = exchange(server.port, f"{method} /ok HTTP/1.1\r\nContent-Length: 0\r\n\r\n".encode())
@@ -85,6 +89,7 @@ def test_other_methods_are_405_json_and_unknown_paths_404(server):
     assert status == 500 and "handler bug" in json.loads(body)["error"]
 
 
+@pytest.mark.net
 def test_client_mistakes_leave_no_traceback_in_the_log(server, caplog, capfd):
     caplog.set_level(logging.DEBUG)
     exchange(server.port, b"POST /echo HTTP/1.1\r\nContent-Length: abc\r\n\r\n")
@@ -97,6 +102,7 @@ def test_client_mistakes_leave_no_traceback_in_the_log(server, caplog, capfd):
     assert "Traceback" not in capfd.readouterr().err
 
 
+@pytest.mark.net
 def test_200_concurrent_connections_are_all_answered_within_5_s(server):
     results: list[int | str] = []
     latencies: list[float] = []
@@ -126,6 +132,7 @@ def test_200_concurrent_connections_are_all_answered_within_5_s(server):
     assert sum(latency > 0.95 for latency in latencies) < 40
 
 
+@pytest.mark.net
 def test_a_silent_client_blocks_nobody_and_is_dropped_after_the_timeout(server):
     with socket.create_connection(("127.0.0.1", server.port), timeout=5) as silent:
         began = time.monotonic()
@@ -134,6 +141,7 @@ def test_a_silent_client_blocks_nobody_and_is_dropped_after_the_timeout(server):
         assert 0.8 < time.monotonic() - began < 3.0  # ... after its 1 s timeout
 
 
+@pytest.mark.net
 def test_beyond_max_threads_requests_wait_for_a_handler_and_are_then_served():
     def slow(request):
         time.sleep(1.0)
@@ -207,6 +215,8 @@ def test_the_learner_serves_no_artefact_through_a_symlink(tmp_path):
 
 # -- loopback by default, locally ------------------------------------------------------------------
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_local_services_bind_http_to_the_loopback_and_containers_to_all_interfaces(tmp_path, monkeypatch):
     import argparse
 

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import closed_port
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,6 +25,7 @@ def _first_word_runs(line: str) -> list[str]:
     return words
 
 
+@pytest.mark.slow
 def test_the_launchers_hints_run_as_printed_without_an_activated_virtual_environment(tmp_path):
     from curlnav.run.supervise import start_hints
 
@@ -112,14 +114,7 @@ FINISHED = {"stop_reason": "held-out success on t-maze-0/p4 90% >= 80%", "exit_c
             "sessions": [{"mode": "distributed", "wall_s": 1800.0, "stop_reason": "held-out success"}]}
 
 
-def _closed_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
+@pytest.mark.net
 def test_status_of_a_finished_run_reports_its_outcome_not_connection_refused(tmp_path, capsys):
     import json
 
@@ -127,7 +122,7 @@ def test_status_of_a_finished_run_reports_its_outcome_not_connection_refused(tmp
 
     run = tmp_path / "run"
     run.mkdir()
-    (run / "run.json").write_text(json.dumps({"status_url": f"http://127.0.0.1:{_closed_port()}/status"}))
+    (run / "run.json").write_text(json.dumps({"status_url": f"http://127.0.0.1:{closed_port()}/status"}))
     (run / "summary.json").write_text(json.dumps(FINISHED))
     assert main(["status", str(run)]) == 0
     out, err = capsys.readouterr()
@@ -220,6 +215,7 @@ def test_every_world_argument_takes_family_seed_like_eval(tmp_path, capsys, monk
         get_world("atlantis")
 
 
+@pytest.mark.slow
 def test_a_resumed_distributed_run_goes_on_from_its_counts_not_from_zero(tmp_path):
     import csv
     import re
@@ -278,6 +274,7 @@ def _remove_stack(tmp_path: Path, containers: str, limit: int) -> tuple[subproce
     return result, log.read_text().splitlines()
 
 
+@pytest.mark.slow
 def test_the_smoke_test_removes_the_stack_volumes_after_its_containers_are_gone(tmp_path):
     result, calls = _remove_stack(tmp_path, "1", 60)  # one look still finds a container
     assert result.returncode == 0, result.stdout + result.stderr

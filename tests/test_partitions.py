@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import time
 
-from test_hostile_bus import play, replay_in, scheduler_core
-from test_proto_and_cores import a_batch
+import pytest
+from conftest import a_batch, replay_in
+from test_hostile_bus import play, scheduler_core
 
 from curlnav.actor.resend import ResendBuffer
 from curlnav.proto.messages import ServiceStatus, TransitionBatch
@@ -132,6 +133,7 @@ def test_the_scheduler_marks_a_cut_off_actor_lost_and_takes_it_back(tmp_path):
     assert core.status()["episodes"] == 4
 
 
+@pytest.mark.net
 def test_the_router_bounds_unacknowledged_data_on_its_links_to_other_hosts_only():
     """``LinkAckTimeout`` (issue 30): a connection to another host gets ``TCP_USER_TIMEOUT`` (so
     a TLS link whose lease expired cannot hang its router's close on a cut-off peer), a loopback

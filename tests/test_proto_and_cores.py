@@ -7,6 +7,7 @@ import json
 import msgpack
 import numpy as np
 import pytest
+from conftest import a_batch
 
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment
@@ -24,22 +25,11 @@ from curlnav.proto.messages import (
     Weights,
 )
 from curlnav.proto.topology import Topology
-from curlnav.replay.nstep import NStepWriter
 from curlnav.replay.service import ReplayServiceConfig
 from curlnav.scheduler.curriculum import CurriculumError, CurriculumState, load_curriculum
 from curlnav.scheduler.service import SchedulerCore
 
 LAYOUT = ObservationLayout()
-
-
-def a_batch(actor="a", seq=0, steps=6):
-    writer = NStepWriter(LAYOUT, 3, 0.9)
-    rng = np.random.default_rng(seq)
-    writer.first(rng.uniform(0, 10, LAYOUT.size).astype(np.float32))
-    for t in range(steps):
-        writer.step(np.array([0.5, 0, 0.1], np.float32), 0.1, rng.uniform(0, 10, LAYOUT.size).astype(np.float32),
-                    False, t == steps - 1)
-    return TransitionBatch(actor, seq, 3, writer.flush())
 
 
 def test_messages_round_trip():

@@ -7,41 +7,11 @@ import time
 
 import numpy as np
 import pytest
+from conftest import REPLAY_LAYOUT as LAYOUT
+from conftest import expected_stack, obs_for
 
 from curlnav.layout import ObservationLayout
 from curlnav.replay import FrameBatch, NStepWriter, RateLimiterTimeout, ReplayInputError, ReplayTable, SampleToInsertRatio
-
-LAYOUT = ObservationLayout(beams=5, range_frames=4, label_frames=4, goal_frames=10)
-
-
-def obs_for(step: int, episode: int = 0) -> np.ndarray:
-    """A stacked observation whose newest frame encodes (episode, step); the rest is ignored by
-    the writer and rebuilt by the table."""
-    obs = np.zeros(LAYOUT.size, np.float32)
-    ranges, labels, goal = LAYOUT.newest_frame(obs)
-    ranges[:] = 0.5 * step + 0.125 * np.arange(LAYOUT.beams) + 0.25 * episode  # exact in float16
-    labels[:] = step % 2
-    goal[:] = (step, -step, episode)
-    return obs
-
-
-def expected_stack(steps: list[int], episode: int = 0) -> np.ndarray:
-    """The stacked observation after ``steps`` (first frame repeated at the episode start)."""
-    def frame(k):
-        return obs_for(k, episode)
-
-    out = np.zeros(LAYOUT.size, np.float32)
-    b = LAYOUT.beams
-    hist = [steps[0]] * LAYOUT.history + list(steps)
-    for i in range(LAYOUT.range_frames):
-        out[i * b:(i + 1) * b] = LAYOUT.newest_frame(frame(hist[-LAYOUT.range_frames + i]))[0]
-    off = LAYOUT.range_frames * b
-    for i in range(LAYOUT.label_frames):
-        out[off + i * b: off + (i + 1) * b] = LAYOUT.newest_frame(frame(hist[-LAYOUT.label_frames + i]))[1]
-    off += LAYOUT.label_frames * b
-    for i in range(LAYOUT.goal_frames):
-        out[off + 3 * i: off + 3 * i + 3] = LAYOUT.newest_frame(frame(hist[-LAYOUT.goal_frames + i]))[2]
-    return out
 
 
 def run_episode(writer: NStepWriter, rewards: list[float], terminated: bool, episode: int = 0) -> FrameBatch:

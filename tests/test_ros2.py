@@ -6,6 +6,7 @@ robot when /scan falls silent, and it refuses malformed scans.
 Every test runs on its own random DDS domain, on the loopback interface only, and ends every
 process it started."""
 
+import functools
 import math
 import os
 import random
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import output_of, stop, wait_for
 
 cyclonedds = pytest.importorskip("cyclonedds")
 from cyclonedds.core import Policy, Qos  # noqa: E402
@@ -231,18 +233,7 @@ def goal_message(x: float, y: float, frame: str = "odom") -> PoseStamped:
     return PoseStamped(header(frame), Pose(Point(x, y, 0.0), Quaternion()))
 
 
-def wait_for(what: str, check, deadline_s: float, procs=()):
-    """Poll ``check()`` until it returns a truthy value (returned) or the deadline passes."""
-    end = time.monotonic() + deadline_s
-    while time.monotonic() < end:
-        value = check()
-        if value:
-            return value
-        for p in procs:
-            if p.poll() is not None:
-                pytest.fail(f"{what}: a curlnav process exited with {p.returncode}: {p.stderr.read()[-2000:]}")
-        time.sleep(0.05)
-    pytest.fail(f"{what}: not within {deadline_s} s")
+wait_for = functools.partial(wait_for, every=0.05)  # DDS samples come every few ms: poll often
 
 
 @pytest.fixture
@@ -250,56 +241,14 @@ def domain_id():
     return random.Random(os.getpid() * 1000 + time.time_ns()).randrange(100, 230)
 
 
-def _die_with_parent() -> None:
-    """SIGTERM the child when the test process dies, even by a crash that skips the teardown (Linux)."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-
 @pytest.fixture
-def curlnav(tmp_path):
-    """``curlnav(*args)`` starts ``curlnav ARGS`` (stderr to a file, read back on failure); all
-    are ended (SIGTERM, then SIGKILL) when the test ends."""
-    procs = []
-
-    def start(*args: str) -> subprocess.Popen:
-        log = open(tmp_path / f"proc{len(procs)}.log", "w+")
-        proc = subprocess.Popen([sys.executable, "-m", "curlnav.cli", *args], cwd=ROOT, stdout=log,
-                                stderr=subprocess.STDOUT, text=True, preexec_fn=_die_with_parent)
-        proc.log = log
-        proc.stderr = log
-        procs.append(proc)
-        return proc
-
-    yield start
-    for proc in procs:
-        if proc.poll() is None:
-            proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
-        proc.log.close()
-
-
-def output_of(proc: subprocess.Popen) -> str:
-    proc.log.flush()
-    proc.log.seek(0)
-    return proc.log.read()
-
-
-def stop(proc: subprocess.Popen) -> str:
-    proc.terminate()
-    proc.wait(15)
-    return output_of(proc)
+def curlnav(curlnav_proc):
+    """``curlnav(*args)`` starts ``curlnav ARGS`` (conftest's ``curlnav_proc``)."""
+    return curlnav_proc
 
 
 # -- the independent reader ----------------------------------------------------------------------------------
+@pytest.mark.net
 def test_a_ros2_client_with_its_own_types_reads_the_simulator(curlnav, domain_id, tmp_path):
     sim = curlnav("ros2", "sim", "open-room", "--pair", "diagonal", "--domain-id", str(domain_id), "--loopback")
     trace = tmp_path / "cyclonedds-discovery.log"
@@ -366,6 +315,7 @@ def test_a_ros2_client_with_its_own_types_reads_the_simulator(curlnav, domain_id
 
 
 # -- closed loop ------------------------------------------------------------------------------------------
+@pytest.mark.net
 def test_a_goal_sent_over_dds_is_reached_in_closed_loop(curlnav, domain_id):
     sim = curlnav("ros2", "sim", "open-room", "--pair", "diagonal", "--domain-id", str(domain_id), "--loopback")
     node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
@@ -402,6 +352,7 @@ def odometry(x: float = 1.0, y: float = 1.0) -> Odometry:
                     TwistWithCovariance(Twist(Vector3(), Vector3()), [0.0] * 36))
 
 
+@pytest.mark.net
 def test_the_node_stops_when_scan_falls_silent_and_refuses_malformed_scans(curlnav, domain_id):
     node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
     client = Client(domain_id)
@@ -563,6 +514,7 @@ def test_the_node_follows_a_plan_waypoint_by_waypoint():
 
 
 # -- episodes as MCAP ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_policy_run_writes_an_mcap_episode_that_reads_back_with_ros2_schemas(tmp_path):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -602,6 +554,7 @@ def test_policy_run_writes_an_mcap_episode_that_reads_back_with_ros2_schemas(tmp
     assert np.allclose(np.diff(stamps), 0.2, atol=1e-3)  # simulated time, one control period a step
 
 
+@pytest.mark.slow
 def test_eval_writes_every_episode_of_every_agent_as_mcap_with_ros2_schemas(tmp_path):
     import csv
 

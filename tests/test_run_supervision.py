@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_service import wait_for
+from conftest import wait_for
 
 from curlnav.cli import main
 from curlnav.run.launch import http_json
@@ -88,6 +88,8 @@ def test_numbers_out_of_range_are_refused_before_start(tmp_path, capsys):
 
 
 # -- the distributed run, supervised -------------------------------------------------------------
+@pytest.mark.net
+@pytest.mark.slow
 def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_resumes_with_its_history(tmp_path):
     run_dir = tmp_path / "run"
     env = {**os.environ, "CURLNAV_CHECKPOINT_EVERY_S": "3"}
@@ -200,6 +202,7 @@ def test_distributed_run_restarts_crashed_services_stops_whole_on_sighup_and_res
     assert wall == sorted(wall), "the resumed run's clock goes on from the first session's"
 
 
+@pytest.mark.slow
 def test_a_service_that_refuses_its_config_stops_the_run_with_a_nonzero_exit(tmp_path):
     """The learner finds a checkpoint of another network: it exits 2, the run stops (exit 1)
     and the reason is on the console, instead of restarting it forever."""
@@ -222,6 +225,7 @@ def test_a_service_that_refuses_its_config_stops_the_run_with_a_nonzero_exit(tmp
 
 
 # -- the serial run ---------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_serial_run_stops_on_sigterm_with_exit_130_and_resumes_with_curves_and_policies(tmp_path):
     run_dir = tmp_path / "serial"
     cmd = [sys.executable, "-m", "curlnav.cli", "train", "--serial", "--world", "open-room", "--run-dir", str(run_dir),

@@ -9,7 +9,8 @@ import struct
 import numpy as np
 import pytest
 import torch
-from test_replay import LAYOUT, expected_stack, obs_for
+from conftest import REPLAY_LAYOUT as LAYOUT
+from conftest import expected_stack, obs_for
 
 from curlnav.layout import ObservationLayout
 from curlnav.learner.feed import BatchAssembler, SampleFeed, describe_device, resolve_device

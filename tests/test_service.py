@@ -4,16 +4,18 @@ actors. Every wait polls with a deadline; every process is stopped at the end.""
 from __future__ import annotations
 
 import json
-import time
 import urllib.error
 import urllib.request
 
 import pytest
+from conftest import wait_for
 
 from curlnav.bus.transport import reliable_publisher
 from curlnav.config import resolve_config
 from curlnav.proto.topology import Topology
 from curlnav.run.launch import LocalCluster, http_json
+
+pytestmark = [pytest.mark.net, pytest.mark.slow]
 
 CURRICULUM = """
 name: tiny
@@ -28,20 +30,6 @@ stages:
   - name: S3
     worlds: [open-room]
 """
-
-
-def wait_for(what, check, timeout=120.0, interval=0.5):
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        try:
-            last = check()
-        except OSError:
-            last = None
-        if last:
-            return last
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}; last value {last!r}")
 
 
 def metric(url: str, name: str) -> float:

@@ -215,6 +215,7 @@ def test_scatter_balls_puts_n_balls_on_free_cells_near_the_shortest_paths(tmp_pa
 
 
 # -- the commands on a plain rotated map -------------------------------------------------
+@pytest.mark.slow
 def test_worlds_show_rollout_and_eval_work_on_a_plain_rotated_map(tmp_path, capsys):
     pixels = walled_room(50, 80)
     pixels[:30, 40] = 0

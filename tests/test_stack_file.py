@@ -35,6 +35,7 @@ def stack() -> dict:
     return yaml.safe_load(STACK.read_text())
 
 
+@pytest.mark.slow
 def test_the_stack_file_is_what_the_script_writes():
     result = subprocess.run([sys.executable, "scripts/make-stack-file.py", "--check"], cwd=ROOT, capture_output=True,
                             text=True, timeout=60)
@@ -111,6 +112,7 @@ def test_each_actor_task_authenticates_as_the_identity_of_its_slot():
     assert all(s["uid"] == "10001" and s["mode"] == 0o400 for s in actor["secrets"])
 
 
+@pytest.mark.slow
 def test_the_credentials_the_header_asks_for_hold_every_secret_the_stack_mounts(tmp_path):
     text = STACK.read_text()
     line = next(line for line in text.splitlines() if "curlnav bus credentials" in line)
@@ -128,6 +130,8 @@ def test_the_credentials_the_header_asks_for_hold_every_secret_the_stack_mounts(
     assert '"router-main"' in acl and '"router-node"' in acl  # both certificates may link
 
 
+@pytest.mark.slow
+@pytest.mark.docker
 @pytest.mark.skipif(shutil.which("docker") is None, reason="no docker client")
 def test_docker_reads_the_stack_file():
     env = {**os.environ, "CURLNAV_MAIN_ADDRESS": "10.9.0.1"}

@@ -5,6 +5,7 @@ environment keeps its own episodes and assignment."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
 from curlnav.config import D4PGConfig
@@ -94,12 +95,15 @@ def test_bench_actor_prints_steps_per_second_and_the_ratio_to_the_bare_environme
     assert all("steps/s  ratio" in line for line in lines[2:4]) and lines[-1].startswith("best: ")
 
 
+@pytest.mark.net
+@pytest.mark.slow
 def test_a_run_whose_actor_steps_three_environments_trains_and_loses_nothing(tmp_path):
     import json
 
+    from conftest import wait_for
+
     from curlnav.config import resolve_config
     from curlnav.run.launch import LocalCluster
-    from tests.test_service import wait_for
 
     experiment = resolve_config(overrides=["actor.envs_per_process=3", "replay.min_size=200",
                                            "replay.samples_per_insert=8", "d4pg.batch_size=128"], environ={})
@@ -122,8 +126,8 @@ def test_eight_environments_with_five_step_returns_lose_no_transition_and_keep_t
     """The default actor (8 environments, n-step 5, a batch every 24 environment steps, episodes
     ending at different times): the replay holds every transition the writer made, none dropped
     for a frame it no longer knows, and each observation is its own environment's frame stack."""
-    from test_replay import LAYOUT as L
-    from test_replay import expected_stack, obs_for
+    from conftest import REPLAY_LAYOUT as L
+    from conftest import expected_stack, obs_for
 
     k, rng = 8, np.random.default_rng(5)
     writer = VectorNStepWriter(L, k, n_step=5, discount=0.99)

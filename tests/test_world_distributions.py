@@ -219,6 +219,7 @@ def test_the_general_curriculum_trains_on_distributions_at_training_seeds_and_va
     assert {state.assign()[0] for _ in range(100)} == set(s1.worlds) | set(s2.worlds)
 
 
+@pytest.mark.slow
 def test_training_on_a_held_out_world_is_refused_in_one_line(tmp_path):
     import subprocess
     import sys

@@ -118,6 +118,7 @@ def test_a_world_loaded_from_file_runs_in_the_environment(tmp_path):
         env.close()
 
 
+@pytest.mark.slow
 def test_rollout_command_draws_a_picture(tmp_path):
     result = subprocess.run([sys.executable, "-m", "curlnav.cli", "rollout", "--world", "door-corridor",
                              "--out", str(tmp_path)], capture_output=True, text=True, timeout=120)
@@ -127,6 +128,7 @@ def test_rollout_command_draws_a_picture(tmp_path):
     assert len(pictures) == 1 and pictures[0].stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_rollout_command_rejects_an_unknown_world_in_one_line(tmp_path):
     result = subprocess.run([sys.executable, "-m", "curlnav.cli", "rollout", "--world", "atlantis",
                              "--out", str(tmp_path)], capture_output=True, text=True, timeout=120)

@@ -1,0 +1,278 @@
+"""What the test files share: waiting, ports, curlnav processes, small replay data, markers.
+
+Plain helpers are imported by name (``from conftest import wait_for``: the same module object
+pytest loads, under its default ``prepend`` import mode); fixtures are found by pytest itself.
+A test that uses the ``curlnav_proc`` fixture starts processes and opens sockets: it is marked
+``slow`` and ``net`` here (``pytest -m "not slow"`` is the quick loop).
+"""
+
+from __future__ import annotations
+
+import re
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from curlnav.config import resolve_config
+from curlnav.layout import ObservationLayout
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# -- waiting ---------------------------------------------------------------------------------------
+def wait_for(what: str, check, timeout: float = 120.0, every: float = 0.5, procs=()):
+    """Poll ``check()`` every ``every`` s until it returns a truthy value (returned). An OSError
+    (a service not listening yet) counts as a falsy value. Fails when ``timeout`` s pass (with the
+    last value) or as soon as one of ``procs`` has exited (with the end of its output)."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while True:
+        try:
+            last = check()
+        except OSError:
+            last = None
+        if last:
+            return last
+        for proc in procs:
+            if proc.poll() is not None:
+                pytest.fail(f"{what}: a curlnav process exited with {proc.returncode}: {output_of(proc)[-2000:]}")
+        if time.monotonic() >= deadline:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}; last value {last!r}")
+        time.sleep(every)
+
+
+# -- ports -----------------------------------------------------------------------------------------
+def closed_port() -> int:
+    """A loopback port nothing listens on (bound once, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def free_port() -> int:
+    """A free TCP port (``curlnav.run.launch.free_port``)."""
+    from curlnav.run.launch import free_port as pick
+
+    return pick()
+
+
+# -- curlnav processes -----------------------------------------------------------------------------
+def run_curlnav(*args: str, cwd: Path | None = None, timeout: float = 180,
+                limit_mb: int | None = None) -> subprocess.CompletedProcess:
+    """Run ``curlnav ARGS`` to its end (output captured). With ``limit_mb`` the process's address
+    space is capped (a memory bomb fails the test, not the machine) and the result also carries
+    ``peak_mb`` (its VmHWM) and ``wall_s`` (its own time, start-up excluded)."""
+    if limit_mb is None:
+        return subprocess.run([sys.executable, "-m", "curlnav.cli", *args], capture_output=True, text=True,
+                              timeout=timeout, cwd=cwd)
+
+    def cap():
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_AS, (limit_mb << 20, limit_mb << 20))
+
+    result = subprocess.run([sys.executable, "-c", _MEASURED, *args], capture_output=True, text=True,
+                            timeout=timeout, cwd=cwd, preexec_fn=cap)
+    figures = [line.split() for line in result.stdout.splitlines() if line.startswith("peak_rss_mb")]
+    result.peak_mb, result.wall_s = (float(figures[-1][1]), float(figures[-1][3])) if figures else (float("nan"),) * 2
+    return result
+
+
+_MEASURED = """\
+import resource, sys, time
+t0 = time.monotonic()
+from curlnav.cli import main
+try:
+    rc = main(sys.argv[1:])
+finally:
+    # VmHWM, not ru_maxrss: ru_maxrss outlives exec, so a child forked from a big pytest process
+    # (preexec_fn forks) reported the test runner's own peak (453-527 MB late in a full run)
+    hwm_kb = next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:"))
+    print("peak_rss_mb %.0f wall_s %.2f" % (hwm_kb / 1024, time.monotonic() - t0))
+sys.exit(rc)
+"""
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str, max_len: int = 600) -> str:
+    """Exit 2, no traceback, one ``curlnav: error:`` line of at most ``max_len`` characters holding
+    every fragment; returns the line."""
+    assert result.returncode == 2, (result.returncode, result.stderr[-1500:])
+    assert "Traceback" not in result.stderr, result.stderr[-1500:]
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("curlnav: error: "), result.stderr[:1500]
+    assert len(lines[0]) <= max_len, f"{len(lines[0])} characters: {lines[0][:300]}"
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    return lines[0]
+
+
+def die_with_parent() -> None:
+    """SIGTERM the child when the test process dies, even by a crash that skips the teardown (Linux)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+@pytest.fixture
+def curlnav_proc(tmp_path):
+    """``curlnav_proc(*args)`` starts ``curlnav ARGS`` (output to a file: ``output_of``); all are
+    ended (SIGTERM, then SIGKILL) when the test ends."""
+    procs = []
+
+    def start(*args: str) -> subprocess.Popen:
+        log = open(tmp_path / f"proc{len(procs)}.log", "w+")
+        proc = subprocess.Popen([sys.executable, "-m", "curlnav.cli", *args], cwd=ROOT, stdout=log,
+                                stderr=subprocess.STDOUT, text=True, preexec_fn=die_with_parent)
+        proc.log = log
+        proc.stderr = log
+        procs.append(proc)
+        return proc
+
+    yield start
+    stop_all(procs)
+    for proc in procs:
+        proc.log.close()
+
+
+def stop_all(procs) -> None:
+    """SIGTERM to every process still running, then wait for each (SIGKILL after 10 s)."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def output_of(proc: subprocess.Popen) -> str:
+    """What a process of ``curlnav_proc`` wrote so far (else its stderr, if it was piped)."""
+    log = getattr(proc, "log", None)
+    if log is None:
+        return proc.stderr.read() if proc.stderr else ""
+    log.flush()
+    log.seek(0)
+    return log.read()
+
+
+def stop(proc: subprocess.Popen) -> str:
+    proc.terminate()
+    proc.wait(15)
+    return output_of(proc)
+
+
+def metrics(url: str) -> dict[str, float]:
+    """A Prometheus ``/metrics`` page: series (with its labels) -> value."""
+    text = urllib.request.urlopen(url, timeout=3).read().decode()
+    out = {}
+    for line in text.splitlines():
+        m = re.match(r"^([a-zA-Z_:][\w:]*(?:\{[^}]*\})?) (\S+)$", line)
+        if m:
+            out[m.group(1)] = float(m.group(2))
+    return out
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if "curlnav_proc" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
+            item.add_marker(pytest.mark.net)
+        if item.get_closest_marker("benchmark"):  # `-m "not slow"` replaces addopts' `-m 'not benchmark'`
+            item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(scope="session")
+def artefact(tmp_path_factory) -> Path:
+    """A freshly exported (untrained) policy artefact."""
+    from curlnav.config import D4PGConfig
+    from curlnav.learner.artefact import export_policy
+    from curlnav.learner.d4pg import init_state
+    from curlnav.sim import EnvConfig
+
+    state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
+    return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])
+
+
+# -- replay data -----------------------------------------------------------------------------------
+LAYOUT = ObservationLayout()
+#: a small replay: batches of 8 from 8 transitions on, 60 held
+SMALL = resolve_config(overrides=["d4pg.batch_size=8", "replay.min_size=8", "replay.capacity=60"])
+
+
+def replay_in(folder: Path, experiment=SMALL):
+    """A replay service on ``folder`` (not started: no bus)."""
+    from curlnav.builder import D4PGBuilder
+    from curlnav.bus.service import Deployment
+    from curlnav.replay.service import ReplayServiceConfig
+
+    return D4PGBuilder(experiment).make_replay_service(ReplayServiceConfig(Deployment(data_dir=str(folder))))
+
+
+def a_batch(actor="a", seq=0, steps=6):
+    """A ``TransitionBatch`` of one episode of ``steps`` steps (random observations, seeded by ``seq``)."""
+    from curlnav.proto.messages import TransitionBatch
+    from curlnav.replay.nstep import NStepWriter
+
+    writer = NStepWriter(LAYOUT, 3, 0.9)
+    rng = np.random.default_rng(seq)
+    writer.first(rng.uniform(0, 10, LAYOUT.size).astype(np.float32))
+    for t in range(steps):
+        writer.step(np.array([0.5, 0, 0.1], np.float32), 0.1, rng.uniform(0, 10, LAYOUT.size).astype(np.float32),
+                    False, t == steps - 1)
+    return TransitionBatch(actor, seq, 3, writer.flush())
+
+
+def random_batch(b=64, seed=0):
+    """A learner ``TensorBatch`` of ``b`` random transitions of the default layout."""
+    import torch
+
+    from curlnav.learner.d4pg import TensorBatch
+
+    g = torch.Generator().manual_seed(seed)
+    return TensorBatch(torch.rand(b, LAYOUT.size, generator=g) * 5, torch.rand(b, 3, generator=g),
+                       torch.randn(b, generator=g) * 10, torch.full((b,), 0.95), torch.rand(b, LAYOUT.size, generator=g) * 5)
+
+
+#: a tiny layout whose frames encode (episode, step): ``obs_for`` and ``expected_stack``
+REPLAY_LAYOUT = ObservationLayout(beams=5, range_frames=4, label_frames=4, goal_frames=10)
+
+
+def obs_for(step: int, episode: int = 0) -> np.ndarray:
+    """A stacked observation whose newest frame encodes (episode, step); the rest is ignored by
+    the writer and rebuilt by the table."""
+    obs = np.zeros(REPLAY_LAYOUT.size, np.float32)
+    ranges, labels, goal = REPLAY_LAYOUT.newest_frame(obs)
+    ranges[:] = 0.5 * step + 0.125 * np.arange(REPLAY_LAYOUT.beams) + 0.25 * episode  # exact in float16
+    labels[:] = step % 2
+    goal[:] = (step, -step, episode)
+    return obs
+
+
+def expected_stack(steps: list[int], episode: int = 0) -> np.ndarray:
+    """The stacked observation after ``steps`` (first frame repeated at the episode start)."""
+    def frame(k):
+        return obs_for(k, episode)
+
+    out = np.zeros(REPLAY_LAYOUT.size, np.float32)
+    b = REPLAY_LAYOUT.beams
+    hist = [steps[0]] * REPLAY_LAYOUT.history + list(steps)
+    for i in range(REPLAY_LAYOUT.range_frames):
+        out[i * b:(i + 1) * b] = REPLAY_LAYOUT.newest_frame(frame(hist[-REPLAY_LAYOUT.range_frames + i]))[0]
+    off = REPLAY_LAYOUT.range_frames * b
+    for i in range(REPLAY_LAYOUT.label_frames):
+        out[off + i * b: off + (i + 1) * b] = REPLAY_LAYOUT.newest_frame(frame(hist[-REPLAY_LAYOUT.label_frames + i]))[1]
+    off += REPLAY_LAYOUT.label_frames * b
+    for i in range(REPLAY_LAYOUT.goal_frames):
+        out[off + 3 * i: off + 3 * i + 3] = REPLAY_LAYOUT.newest_frame(frame(hist[-REPLAY_LAYOUT.goal_frames + i]))[2]
+    return out
