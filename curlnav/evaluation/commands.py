@@ -11,9 +11,7 @@ import argparse
 from pathlib import Path
 
 from curlnav.planners import agents_help
-
-#: every world argument takes the same forms (one resolver, ``curlnav.worlds.builtin.get_world``)
-WORLD_HELP = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
+from curlnav.worlds.builtin import WORLD_FORMS
 
 
 def _load_policy(path: str):
@@ -151,7 +149,7 @@ def add_commands(sub) -> None:
     policy_sub = policy.add_subparsers(dest="policy_command", required=True)
     p = policy_sub.add_parser("run", help="drive the robot with an artefact and draw the trajectory")
     p.add_argument("artefact", help="artefact folder (with metadata.json, actor.onnx)")
-    p.add_argument("--world", default="open-room", help=WORLD_HELP)
+    p.add_argument("--world", default="open-room", help=WORLD_FORMS)
     p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
     p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
     p.add_argument("--out", default="runs/policy-run", help="folder for the picture")
@@ -164,7 +162,7 @@ def add_commands(sub) -> None:
 def add_rollout_command(sub) -> None:
     """``rollout``: the goal-seeking controller for one episode, drawn."""
     p = sub.add_parser("rollout", help="drive a reactive controller for one episode and draw the trajectory")
-    p.add_argument("--world", default="door-corridor", help=WORLD_HELP)
+    p.add_argument("--world", default="door-corridor", help=WORLD_FORMS)
     p.add_argument("--pair", default=None, help="start/goal pair name or index (default: drawn)")
     p.add_argument("--steps", type=int, default=300, help="episode length limit (steps of 0.2 s)")
     p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
