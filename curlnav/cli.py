@@ -3,48 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 from pathlib import Path
-
-
-def _cmd_train(args: argparse.Namespace) -> int:
-    from curlnav.run.train import run_train
-
-    return run_train(args)
-
-
-def _cmd_config_show(args: argparse.Namespace) -> int:
-    from curlnav.run.train import show_config
-
-    return show_config(args)
-
-
-def _cmd_serve(args: argparse.Namespace) -> int:
-    from curlnav.run.launch import serve
-
-    return serve(args)
-
-
-def _cmd_pull(args: argparse.Namespace) -> int:
-    from curlnav.policy import PolicyArtefact
-    from curlnav.run.pull import pull_policy, unreachable_reason
-
-    try:
-        folder = pull_policy(args.source, args.out, args.version, max_bytes=args.max_bytes, max_files=args.max_files,
-                             deadline_s=args.deadline_s)
-    except OSError as exc:
-        raise ValueError(f"cannot reach {args.source} ({unreachable_reason(exc)}): is the learner running?") from None
-    policy = PolicyArtefact(folder)
-    print(f"pulled policy v{policy.version} into {folder} (sha256 verified)")
-    return 0
-
-
-def _cmd_status(args: argparse.Namespace) -> int:
-    from curlnav.run.status import run_status
-
-    return run_status(args.target, raw_json=args.json)
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
@@ -81,205 +41,34 @@ def package_version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """Every package adds its own sub-commands (its ``commands`` module), in this order."""
+    from curlnav.bench.commands import add_commands as add_bench_commands
+    from curlnav.bus.commands import add_commands as add_bus_commands
+    from curlnav.evaluation.commands import add_commands as add_evaluation_commands
+    from curlnav.evaluation.commands import add_rollout_command
+    from curlnav.ros2.commands import add_ros2_commands
+    from curlnav.run.commands import (
+        add_ablation_commands,
+        add_experiment_command,
+        add_service_commands,
+        add_training_commands,
+    )
+    from curlnav.worlds.commands import add_commands as add_worlds_commands
+
     parser = _Parser(prog="curlnav", description=__doc__)
     parser.add_argument("--version", action="version", version=f"curlnav {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
-    _add_training_commands(sub)
-    _add_bus_commands(sub)
-    _add_world_commands(sub)
-    from curlnav.bench.commands import add_commands as add_bench_commands
-
-    add_bench_commands(sub)
-    _add_ablation_commands(sub)
-    _add_experiment_command(sub)
-    from curlnav.ros2.commands import add_ros2_commands
-
-    add_ros2_commands(sub)
-    return parser
-
-
-def _add_ablation_commands(sub) -> None:
-    """ablation run, ablation report (curlnav.run.ablation)."""
-    from curlnav.run.ablation import PAPER_CONDITIONS
-
-    ablation = sub.add_parser("ablation", help="the curriculum ablation (the paper's Fig. 5): conditions x seeds "
-                                               "at one env-step budget, serial runs, and their report")
-    ablation_sub = ablation.add_subparsers(dest="ablation_command", required=True)
-    p = ablation_sub.add_parser("run", help="run (or resume) every condition x seed, then write the report")
-    p.add_argument("--out", default="runs/ablation", help="folder of the runs and the report")
-    p.add_argument("--conditions", nargs="+", default=list(PAPER_CONDITIONS),
-                   help="shipped curriculum names (scheduler/curricula/) or curriculum files")
-    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1], help="experiment seeds per condition")
-    p.add_argument("--max-env-steps", type=int, default=250_000, help="environment steps per run (equal budgets)")
-    p.add_argument("--parallel", type=int, default=os.cpu_count() or 1, help="runs at once, one core each")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
-                   help="config override for every new run (repeatable)")
-    p.set_defaults(func=_cmd_ablation_run)
-    p = ablation_sub.add_parser("report", help="ablation.png, ablation.csv and ablation.md from saved runs")
-    p.add_argument("folder", help="the folder of the runs (ablation run --out)")
-    p.set_defaults(func=_cmd_ablation_report)
-
-
-def _add_experiment_command(sub) -> None:
-    from curlnav.run.experiment import BUDGETS
-
-    p = sub.add_parser("experiment", help="the paper's evaluation with our numbers: Table I, Fig. 4, Fig. 5 and "
-                                          "Table II in report.md (resumable)")
-    p.add_argument("--out", default="runs/experiment", help="folder of the runs, tables, figures and report.md")
-    p.add_argument("--budget", default="small", choices=sorted(BUDGETS),
-                   help="small: reduced budgets for a 2-core machine (under 2 h); full: the budgets the findings need")
-    p.add_argument("--parallel", type=int, default=os.cpu_count() or 1, help="serial runs at once, one core each")
-    p.add_argument("--report-only", action="store_true", help="regenerate report.md from the saved runs, no training")
-    p.set_defaults(func=_cmd_experiment)
-
-
-def _cmd_experiment(args: argparse.Namespace) -> int:
-    from curlnav.run.experiment import BUDGETS, run_experiment, write_experiment_report
-
-    out, budget = Path(args.out), BUDGETS[args.budget]
-    if args.report_only:
-        try:  # the report names the budget the runs were made with, whatever --budget says
-            saved = json.loads((out / "experiment.json").read_text())["budget"]["name"]
-        except (OSError, ValueError, KeyError, TypeError):
-            saved = None
-        if saved in BUDGETS and saved != budget.name:
-            print(f"the runs in {out} were made with the {saved} budget: reporting them as such")
-            budget = BUDGETS[saved]
-        print(f"report: {write_experiment_report(out, budget)}")
-        return 0
-    run_experiment(out, budget, max(1, args.parallel))
-    return 0
-
-
-def _cmd_ablation_run(args: argparse.Namespace) -> int:
-    from curlnav.run.ablation import plan_runs, run_all, write_report
-
-    out = Path(args.out)
-    specs = plan_runs(out, args.conditions, args.seeds, args.max_env_steps,
-                      [a for o in args.overrides for a in ("--set", o)])
-    failed = run_all(specs, max(1, args.parallel))
-    print(f"report: {write_report(out)} (ablation.png, ablation.csv beside it)")
-    return 1 if failed else 0
-
-
-def _cmd_ablation_report(args: argparse.Namespace) -> int:
-    from curlnav.run.ablation import write_report
-
-    print(f"report: {write_report(Path(args.folder))} (ablation.png, ablation.csv beside it)")
-    return 0
-
-
-def _add_training_commands(sub) -> None:
-    """train, config, eval, policy, serve, pull."""
-    p = sub.add_parser("train", help="train a policy (--serial: environment and learner in one process)")
-    p.add_argument("--serial", action="store_true", help="single-process trainer")
-    p.add_argument("--actors", type=int, default=None, help="actor processes (distributed trainer; default 2)")
-    p.add_argument("--threads", type=int, default=None,
-                   help="torch threads: the serial trainer's (default 2) or the learner service's (default 1)")
-    p.add_argument("--run-dir", default=None, help="run folder (default runs/<date>-<time>-<world>-x<actors>; "
-                   "--serial: runs/<date>-<time>-<world>)")
-    p.add_argument("--resume", action="store_true", help="continue the run folder's run (its saved config)")
-    p.add_argument("--init-from", default=None, metavar="RUN_OR_CHECKPOINT",
-                   help="--serial: start from the networks of a serial run (or checkpoint file) instead of fresh "
-                        "ones: two-stage fine-tuning, e.g. an easy world's run, then a hard world. Training "
-                        "settings (d4pg.n_step, batch_size, learning rates, replay, exploration) may differ; the "
-                        "network settings (encoder, widths, atoms, support) and observation layout must agree")
-    from curlnav.run.options import add_config_arguments, add_train_options
-
-    add_train_options(p)
-    add_config_arguments(p)
-    p.set_defaults(func=_cmd_train)
-
-    config = sub.add_parser("config", help="the experiment config")
-    config_sub = config.add_subparsers(dest="config_command", required=True)
-    p = config_sub.add_parser("show", help="print the resolved config (preset, --config, CURLNAV_*, --set) and its hash")
-    add_config_arguments(p)
-    p.set_defaults(func=_cmd_config_show)
-
-    from curlnav.evaluation.commands import add_commands as add_evaluation_commands
-
-    add_evaluation_commands(sub)
-
-    p = sub.add_parser("serve", help="run one service (the container entry point)")
-    from curlnav.run.launch import add_serve_arguments
-
-    add_serve_arguments(p)
-    p.set_defaults(func=_cmd_serve)
-
-    p = sub.add_parser("pull", help="download a policy artefact from a learner")
-    p.add_argument("--from", dest="source", required=True, help="learner URL, e.g. http://localhost:8081")
-    p.add_argument("--version", default="latest", help="policy version: a number or latest")
-    p.add_argument("--out", default="policy", help="artefact folder to write")
-    from curlnav.run.pull import DEFAULT_DEADLINE_S, DEFAULT_MAX_BYTES, DEFAULT_MAX_FILES
-
-    p.add_argument("--max-bytes", type=int, default=DEFAULT_MAX_BYTES,
-                   help=f"refuse an artefact above this many bytes in all (default {DEFAULT_MAX_BYTES >> 20} MiB)")
-    p.add_argument("--max-files", type=int, default=DEFAULT_MAX_FILES,
-                   help=f"refuse a listing of more files (default {DEFAULT_MAX_FILES})")
-    p.add_argument("--deadline-s", type=float, default=DEFAULT_DEADLINE_S,
-                   help=f"give the whole pull up after this many seconds (default {DEFAULT_DEADLINE_S:g})")
-    p.set_defaults(func=_cmd_pull)
-
-    p = sub.add_parser("status", help="where a distributed run's curriculum, learner, replay and actors stand")
-    p.add_argument("target", nargs="?", default=None,
-                   help="run folder (with run.json) or the scheduler's URL (default: newest run under runs/ with a run.json)")
-    p.add_argument("--json", action="store_true", help="print the scheduler's /status JSON as it is")
-    p.set_defaults(func=_cmd_status)
-
-
-def _add_bus_commands(sub) -> None:
-    """bus credentials: the run's Zenoh users and access control (curlnav.bus.security)."""
-    from curlnav.run.launch import env_default
-
-    def credentials(args: argparse.Namespace) -> int:
-        from curlnav.bus.security import acl_table, make_credentials
-
-        tls = {}
-        for item in filter(None, (i.strip() for i in args.tls.split(","))):
-            name, _, address = item.partition("=")
-            tls[name.strip()] = address.strip()
-        done = make_credentials(args.out, args.run, actors=args.actors, shared_actor=args.shared_actor,
-                                tls_hosts=tls or None)
-        print(f"bus credentials of run {args.run!r} in {args.out}: "
-              + ", ".join(f"{role} ({state})" for role, state in done.items()))
-        print(f"give `--bus-credentials {args.out}` (CURLNAV_BUS_CREDENTIALS) to every `curlnav serve`, or to each "
-              f"service only its own folder {args.out}/<role> (an actor: {args.out}/actor-<n>, which it then is; given "
-              f"the folder of every actor-<n>, each actor claims a free one)")
-        if tls:
-            from curlnav.bus.mesh import router_flags
-
-            print(f"TLS between routers: the run's CA {args.out}/tls/ca.pem (keep {args.out}/tls/ca.key off the hosts); "
-                  f"start the main host's router with `curlnav serve router {' '.join(router_flags('NAME'))}` and "
-                  f"every other host's with `curlnav serve router {' '.join(router_flags('NAME', 'MAIN_ADDRESS'))}`")
-        print("access control, default deny (keys under curlnav/<run>/):\n" + acl_table())
-        return 0
-
-    bus = sub.add_parser("bus", help="the bus's security: Zenoh users and access control of a run")
-    bus_sub = bus.add_subparsers(dest="bus_command", required=True)
-    p = bus_sub.add_parser("credentials", help="write a run's bus credentials: one user per role with a random "
-                                              "password, the router's dictionary and access control")
-    p.add_argument("--out", required=True, help="folder to write (0700, files 0600); passwords already there are kept")
-    p.add_argument("--run", default=env_default("run", "default"), help="the run (Zenoh key prefix) they are for")
-    p.add_argument("--actors", type=int, default=env_default("max_actors", 8),
-                   help="the declared maximum of actor replicas (CURLNAV_MAX_ACTORS): one user per actor, actor-0 .. "
-                        "actor-<N-1>, each allowed to put only under its own id; a replica claims one at start "
-                        "(more may be added later; none are removed)")
-    p.add_argument("--shared-actor", action="store_true",
-                   help="also one user any actor may use, under any actor id (before replicas claimed an identity "
-                        "each; kept for runs that rely on it)")
-    p.add_argument("--tls", default="", metavar="NAME=ADDRESS,...",
-                   help="routers linked over TLS: the run's CA (tls/ca.pem) and a certificate per router name, for "
-                        "the address where it listens (an IP or a DNS name)")
-    p.set_defaults(func=credentials)
-
-
-def _add_world_commands(sub) -> None:
-    """rollout (curlnav.evaluation.commands) and worlds (curlnav.worlds.commands)."""
-    from curlnav.evaluation.commands import add_rollout_command
-    from curlnav.worlds.commands import add_commands as add_worlds_commands
-
+    add_training_commands(sub)  # train, config
+    add_evaluation_commands(sub)  # eval, policy
+    add_service_commands(sub)  # serve, pull, status
+    add_bus_commands(sub)
     add_rollout_command(sub)
     add_worlds_commands(sub)
+    add_bench_commands(sub)
+    add_ablation_commands(sub)
+    add_experiment_command(sub)
+    add_ros2_commands(sub)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

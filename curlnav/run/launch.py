@@ -15,15 +15,9 @@ import time
 import urllib.request
 from pathlib import Path
 
+from curlnav.bus.commands import env_default
+
 ROLES = ("router", "replay", "learner", "scheduler", "actor")
-
-
-def env_default(name: str, default):
-    """Deployment settings from ``CURLNAV_<NAME>`` environment variables (containers) or a default."""
-    value = os.environ.get(f"CURLNAV_{name.upper()}")
-    if value is None:
-        return default
-    return type(default)(value) if default is not None and not isinstance(default, bool) else value
 
 
 def add_serve_arguments(p) -> None:
