@@ -8,12 +8,16 @@ A test that uses the ``curlnav_proc`` fixture starts processes and opens sockets
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 # -- waiting ---------------------------------------------------------------------------------------
-def wait_for(what: str, check, timeout: float = 120.0, every: float = 0.5, procs=()):
+def wait_for(what: str, check, timeout: float = 120.0, procs=(), every: float = 0.5):
     """Poll ``check()`` every ``every`` s until it returns a truthy value (returned). An OSError
     (a service not listening yet) counts as a falsy value. Fails when ``timeout`` s pass (with the
     last value) or as soon as one of ``procs`` has exited (with the end of its output)."""
@@ -98,6 +102,15 @@ finally:
     print("peak_rss_mb %.0f wall_s %.2f" % (hwm_kb / 1024, time.monotonic() - t0))
 sys.exit(rc)
 """
+
+
+MEMORY_CAP = 3 << 30  # address space of a CLI subprocess: a bomb fails the test instead of the machine
+
+
+def run_capped(*args: str, timeout: float = 120) -> tuple[subprocess.CompletedProcess, float, float]:
+    """Run the CLI under the memory cap: (result, peak RSS in MB, wall s inside the process)."""
+    result = run_curlnav(*args, timeout=timeout, limit_mb=MEMORY_CAP >> 20)
+    return result, result.peak_mb, result.wall_s
 
 
 def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str, max_len: int = 600) -> str:
@@ -202,6 +215,114 @@ def artefact(tmp_path_factory) -> Path:
 
     state = init_state(D4PGConfig(seed=1), ObservationLayout.from_env_config(EnvConfig()), "cpu")
     return export_policy(state, tmp_path_factory.mktemp("artefact") / "policy", EnvConfig(), worlds=["open-room"])
+
+
+# -- a learner that lies (curlnav pull) -------------------------------------------------------------
+class HostileLearner:
+    """An ``http.server`` on loopback serving whatever ``routes`` says: path -> (status, headers,
+    body bytes or a callable writing to the socket file)."""
+
+    def __init__(self) -> None:
+        self.routes: dict[str, tuple] = {}
+        routes = self.routes
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self):
+                entry = routes.get(self.path.split("?", 1)[0])
+                if entry is None:
+                    self.send_response(404)
+                    self.send_header("Content-Length", "0")
+                    self.end_headers()
+                    return
+                status, headers, body = entry
+                self.send_response(status)
+                for key, value in headers.items():
+                    self.send_header(key, value)
+                if isinstance(body, bytes) and "Content-Length" not in headers:
+                    self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                try:
+                    body(self.wfile) if callable(body) else self.wfile.write(body)
+                except OSError:
+                    pass
+
+            def log_message(self, *args):
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.server.daemon_threads = True
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    def serve_artefact(self, folder: Path, version: int = 7, extra: dict[str, bytes] | None = None,
+                       listing_changes=None) -> dict:
+        """List the artefact of ``folder`` (plus ``extra`` files) as the learner does; returns the listing."""
+        meta = json.loads((folder / "metadata.json").read_text())
+        files = {}
+        contents = {p.name: p.read_bytes() for p in folder.iterdir()} | (extra or {})
+        for name, data in contents.items():
+            url = f"/files/{len(files)}"
+            self.routes[url] = (200, {}, data)
+            files[name] = {"sha256": hashlib.sha256(data).hexdigest(), "url": url}
+        listing = {"version": version, "files": files, "metadata": meta}
+        if listing_changes:
+            listing_changes(listing)
+        self.routes["/policy/latest"] = (200, {"Content-Type": "application/json"}, json.dumps(listing).encode())
+        return listing
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture
+def learner():
+    server = HostileLearner()
+    yield server
+    server.close()
+
+
+# -- scheduler and hosts --------------------------------------------------------------------------
+SCHEDULER_CURRICULUM = """name: t
+stages:
+  - name: S1
+    worlds: [open-room]
+    advance: {success_rate: 0.99, window: 1000}
+"""
+
+
+def scheduler_core(tmp_path):
+    """A scheduler core on a one-stage curriculum of open-room that never advances."""
+    from curlnav.scheduler.curriculum import load_curriculum
+    from curlnav.scheduler.service import SchedulerCore
+
+    path = tmp_path / "c.yaml"
+    path.write_text(SCHEDULER_CURRICULUM)
+    return SchedulerCore(load_curriculum(path))
+
+
+def play(core, actor: str, success=True):
+    """``actor`` asks ``core`` for an assignment and reports one episode of it; returns the assignment."""
+    from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport
+
+    a = Assignment.decode(core.assign(AssignmentRequest(actor).encode()))
+    core.report(EpisodeReport(actor, a.world, a.pair, success, 1.0, 0, 0, 10, 0, a.epoch).encode())
+    return a
+
+
+class Namespaces:
+    """The addresses and commands of ``curlnav.bench.netns.Hosts``, without namespaces."""
+
+    count = 3
+
+    @staticmethod
+    def address(i: int) -> str:
+        return f"10.9.0.{i + 1}"
+
+    @staticmethod
+    def exec(i: int) -> list[str]:
+        return ["ip", "netns", "exec", f"host{i}"]
 
 
 # -- replay data -----------------------------------------------------------------------------------

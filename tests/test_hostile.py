@@ -17,23 +17,14 @@ import socket
 import subprocess
 import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_one_line_error, run_curlnav
+from conftest import HostileLearner, assert_one_line_error
+from conftest import run_capped as curlnav
 
 from curlnav.bus.transport import HttpServer, json_response
-
-MEMORY_CAP = 3 << 30  # address space of a CLI subprocess: a bomb fails the test instead of the machine
-
-
-def curlnav(*args: str, timeout: float = 120) -> tuple[subprocess.CompletedProcess, float, float]:
-    """Run the CLI under the memory cap: (result, peak RSS in MB, wall s inside the process)."""
-    result = run_curlnav(*args, timeout=timeout, limit_mb=MEMORY_CAP >> 20)
-    return result, result.peak_mb, result.wall_s
-
 
 # -- H4: slow clients --------------------------------------------------------------------------------
 
@@ -174,71 +165,6 @@ def test_one_client_address_holds_at_most_max_per_client_slow_connections():
 
 
 # -- H5: curlnav pull against a hostile learner ----------------------------------------------------
-
-class HostileLearner:
-    """An ``http.server`` on loopback serving whatever ``routes`` says: path -> (status, headers,
-    body bytes or a callable writing to the socket file)."""
-
-    def __init__(self) -> None:
-        self.routes: dict[str, tuple] = {}
-        routes = self.routes
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_GET(self):
-                entry = routes.get(self.path.split("?", 1)[0])
-                if entry is None:
-                    self.send_response(404)
-                    self.send_header("Content-Length", "0")
-                    self.end_headers()
-                    return
-                status, headers, body = entry
-                self.send_response(status)
-                for key, value in headers.items():
-                    self.send_header(key, value)
-                if isinstance(body, bytes) and "Content-Length" not in headers:
-                    self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                try:
-                    body(self.wfile) if callable(body) else self.wfile.write(body)
-                except OSError:
-                    pass
-
-            def log_message(self, *args):
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.server.daemon_threads = True
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
-        self.thread.start()
-
-    def serve_artefact(self, folder: Path, version: int = 7, extra: dict[str, bytes] | None = None,
-                       listing_changes=None) -> dict:
-        """List the artefact of ``folder`` (plus ``extra`` files) as the learner does; returns the listing."""
-        meta = json.loads((folder / "metadata.json").read_text())
-        files = {}
-        contents = {p.name: p.read_bytes() for p in folder.iterdir()} | (extra or {})
-        for name, data in contents.items():
-            url = f"/files/{len(files)}"
-            self.routes[url] = (200, {}, data)
-            files[name] = {"sha256": hashlib.sha256(data).hexdigest(), "url": url}
-        listing = {"version": version, "files": files, "metadata": meta}
-        if listing_changes:
-            listing_changes(listing)
-        self.routes["/policy/latest"] = (200, {"Content-Type": "application/json"}, json.dumps(listing).encode())
-        return listing
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-
-
-@pytest.fixture
-def learner():
-    server = HostileLearner()
-    yield server
-    server.close()
-
 
 def pull(learner: HostileLearner, out: Path) -> subprocess.CompletedProcess:
     return curlnav("pull", "--from", learner.url, "--out", str(out))[0]

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
-from conftest import assert_one_line_error
+from conftest import HostileLearner, assert_one_line_error
+from conftest import run_capped as curlnav
 from onnx import TensorProto, helper, numpy_helper
-from test_hostile import HostileLearner, curlnav, learner  # noqa: F401 (fixtures)
 
 from curlnav.config import D4PGConfig
 from curlnav.layout import ObservationLayout
@@ -80,14 +80,14 @@ HOSTILE_METADATA = {
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(HOSTILE_METADATA))
-def test_hostile_metadata_is_refused_by_policy_run_in_one_line(artefact, tmp_path, case):  # noqa: F811
+def test_hostile_metadata_is_refused_by_policy_run_in_one_line(artefact, tmp_path, case):
     change, field = HOSTILE_METADATA[case]
     folder = copy_artefact(artefact, tmp_path, change)
     assert_one_line_error(policy_run(folder, tmp_path), "metadata.json", field)
 
 
 @pytest.mark.slow
-def test_the_inf_nan_artefact_is_refused_by_eval_ros2_run_and_pull(artefact, tmp_path, learner):  # noqa: F811
+def test_the_inf_nan_artefact_is_refused_by_eval_ros2_run_and_pull(artefact, tmp_path, learner):
     folder = copy_artefact(artefact, tmp_path, HOSTILE_METADATA["scale-inf-nan"][0])
     result = curlnav("eval", str(folder), "--world", "open-room", "--episodes", "1")[0]
     assert_one_line_error(result, "metadata.json", "action.scale")
@@ -228,7 +228,7 @@ def external_data_model(folder: Path, location: str) -> None:
 
 
 @pytest.mark.slow
-def test_actor_onnx_with_external_data_in_its_own_folder_is_refused(artefact, tmp_path):  # noqa: F811
+def test_actor_onnx_with_external_data_in_its_own_folder_is_refused(artefact, tmp_path):
     folder = copy_artefact(artefact, tmp_path)
     (folder / "weights.bin").write_bytes(np.array([7.0, 7.0, 7.0], np.float32).tobytes())
     external_data_model(folder, "weights.bin")
@@ -237,7 +237,7 @@ def test_actor_onnx_with_external_data_in_its_own_folder_is_refused(artefact, tm
 
 
 @pytest.mark.slow
-def test_actor_onnx_reading_a_file_outside_its_folder_never_shows_it(artefact, tmp_path):  # noqa: F811
+def test_actor_onnx_reading_a_file_outside_its_folder_never_shows_it(artefact, tmp_path):
     (tmp_path / "secret.txt").write_bytes(b"SECRETS!" * 4)
     folder = copy_artefact(artefact, tmp_path)
     external_data_model(folder, "../secret.txt")
@@ -269,7 +269,7 @@ def bomb_model(folder: Path, floats: int) -> None:
 
 
 @pytest.mark.slow
-def test_a_graph_that_allocates_1e10_floats_at_its_first_action_is_refused_in_one_line(artefact, tmp_path):  # noqa: F811
+def test_a_graph_that_allocates_1e10_floats_at_its_first_action_is_refused_in_one_line(artefact, tmp_path):
     folder = copy_artefact(artefact, tmp_path)
     bomb_model(folder, 10 ** 10)
     relist(folder)
@@ -363,7 +363,7 @@ def test_external_data_anywhere_in_an_onnx_function_is_refused(tmp_path, where):
         _check_self_contained(path)
 
 
-def test_loading_the_same_artefact_again_does_not_rerun_the_first_action_check(artefact, tmp_path, monkeypatch):  # noqa: F811
+def test_loading_the_same_artefact_again_does_not_rerun_the_first_action_check(artefact, tmp_path, monkeypatch):
     """The first-action child (about 1.5 s) runs once per actor.onnx content and observation size
     in a process: a second load of the same artefact skips it, a changed actor.onnx does not."""
     import subprocess
@@ -401,7 +401,7 @@ def zeros_sha256(size: int) -> str:
     return digest.hexdigest()
 
 
-def serve_big_files(learner: HostileLearner, artefact: Path, sizes: dict[str, int]) -> None:  # noqa: F811
+def serve_big_files(learner: HostileLearner, artefact: Path, sizes: dict[str, int]) -> None:
     """The artefact's listing, plus ``sizes`` files of zeros (streamed) that metadata.json and the
     listing both list with their right sha256."""
     def streamed(size):
@@ -426,7 +426,7 @@ def serve_big_files(learner: HostileLearner, artefact: Path, sizes: dict[str, in
     learner.serve_artefact(artefact, listing_changes=big)
 
 
-def test_a_pull_refuses_bad_metadata_before_any_other_file_comes_down(learner, artefact, tmp_path):  # noqa: F811
+def test_a_pull_refuses_bad_metadata_before_any_other_file_comes_down(learner, artefact, tmp_path):
     """The inf/NaN metadata, listed with a 200 MiB file (right sha256s): refused from metadata.json
     alone; no other file is requested, so nothing of the 200 MiB comes down."""
     from curlnav.run.pull import pull_policy
@@ -449,7 +449,7 @@ def test_a_pull_refuses_bad_metadata_before_any_other_file_comes_down(learner, a
 
 
 @pytest.mark.slow
-def test_a_pull_of_three_200_mib_files_is_refused_with_nothing_kept(learner, artefact, tmp_path):  # noqa: F811
+def test_a_pull_of_three_200_mib_files_is_refused_with_nothing_kept(learner, artefact, tmp_path):
     serve_big_files(learner, artefact, {"a.bin": 200 * MIB, "b.bin": 200 * MIB, "c.bin": 200 * MIB})
     out = tmp_path / "pulled" / "policy"
     result, peak_mb, wall = curlnav("pull", "--from", learner.url, "--out", str(out), timeout=300)
@@ -459,7 +459,7 @@ def test_a_pull_of_three_200_mib_files_is_refused_with_nothing_kept(learner, art
 
 
 @pytest.mark.slow
-def test_a_pull_of_more_files_than_max_files_is_refused(learner, artefact, tmp_path):  # noqa: F811
+def test_a_pull_of_more_files_than_max_files_is_refused(learner, artefact, tmp_path):
     serve_big_files(learner, artefact, {f"part{i}.bin": MIB for i in range(5)})
     out = tmp_path / "pulled" / "policy"
     result = curlnav("pull", "--from", learner.url, "--out", str(out), "--max-files", "4")[0]
@@ -469,7 +469,7 @@ def test_a_pull_of_more_files_than_max_files_is_refused(learner, artefact, tmp_p
 
 @pytest.mark.slow
 @pytest.mark.parametrize("where", ["listing", "file"])
-def test_a_pull_from_a_server_that_drips_a_byte_every_4_s_ends_at_the_deadline(learner, artefact, tmp_path, where):  # noqa: F811
+def test_a_pull_from_a_server_that_drips_a_byte_every_4_s_ends_at_the_deadline(learner, artefact, tmp_path, where):
     stop = []
 
     def drip(wfile):
@@ -502,7 +502,7 @@ def test_a_pull_from_a_server_that_drips_a_byte_every_4_s_ends_at_the_deadline(l
 
 
 @pytest.mark.slow
-def test_pull_flags_refuse_nonsense(learner, artefact, tmp_path):  # noqa: F811
+def test_pull_flags_refuse_nonsense(learner, artefact, tmp_path):
     learner.serve_artefact(artefact)
     for flag, value in (("--max-bytes", "0"), ("--max-files", "-1"), ("--deadline-s", "nan"), ("--deadline-s", "0")):
         result = curlnav("pull", "--from", learner.url, "--out", str(tmp_path / "p"), flag, value)[0]

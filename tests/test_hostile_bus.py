@@ -15,13 +15,13 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import a_batch, metrics, replay_in, wait_for
+from conftest import a_batch, metrics, play, replay_in, scheduler_core, wait_for
 
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.service import Deployment, check_agreement
 from curlnav.config import ExperimentConfig, resolve_config
 from curlnav.proto.codec import ProtoError
-from curlnav.proto.messages import Assignment, AssignmentRequest, EpisodeReport, RunConfig, TransitionBatch
+from curlnav.proto.messages import EpisodeReport, RunConfig, TransitionBatch
 from curlnav.proto.topology import Topology
 from curlnav.replay.wal import SegmentLog
 from curlnav.run.launch import http_json_or_none
@@ -132,29 +132,6 @@ def test_h2_only_the_services_that_own_the_config_are_trusted():
 
 
 # -- the scheduler: ghosts and forged reports --------------------------------------------------------
-
-CURRICULUM = """name: t
-stages:
-  - name: S1
-    worlds: [open-room]
-    advance: {success_rate: 0.99, window: 1000}
-"""
-
-
-def scheduler_core(tmp_path):
-    from curlnav.scheduler.curriculum import load_curriculum
-    from curlnav.scheduler.service import SchedulerCore
-
-    path = tmp_path / "c.yaml"
-    path.write_text(CURRICULUM)
-    return SchedulerCore(load_curriculum(path))
-
-
-def play(core, actor: str, success=True) -> Assignment:
-    a = Assignment.decode(core.assign(AssignmentRequest(actor).encode()))
-    core.report(EpisodeReport(actor, a.world, a.pair, success, 1.0, 0, 0, 10, 0, a.epoch).encode())
-    return a
-
 
 def test_ghost_tokens_do_not_lock_out_a_new_actor(tmp_path):
     from curlnav.scheduler.service import MAX_ACTORS

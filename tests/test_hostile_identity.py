@@ -27,8 +27,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from conftest import Namespaces
 from conftest import stop_all as stop
-from test_stack_file import Namespaces
 
 from curlnav.bench.faults import poll
 from curlnav.bench.netns import Hosts, unavailable

@@ -10,8 +10,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from conftest import a_batch, replay_in
-from test_hostile_bus import play, scheduler_core
+from conftest import a_batch, play, replay_in, scheduler_core
 
 from curlnav.actor.resend import ResendBuffer
 from curlnav.proto.messages import ServiceStatus, TransitionBatch

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import Namespaces
 
 from curlnav.bench.hosts import HostsCluster
 from curlnav.bus.identity import actor_identities
@@ -40,20 +41,6 @@ def test_the_stack_file_is_what_the_script_writes():
     result = subprocess.run([sys.executable, "scripts/make-stack-file.py", "--check"], cwd=ROOT, capture_output=True,
                             text=True, timeout=60)
     assert result.returncode == 0, result.stderr
-
-
-class Namespaces:
-    """The addresses and commands of ``curlnav.bench.netns.Hosts``, without namespaces."""
-
-    count = 3
-
-    @staticmethod
-    def address(i: int) -> str:
-        return f"10.9.0.{i + 1}"
-
-    @staticmethod
-    def exec(i: int) -> list[str]:
-        return ["ip", "netns", "exec", f"host{i}"]
 
 
 def bench_commands(tmp_path) -> dict[str, list[str]]:
