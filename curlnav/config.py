@@ -300,13 +300,26 @@ PRESETS: dict[str, typing.Callable[[], ExperimentConfig]] = {"default": _default
 
 
 # -- dictionaries, files, overrides ---------------------------------------------------------------
-def config_to_dict(cfg: Any) -> Any:
-    """A plain dict (tuples as lists) of a config dataclass, recursively."""
+def config_to_dict(cfg: Any, for_hash: bool = False) -> Any:
+    """A plain dict (tuples as lists) of a config dataclass, recursively. A dataclass with a
+    ``config_dict()`` method gives its own (``SensorNoiseConfig``: magnitudes left to the preset are
+    None). ``for_hash``: fields marked ``metadata={"hash": "omit-default"}`` are left out while they
+    hold their default, so that adding such a field keeps the hash of every existing config."""
     if dataclasses.is_dataclass(cfg):
-        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+        if hasattr(cfg, "config_dict"):
+            return cfg.config_dict()
+        return {f.name: config_to_dict(getattr(cfg, f.name), for_hash) for f in dataclasses.fields(cfg)
+                if not (for_hash and _omitted_from_hash(f, getattr(cfg, f.name)))}
     if isinstance(cfg, tuple):
-        return [config_to_dict(v) for v in cfg]
+        return [config_to_dict(v, for_hash) for v in cfg]
     return cfg
+
+
+def _omitted_from_hash(f: dataclasses.Field, value: Any) -> bool:
+    if f.metadata.get("hash") != "omit-default":
+        return False
+    default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+    return value == default
 
 
 def _field_types(cls: type) -> dict[str, Any]:
@@ -459,15 +472,16 @@ def overrides_from_environment(environ: dict[str, str] | None = None) -> list[st
 
 
 def config_hash(cfg: ExperimentConfig) -> str:
-    """SHA-256 of the config's canonical JSON: equal for equal configs, whatever the source."""
-    text = json.dumps(config_to_dict(cfg), sort_keys=True, separators=(",", ":"))
+    """SHA-256 of the config's canonical JSON: equal for equal configs, whatever the source. Fields
+    added with ``metadata={"hash": "omit-default"}`` (``env.sensor_noise``) count only when set."""
+    text = json.dumps(config_to_dict(cfg, for_hash=True), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
 
 def service_config_hash(cfg: ExperimentConfig) -> str:
     """The hash the services of a run must agree on: every section they use (not ``budget``
     nor ``evaluation``, which only the launcher reads, nor ``actor``, each actor's own choice)."""
-    data = {k: v for k, v in config_to_dict(cfg).items() if k not in ("budget", "evaluation", "actor")}
+    data = {k: v for k, v in config_to_dict(cfg, for_hash=True).items() if k not in ("budget", "evaluation", "actor")}
     return hashlib.sha256(json.dumps(data, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 

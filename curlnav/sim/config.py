@@ -83,6 +83,140 @@ class RewardConfig:
         _positive(self, ["moving_threshold", "heading_cone"])
 
 
+#: The magnitudes of ``SensorNoiseConfig`` (every field but ``preset`` and ``randomise``), in order.
+SENSOR_NOISE_FIELDS = ("range_sigma", "range_sigma_fraction", "dropout", "spurious", "label_error", "label_run",
+                       "latency_steps", "odometry_drift", "odometry_rotation_drift", "max_linear_accel",
+                       "max_angular_accel", "actuation_lag", "wheel_slip")
+
+#: Named presets of ``SensorNoiseConfig``: ``none`` (exact senses, the default), ``realistic`` (a
+#: robot with a datasheet LiDAR, a segmenter and wheel odometry) and ``harsh`` (about double).
+#: Sources of the values: docs/guide/environment.md, "Sensor, odometry and actuation models".
+SENSOR_NOISE_PRESETS: dict[str, dict[str, float | int]] = {
+    "none": dict(range_sigma=0.0, range_sigma_fraction=0.0, dropout=0.0, spurious=0.0, label_error=0.0,
+                 label_run=1.0, latency_steps=0, odometry_drift=0.0, odometry_rotation_drift=0.0,
+                 max_linear_accel=0.0, max_angular_accel=0.0, actuation_lag=0.0, wheel_slip=0.0),
+    "realistic": dict(range_sigma=0.03, range_sigma_fraction=0.0, dropout=0.02, spurious=0.005, label_error=0.05,
+                      label_run=6.0, latency_steps=1, odometry_drift=0.02, odometry_rotation_drift=0.05,
+                      max_linear_accel=3.0, max_angular_accel=6.0, actuation_lag=0.05, wheel_slip=0.02),
+    "harsh": dict(range_sigma=0.05, range_sigma_fraction=0.01, dropout=0.05, spurious=0.01, label_error=0.10,
+                  label_run=10.0, latency_steps=2, odometry_drift=0.05, odometry_rotation_drift=0.10,
+                  max_linear_accel=1.5, max_angular_accel=3.0, actuation_lag=0.1, wheel_slip=0.05),
+}
+
+
+@dataclass(frozen=True)
+class SensorNoiseConfig:
+    """How imperfect the robot's senses, odometry and drive are (``curlnav.sim.sensors``).
+
+    Every magnitude left ``None`` takes the value of ``preset`` (``SENSOR_NOISE_PRESETS``), so a
+    config names a preset and overrides only what it changes: ``SensorNoiseConfig("realistic",
+    dropout=0.05)``. After construction every magnitude holds its value. The draws come from the
+    environment's episode RNG (``NamoEnv.np_random``): the same reset seed gives the same noisy
+    episode. The preset ``none`` (every magnitude 0) leaves the simulator exact: observations are
+    bit for bit those of an environment without this config.
+
+    Units: metres, seconds, radians; fractions in [0, 1]; a limit of 0 means "no limit".
+    """
+
+    preset: str = "none"  # the preset that magnitudes left None take their values from
+    #: draw a scale s uniform in [0, 1] at each reset and use the preset's magnitudes times s
+    #: (latency rounded, acceleration limits divided by s): training over a range of senses
+    randomise: bool = False
+    range_sigma: float | None = None  # m, Gaussian range noise (1-sigma) of every beam with a return
+    range_sigma_fraction: float | None = None  # and a further 1-sigma of this fraction of the range
+    dropout: float | None = None  # fraction of beams that return nothing (read lidar_max_range, label 0)
+    spurious: float | None = None  # fraction of beams with a spurious short return (uniform in [0, range], label 0)
+    #: movable objects missed whole (each run of movable beams, with this probability) and
+    #: the fraction of other beams labelled movable, in runs of ``label_run`` beams on average
+    label_error: float | None = None
+    label_run: float | None = None  # beams, mean length of a false movable run (1: isolated beams)
+    latency_steps: int | None = None  # control periods by which the whole observation lags
+    odometry_drift: float | None = None  # 1-sigma translation error per metre travelled (fraction of distance)
+    odometry_rotation_drift: float | None = None  # 1-sigma heading error per radian turned (fraction of rotation)
+    max_linear_accel: float | None = None  # m/s^2 of the base (0: none)
+    max_angular_accel: float | None = None  # rad/s^2 of the base (0: none)
+    actuation_lag: float | None = None  # s, first-order time constant from command to velocity (0: none)
+    wheel_slip: float | None = None  # 1-sigma fraction of the commanded motion lost to slip each step
+
+    def __post_init__(self) -> None:
+        if self.preset not in SENSOR_NOISE_PRESETS:
+            raise ConfigError(f"sensor_noise.preset must be one of {', '.join(SENSOR_NOISE_PRESETS)}, "
+                              f"got {self.preset!r}")
+        if not isinstance(self.randomise, bool):
+            raise ConfigError(f"sensor_noise.randomise must be true or false, got {self.randomise!r}")
+        base = SENSOR_NOISE_PRESETS[self.preset]
+        for name in SENSOR_NOISE_FIELDS:
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, base[name])
+        self.validate()
+
+    def validate(self) -> None:
+        """Refuse values out of range, naming the field (``ConfigError``)."""
+        for name in SENSOR_NOISE_FIELDS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ConfigError(f"sensor_noise.{name} must be a finite number, got {value!r}")
+        bounded = {"range_sigma": 1.0, "range_sigma_fraction": 0.5, "dropout": 1.0, "spurious": 1.0,
+                   "label_error": 1.0, "odometry_drift": 1.0, "odometry_rotation_drift": 1.0,
+                   "max_linear_accel": 1e3, "max_angular_accel": 1e3, "actuation_lag": 10.0, "wheel_slip": 0.5}
+        for name, high in bounded.items():
+            value = getattr(self, name)
+            if not 0 <= value <= high:
+                raise ConfigError(f"sensor_noise.{name} must be in [0, {high:g}], got {value!r}")
+        if self.dropout + self.spurious > 1:
+            raise ConfigError(f"sensor_noise.dropout + sensor_noise.spurious must be at most 1, "
+                              f"got {self.dropout} + {self.spurious}")
+        if not 1 <= self.label_run <= 1000:
+            raise ConfigError(f"sensor_noise.label_run must be in [1, 1000] beams, got {self.label_run!r}")
+        if isinstance(self.latency_steps, float) or not 0 <= self.latency_steps <= 50:
+            raise ConfigError(f"sensor_noise.latency_steps must be a whole number in [0, 50], "
+                              f"got {self.latency_steps!r}")
+
+    @staticmethod
+    def from_preset(name: str, **overrides: Any) -> SensorNoiseConfig:
+        """Preset ``name`` with some magnitudes overridden (unknown names raise ``ConfigError``)."""
+        unknown = set(overrides) - set(SENSOR_NOISE_FIELDS) - {"randomise"}
+        if unknown:
+            raise ConfigError(f"unknown sensor-noise field {sorted(unknown)[0]}; known: "
+                              f"{', '.join(SENSOR_NOISE_FIELDS + ('randomise',))}")
+        return SensorNoiseConfig(preset=name, **overrides)
+
+    @property
+    def is_exact(self) -> bool:
+        """No noise, no lag, no limits: the simulator's exact senses (``none``, however reached)."""
+        return all(getattr(self, name) == 0 for name in SENSOR_NOISE_FIELDS if name != "label_run")
+
+    def scaled(self, scale: float) -> SensorNoiseConfig:
+        """These magnitudes times ``scale`` in [0, 1]: noise and drift multiplied, latency rounded,
+        acceleration limits divided (0 stays "no limit"; ``scale`` 0 removes them), ``label_run``
+        kept. ``randomise`` is off in the result."""
+        if not 0 <= scale <= 1:
+            raise ConfigError(f"a sensor-noise scale must be in [0, 1], got {scale!r}")
+        values: dict[str, Any] = {}
+        for name in SENSOR_NOISE_FIELDS:
+            value = getattr(self, name)
+            if name == "label_run":
+                values[name] = value
+            elif name == "latency_steps":
+                values[name] = int(round(value * scale))
+            elif name in ("max_linear_accel", "max_angular_accel"):
+                values[name] = value / scale if value > 0 and scale > 0 else 0.0
+            else:
+                values[name] = value * scale
+        values["max_linear_accel"] = min(values["max_linear_accel"], 1e3)
+        values["max_angular_accel"] = min(values["max_angular_accel"], 1e3)
+        return SensorNoiseConfig(preset=self.preset, randomise=False, **values)
+
+    def config_dict(self) -> dict[str, Any]:
+        """The config-file form: ``preset``, ``randomise`` and each magnitude, ``None`` where it is
+        the preset's (so that a later change of preset carries the magnitudes with it)."""
+        base = SENSOR_NOISE_PRESETS[self.preset]
+        out: dict[str, Any] = {"preset": self.preset, "randomise": self.randomise}
+        out.update({name: None if getattr(self, name) == base[name] else getattr(self, name)
+                    for name in SENSOR_NOISE_FIELDS})
+        return out
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """The NAMO environment.
@@ -107,6 +241,10 @@ class EnvConfig:
     max_episode_steps: int = 300  # truncation (60 s at 5 Hz, the authors' evaluation timeout)
     end_on_base_collision: bool = True  # training default; evaluation counts and goes on
     gui: bool = False  # open the PyBullet GUI (needs a display)
+    #: range noise, dropouts, spurious returns, label errors, latency, odometry drift, acceleration
+    #: limits, lag and wheel slip (``SensorNoiseConfig``; default: none, the exact simulator). Left
+    #: out of the config hash while it is the default, so runs from before it keep their hash.
+    sensor_noise: SensorNoiseConfig = field(default_factory=SensorNoiseConfig, metadata={"hash": "omit-default"})
 
     def __post_init__(self) -> None:
         self.validate()
@@ -122,6 +260,8 @@ class EnvConfig:
     def validate(self) -> None:
         if not isinstance(self.robot, RobotConfig) or not isinstance(self.reward, RewardConfig):
             raise ConfigError("robot and reward must be RobotConfig and RewardConfig instances")
+        if not isinstance(self.sensor_noise, SensorNoiseConfig):
+            raise ConfigError("sensor_noise must be a SensorNoiseConfig instance")
         self.robot.validate()
         self.reward.validate()
         _positive(self, ["control_period", "physics_substeps", "solver_iterations", "lidar_beams",

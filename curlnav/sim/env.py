@@ -20,6 +20,13 @@ first inside each block:
 
 On reset all frames are filled with the first reading.
 
+Imperfect senses (``EnvConfig.sensor_noise``, ``curlnav.sim.sensors``): range noise, dropouts,
+spurious returns and label errors in the range and label frames, the goal frames computed from a
+drifting odometry estimate (``info["odometry"]``; ``info["pose"]`` stays the true pose), the whole
+observation late by ``latency_steps`` control periods, and the base's motion slipping, lagging and
+acceleration-limited. Drawn from a generator taken from the episode RNG at reset; with the
+default ``none`` nothing is drawn and the observation is that of the exact simulator.
+
 Reward: equation (1) of the paper, each term reported in ``info["reward_terms"]``
 (see ``RewardConfig``). The episode terminates on success (within ``goal_tolerance`` of the
 goal) and, when ``end_on_base_collision`` is set (training), on a base collision with a wall;
@@ -43,6 +50,7 @@ from curlnav.worlds.world import StartGoal, World
 
 from .config import EnvConfig
 from .scene import Scene, connect
+from .sensors import SensorModel
 
 
 def _file_key(spec) -> tuple | None:
@@ -87,6 +95,7 @@ class NamoEnv(gym.Env):
         # Random pairs never drawn (held out for evaluation): (x, y, gx, gy) rounded to 1 mm.
         self.excluded_pairs: set[tuple[float, float, float, float]] = set()
         self._steps = 0
+        self.sensors: SensorModel | None = None  # this episode's imperfect senses (None: exact)
         # Built scenes kept across world switches (1: only the current one). World draws raise it.
         self.scene_cache = 1
         self.scene_builds = 0  # scenes built for worlds switched to while the cache is on (misses)
@@ -185,9 +194,11 @@ class NamoEnv(gym.Env):
         self._distance = math.hypot(self.pair.gx - x, self.pair.gy - y)
         cfg = self.config
         ranges, labels, hits = self.scene.scan(x, y, yaw)
-        self._range_stack = np.repeat(ranges[None, :], cfg.range_frames, axis=0)
-        self._label_stack = np.repeat(labels[None, :], cfg.label_frames, axis=0)
-        self._goal_stack = np.repeat(self._goal_frame(x, y, yaw)[None, :], cfg.goal_frames, axis=0)
+        self.sensors = SensorModel.for_episode(cfg, self.np_random, self._pose)
+        seen_ranges, seen_labels, goal = self._sensed(ranges, labels)
+        self._range_stack = np.repeat(seen_ranges[None, :], cfg.range_frames, axis=0)
+        self._label_stack = np.repeat(seen_labels[None, :], cfg.label_frames, axis=0)
+        self._goal_stack = np.repeat(goal[None, :], cfg.goal_frames, axis=0)
         self.trajectory = [(x, y)]
         self.last_hits, self.last_labels = hits, labels
         return self._observation(), self._info({}, success=False)
@@ -200,9 +211,16 @@ class NamoEnv(gym.Env):
         robot = cfg.robot
         reward_cfg = cfg.reward
         x0, y0, yaw0 = self._pose
-        self.scene.drive(a[0] * robot.max_linear_speed, a[1] * robot.max_angular_speed,
-                         a[2] * robot.arm_reach, yaw0)
+        sensors = self.sensors
+        if sensors is not None and sensors.moves_differently:
+            linear, angular = sensors.actuator.profile(a[0] * robot.max_linear_speed, a[1] * robot.max_angular_speed)
+            self.scene.drive(linear, angular, a[2] * robot.arm_reach, yaw0)
+        else:
+            self.scene.drive(a[0] * robot.max_linear_speed, a[1] * robot.max_angular_speed,
+                             a[2] * robot.arm_reach, yaw0)
         x, y, yaw, _ = self.scene.robot_pose()
+        if sensors is not None:
+            sensors.odometry.update((x0, y0, yaw0), (x, y, yaw), sensors.actuator.slip)
         contacts = self.scene.contacts()
         ranges, labels, hits = self.scene.scan(x, y, yaw)
         self._steps += 1
@@ -233,12 +251,13 @@ class NamoEnv(gym.Env):
 
         self._pose = (x, y, yaw)
         self._distance = distance
+        seen_ranges, seen_labels, goal = self._sensed(ranges, labels)
         self._range_stack[:-1] = self._range_stack[1:]
-        self._range_stack[-1] = ranges
+        self._range_stack[-1] = seen_ranges
         self._label_stack[:-1] = self._label_stack[1:]
-        self._label_stack[-1] = labels
+        self._label_stack[-1] = seen_labels
         self._goal_stack[:-1] = self._goal_stack[1:]
-        self._goal_stack[-1] = self._goal_frame(x, y, yaw)
+        self._goal_stack[-1] = goal
         self.trajectory.append((x, y))
         self.last_hits, self.last_labels = hits, labels
         info = self._info(terms, success=success)
@@ -283,6 +302,14 @@ class NamoEnv(gym.Env):
             raise ValueError(f"action {a.tolist()} out of range: v in [0, 1], w in [-1, 1], L in [0, 1]")
         return min(max(v, 0.0), 1.0), min(max(w, -1.0), 1.0), min(max(arm, 0.0), 1.0)
 
+    def _sensed(self, ranges: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The newest frame the observation shows: the scan and the goal frame as the robot
+        senses them (exact without a sensor model)."""
+        if self.sensors is None:
+            return ranges, labels, self._goal_frame(*self._pose)
+        seen_ranges, seen_labels, estimate = self.sensors.observe(ranges, labels)
+        return seen_ranges, seen_labels, self._goal_frame(*estimate)
+
     def _goal_frame(self, x: float, y: float, yaw: float) -> np.ndarray:
         dxw, dyw = self.pair.gx - x, self.pair.gy - y
         c, s = math.cos(yaw), math.sin(yaw)
@@ -304,6 +331,8 @@ class NamoEnv(gym.Env):
             "end_effector_collisions": self._ee_collisions,
             "episode_return": self._episode_return,
             "pose": (x, y, yaw),
+            # the robot's own pose estimate (drifts under sensor noise; the true pose without)
+            "odometry": self.sensors.odometry.pose if self.sensors is not None else (x, y, yaw),
             "world": self.world.name,
             "pair": self.pair.name,
             "steps": self._steps,

@@ -350,9 +350,11 @@ class Scene:
         states = pb.getJointStates(self.robot, (JOINT_X, JOINT_Y, JOINT_YAW, JOINT_ARM), physicsClientId=self.client)
         return states[0][0], states[1][0], states[2][0], states[3][0]
 
-    def drive(self, linear: float, angular: float, arm: float, yaw: float) -> None:
+    def drive(self, linear: float | np.ndarray, angular: float | np.ndarray, arm: float, yaw: float) -> None:
         """Run one control period: base velocity ``linear`` (m/s) along the heading, ``angular``
         (rad/s), arm target displacement ``arm`` (m). ``yaw`` is the heading at the start.
+        ``linear`` and ``angular`` may instead give one value per physics sub-step (shape
+        ``(physics_substeps,)``: a drive that lags or limits its acceleration).
 
         The world-frame velocity is recomputed every physics step from the unicycle model, so
         the base follows an arc, and never slides sideways.
@@ -362,6 +364,9 @@ class Scene:
         dt = self.cfg.physics_timestep
         robot = self.robot
         forces = (r.drive_force, r.drive_force, r.drive_force, r.arm_force)
+        if not np.isscalar(linear):
+            self._drive_profile(np.asarray(linear), np.asarray(angular), arm, yaw)
+            return
         for k in range(self.cfg.physics_substeps):
             heading = yaw + angular * dt * (k + 0.5)
             pb.setJointMotorControlArray(
@@ -372,6 +377,25 @@ class Scene:
                 pb.setJointMotorControl2(robot, JOINT_ARM, pb.POSITION_CONTROL, targetPosition=arm,
                                          force=r.arm_force, maxVelocity=r.arm_speed, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
+
+    def _drive_profile(self, linear: np.ndarray, angular: np.ndarray, arm: float, yaw: float) -> None:
+        """``drive`` with one base velocity per physics sub-step."""
+        c = self.client
+        r = self.cfg.robot
+        dt = self.cfg.physics_timestep
+        forces = (r.drive_force, r.drive_force, r.drive_force)
+        heading = yaw
+        for k in range(self.cfg.physics_substeps):
+            mid = heading + angular[k] * dt / 2
+            pb.setJointMotorControlArray(
+                self.robot, (JOINT_X, JOINT_Y, JOINT_YAW), pb.VELOCITY_CONTROL,
+                targetVelocities=(linear[k] * math.cos(mid), linear[k] * math.sin(mid), angular[k]),
+                forces=forces, physicsClientId=c)
+            if k == 0:
+                pb.setJointMotorControl2(self.robot, JOINT_ARM, pb.POSITION_CONTROL, targetPosition=arm,
+                                         force=r.arm_force, maxVelocity=r.arm_speed, physicsClientId=c)
+            pb.stepSimulation(physicsClientId=c)
+            heading += angular[k] * dt
 
     def contacts(self) -> ContactCounts:
         """Which robot parts touch walls and movable objects now."""
