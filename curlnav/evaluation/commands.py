@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from curlnav.planners import agents_help
+from curlnav.sim.config import SENSOR_NOISE_FIELDS, SENSOR_NOISE_PRESETS, SensorNoiseConfig
 from curlnav.worlds.builtin import WORLD_FORMS
 
 
@@ -58,7 +59,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     args.seeds = 1 if args.seeds is None else args.seeds
     if args.seeds < 1:
         raise ValueError(f"--seeds must be at least 1, got {args.seeds}")
-    env_config = ExperimentConfig().eval_env
+    sensor_noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set or ())
+    env_config = ExperimentConfig().eval_env.replace(sensor_noise=sensor_noise)
+    if not sensor_noise.is_exact:
+        print(f"sensor noise: {sensor_noise.describe()} (every agent sees the same noisy observations)")
     worlds = [get_world(spec) for spec in (suite.worlds if suite else args.world or ["open-room"])]
     for world in worlds:
         check_pairs_possible(world)
@@ -139,6 +143,14 @@ def add_commands(sub) -> None:
                         "300 and 301, barn-3x3 and slam-office at seed 300; 8 trials each: pairs x ball placements); prints "
                         "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
                         "writes table2.md beside the CSV files and pictures")
+    p.add_argument("--sensor-noise", default="none", metavar="PRESET",
+                   help=f"imperfect senses for every agent: {', '.join(SENSOR_NOISE_PRESETS)} (default none: the "
+                        "exact simulator); range noise, dropouts, spurious returns, label errors, latency, odometry "
+                        "drift, acceleration limits, lag and wheel slip, drawn from each episode's seed "
+                        "(docs/guide/environment.md)")
+    p.add_argument("--sensor-set", action="append", metavar="FIELD=VALUE",
+                   help=f"override one magnitude of the --sensor-noise preset; repeat for several. Fields: "
+                        f"{', '.join(SENSOR_NOISE_FIELDS)}")
     p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")
     p.add_argument("--mcap", default=None, metavar="DIR",
                    help="also write every episode of every agent to an MCAP file with ROS 2 schemas in DIR "

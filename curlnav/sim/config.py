@@ -181,6 +181,42 @@ class SensorNoiseConfig:
                               f"{', '.join(SENSOR_NOISE_FIELDS + ('randomise',))}")
         return SensorNoiseConfig(preset=name, **overrides)
 
+    @staticmethod
+    def from_strings(preset: str, items: list[str] | tuple[str, ...] = ()) -> SensorNoiseConfig:
+        """Preset ``preset`` with ``field=value`` overrides (the command line's ``--sensor-set``);
+        a malformed item, an unknown field or a bad value raises ``ConfigError`` naming it."""
+        overrides: dict[str, Any] = {}
+        for item in items:
+            name, sep, raw = item.partition("=")
+            name, raw = name.strip(), raw.strip()
+            if not sep or not name or not raw:
+                raise ConfigError(f"a sensor-noise override must look like field=value, got {item!r}")
+            if name not in SENSOR_NOISE_FIELDS and name != "randomise":
+                raise ConfigError(f"unknown sensor-noise field {name!r}; known: "
+                                  f"{', '.join(SENSOR_NOISE_FIELDS + ('randomise',))}")
+            if name == "randomise":
+                if raw.lower() not in ("true", "false", "yes", "no", "1", "0", "on", "off"):
+                    raise ConfigError(f"sensor_noise.randomise must be true or false, got {raw!r}")
+                overrides[name] = raw.lower() in ("true", "yes", "1", "on")
+                continue
+            try:
+                value = float(raw)
+                if name == "latency_steps":
+                    if value != int(value):
+                        raise ValueError
+                    value = int(value)
+            except (ValueError, OverflowError):
+                kind = "a whole number" if name == "latency_steps" else "a number"
+                raise ConfigError(f"sensor_noise.{name} must be {kind}, got {raw!r}") from None
+            overrides[name] = value
+        return SensorNoiseConfig.from_preset(preset, **overrides)
+
+    def describe(self) -> str:
+        """One line: the preset and the magnitudes that differ from it."""
+        base = SENSOR_NOISE_PRESETS[self.preset]
+        changed = [f"{name}={getattr(self, name):g}" for name in SENSOR_NOISE_FIELDS if getattr(self, name) != base[name]]
+        return " ".join([self.preset, *changed, *(["randomised per episode"] if self.randomise else [])])
+
     @property
     def is_exact(self) -> bool:
         """No noise, no lag, no limits: the simulator's exact senses (``none``, however reached)."""
