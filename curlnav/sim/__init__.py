@@ -6,10 +6,10 @@ configs and worlds of this package and needs no simulator installed."""
 from curlnav.worlds.builtin import BUILTIN_WORLDS, get_world
 from curlnav.worlds.world import Ball, Box, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world, save_world
 
-from .config import ConfigError, EnvConfig, RewardConfig, RobotConfig
+from .config import ConfigError, EnvConfig, RewardConfig, RobotConfig, SensorNoiseConfig
 
 __all__ = ["Ball", "Box", "BUILTIN_WORLDS", "ConfigError", "Door", "EnvConfig", "NamoEnv", "RandomPairs",
-           "Region", "RewardConfig", "RobotConfig", "StartGoal", "World", "WorldError", "get_world",
+           "Region", "RewardConfig", "RobotConfig", "SensorNoiseConfig", "StartGoal", "World", "WorldError", "get_world",
            "load_world", "save_world"]
 
 
