@@ -4,8 +4,8 @@ its configured value, the presets, overrides and refusals, and the same seed giv
 
 from __future__ import annotations
 
-import hashlib
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -63,35 +63,38 @@ def drive(env: NamoEnv, steps: int, seed: int = 7):
 
 
 # -- none: the exact simulator, bit for bit ------------------------------------------------------------------
-#: sha256 of every observation of a 60-step goal-seeking episode (seed 7), recorded at commit c8a5932,
-#: before the sensor models existed: the published figures were measured on these observations.
-BEFORE_SENSOR_MODELS = {
-    "door-corridor": "a3f666d1e8e1236ba3e59af64d1b1e70a848b4dbb6a421735dd30beb87923cce",
-    OFFICE: "ab2f031a69dfbec22b7b0e4b5909fca3f348c82e937e98bc92915ec7c4a53ee4",
-}
+#: Every 5th observation of a 60-step goal-seeking episode (seed 7) under ``none``, float32. Written
+#: on this project's machines after checking that the episodes' sha256 (every observation) equal
+#: those recorded at commit c8a5932, before the sensor models existed (door-corridor a3f666d1...,
+#: namo-office:3 ab2f031a...): the published figures were measured on these observations. Compared
+#: within 1e-3 (not bit for bit), so that another CPU's last bits in PyBullet or the LiDAR kernels
+#: cannot fail it; any model that draws or changes a value moves it by centimetres.
+REFERENCE = Path(__file__).parent / "data" / "sensor-none-reference.npz"
 
 
-@pytest.mark.parametrize("world", sorted(BEFORE_SENSOR_MODELS))
-def test_default_none_observations_are_bit_identical_to_before_the_sensor_models(world):
+@pytest.mark.parametrize("world", ["door-corridor", OFFICE])
+def test_default_none_observations_are_those_of_before_the_sensor_models(world):
+    reference = np.load(REFERENCE)[world.replace(":", "_")]
     for noise in (None, SensorNoiseConfig("none"), SensorNoiseConfig("realistic").scaled(0.0)):
         cfg = EnvConfig(end_on_base_collision=False, max_episode_steps=60,
                         **({} if noise is None else {"sensor_noise": noise}))
         env = NamoEnv(world, cfg)
         try:
-            digest = hashlib.sha256()
             obs, _ = env.reset(seed=7)
             assert env.sensors is None  # nothing drawn, nothing changed
-            digest.update(obs.tobytes())
+            frames = [obs]
             controller = GoalSeekingController(cfg)
             for _ in range(60):
                 obs, _, terminated, truncated, info = env.step(controller.act(obs))
-                digest.update(obs.tobytes())
+                frames.append(obs)
                 assert info["odometry"] == info["pose"]
                 if terminated or truncated:
                     break
         finally:
             env.close()
-        assert digest.hexdigest() == BEFORE_SENSOR_MODELS[world], noise
+        seen = np.stack(frames[::5]).astype(np.float32)
+        assert seen.shape == reference.shape, (noise, seen.shape, reference.shape)
+        assert np.allclose(seen, reference, atol=1e-3, rtol=0), (noise, float(np.abs(seen - reference).max()))
 
 
 def test_none_observation_is_the_exact_scan_and_goal_of_the_true_pose(make_env):
