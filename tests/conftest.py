@@ -205,9 +205,10 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.slow)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def artefact(tmp_path_factory) -> Path:
-    """A freshly exported (untrained) policy artefact."""
+    """A freshly exported (untrained) policy artefact, one per test module (a loaded artefact's first-action
+    check is cached by its sha256: a module that counts checks needs one no other module loaded)."""
     from curlnav.config import D4PGConfig
     from curlnav.learner.artefact import export_policy
     from curlnav.learner.d4pg import init_state

@@ -362,6 +362,7 @@ def test_over_dds_after_a_narrow_huge_scan_the_robot_is_never_a_second_without_a
 
 
 @pytest.mark.net
+@pytest.mark.slow  # 6 s
 def test_the_watchdog_stops_the_robot_while_the_control_loop_is_blocked(domain_id):  # noqa: F811
     """The shell (``run_node``) on a real bus, with a policy that blocks the control loop for
     2.5 s at its 6th action: stops go out meanwhile, so no gap over ``silence_s`` + a margin."""

@@ -18,7 +18,7 @@ from curlnav.bus.mesh import LOCAL_ROUTER, MESH_PORT, router_flags
 from curlnav.bus.security import make_credentials, make_tls
 
 WHY = unavailable()
-pytestmark = pytest.mark.skipif(WHY is not None, reason=f"no network namespaces here: {WHY}")
+pytestmark = [pytest.mark.skipif(WHY is not None, reason=f"no network namespaces here: {WHY}"), pytest.mark.slow, pytest.mark.net]
 
 
 def test_a_partition_loses_nothing_the_actors_come_back_and_training_goes_on(tmp_path):
@@ -60,7 +60,6 @@ LISTENER = textwrap.dedent('''
 ''')
 
 
-@pytest.mark.slow
 def test_a_plain_tcp_or_wrong_ca_router_cannot_join_the_mesh(tmp_path):
     bus, evil = tmp_path / "bus", tmp_path / "evil"
     with Hosts(4, tag=f"t{tmp_path.name[-3:]}") as net:
