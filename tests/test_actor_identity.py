@@ -132,7 +132,7 @@ def test_a_swarm_slot_names_its_identity(tmp_path):
         claim_actor_identity(tmp_path / "router")
 
 
-def serve_args(credentials: Path | str = "", actor_id: str = "", slot: int = 0) -> SimpleNamespace:
+def identity_args(credentials: Path | str = "", actor_id: str = "", slot: int = 0) -> SimpleNamespace:
     return SimpleNamespace(actor_id=actor_id, bus_credentials=str(credentials) if credentials else "", actor_slot=slot)
 
 
@@ -141,17 +141,17 @@ def test_serve_actor_claims_an_identity_from_a_folder_of_them_and_keeps_the_old_
     one actor of a single actor's folder, or host-pid with the shared actor user (``--shared-actor``)."""
     pool, shared = tmp_path / "pool", tmp_path / "shared"
     make_credentials(pool, RUN, actors=2)
-    assert _actor_identity(serve_args(pool)) == ("actor-0", 0)
+    assert _actor_identity(identity_args(pool)) == ("actor-0", 0)
     with pytest.raises(IdentitiesExhausted, match=r"actor identity actor-0 \(slot 1\) is in use"):
-        _actor_identity(serve_args(pool, slot=1))
-    assert _actor_identity(serve_args(pool, slot=2)) == ("actor-1", 1)
+        _actor_identity(identity_args(pool, slot=1))
+    assert _actor_identity(identity_args(pool, slot=2)) == ("actor-1", 1)
     with pytest.raises(IdentitiesExhausted, match="all 2 actor identities are in use"):
-        _actor_identity(serve_args(pool))
-    assert _actor_identity(serve_args(pool / "actor-1")) == ("actor-1", None)  # its own folder: no claim
-    assert _actor_identity(serve_args(pool, actor_id="actor-7")) == ("actor-7", None)
+        _actor_identity(identity_args(pool))
+    assert _actor_identity(identity_args(pool / "actor-1")) == ("actor-1", None)  # its own folder: no claim
+    assert _actor_identity(identity_args(pool, actor_id="actor-7")) == ("actor-7", None)
     make_credentials(shared, RUN, actors=0, shared_actor=True)  # an old compose volume: the shared user only
     assert actor_identities(shared) == []
-    ident, index = _actor_identity(serve_args(shared / SHARED_ACTOR))
+    ident, index = _actor_identity(identity_args(shared / SHARED_ACTOR))
     assert index is None and re.fullmatch(r".+-\d+", ident) and not ident.startswith("actor-")
 
 
