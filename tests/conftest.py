@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 import socket
 import subprocess
@@ -19,6 +20,7 @@ import time
 import urllib.request
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from types import SimpleNamespace as ns
 
 import numpy as np
 import pytest
@@ -282,6 +284,35 @@ def learner():
     server = HostileLearner()
     yield server
     server.close()
+
+
+# -- the ROS 2 node's core: messages as plain objects (it takes any object with the fields) ----------
+def scan_of(ranges, labels=None, frame="base_link", fov=math.radians(240), angle_min=None, range_max=10.0):
+    n = len(ranges)
+    a0 = -fov / 2 if angle_min is None else angle_min
+    return ns(header=ns(frame_id=frame), angle_min=a0, angle_max=a0 + fov, angle_increment=fov / max(n - 1, 1),
+              range_max=range_max, ranges=list(ranges), intensities=list(labels if labels is not None else [0.0] * n))
+
+
+def odom_of(x, y, yaw=0.0, stamp_s=None, frame="odom"):
+    stamp = None if stamp_s is None else ns(sec=int(stamp_s), nanosec=int(round((stamp_s % 1) * 1e9)))
+    return ns(header=ns(frame_id=frame, stamp=stamp),
+              pose=ns(pose=ns(position=ns(x=x, y=y), orientation=ns(x=0.0, y=0.0, z=math.sin(yaw / 2),
+                                                                    w=math.cos(yaw / 2)))))
+
+
+def goal_of(x, y, frame="odom"):
+    return ns(header=ns(frame_id=frame), pose=ns(position=ns(x=x, y=y)))
+
+
+def step(node, t, pose, ranges=5.0, source=None):
+    """One control step of the core at time ``t`` with the robot at ``pose``."""
+    if source is None:
+        node.on_odom(odom_of(*pose, stamp_s=1000.0 + t), t)
+    else:  # the DDS publication the odometry came from
+        node.on_odom(odom_of(*pose, stamp_s=1000.0 + t), t, source=source)
+    node.on_scan(scan_of([ranges] * 241), t)
+    return node.act(t)
 
 
 # -- scheduler and hosts --------------------------------------------------------------------------

@@ -14,7 +14,7 @@ from types import SimpleNamespace as ns
 
 import numpy as np
 import pytest
-from conftest import output_of, stop
+from conftest import goal_of, odom_of, output_of, scan_of, step, stop
 from test_ros2 import (  # noqa: F401  (fixtures)
     POLICY,
     Client,
@@ -33,36 +33,8 @@ INF, NAN = math.inf, math.nan
 
 
 # -- helpers: ROS 2 messages as plain objects (the core takes any object with the fields) ---------------------
-def scan_of(ranges, labels=None, frame="base_link", fov=math.radians(240), angle_min=None, range_max=10.0):
-    n = len(ranges)
-    a0 = -fov / 2 if angle_min is None else angle_min
-    return ns(header=ns(frame_id=frame), angle_min=a0, angle_max=a0 + fov, angle_increment=fov / max(n - 1, 1),
-              range_max=range_max, ranges=list(ranges), intensities=list(labels if labels is not None else [0.0] * n))
-
-
-def odom_of(x, y, yaw=0.0, stamp_s=None, frame="odom"):
-    stamp = None if stamp_s is None else ns(sec=int(stamp_s), nanosec=int(round((stamp_s % 1) * 1e9)))
-    return ns(header=ns(frame_id=frame, stamp=stamp),
-              pose=ns(pose=ns(position=ns(x=x, y=y), orientation=ns(x=0.0, y=0.0, z=math.sin(yaw / 2),
-                                                                    w=math.cos(yaw / 2)))))
-
-
-def goal_of(x, y, frame="odom"):
-    return ns(header=ns(frame_id=frame), pose=ns(position=ns(x=x, y=y)))
-
-
 def finite(command) -> bool:
     return command is None or all(map(math.isfinite, (command.linear, command.angular, command.arm)))
-
-
-def step(node, t, pose, ranges=5.0, source=None):
-    """One control step of the core at time ``t`` with the robot at ``pose``."""
-    if source is None:
-        node.on_odom(odom_of(*pose, stamp_s=1000.0 + t), t)
-    else:  # the DDS publication the odometry came from
-        node.on_odom(odom_of(*pose, stamp_s=1000.0 + t), t, source=source)
-    node.on_scan(scan_of([ranges] * 241), t)
-    return node.act(t)
 
 
 # -- 1. goals: bounded, transformed without overflow ------------------------------------------------------------

@@ -10,7 +10,7 @@ import textwrap
 
 import numpy as np
 import pytest
-from test_hostile_node import goal_of, step
+from conftest import goal_of, step
 
 from curlnav import planners
 from curlnav.cli import main
