@@ -2,18 +2,23 @@
 
 Both drive the robot from the policy's own inputs and nothing else: the newest LiDAR scan
 (241 beams, -120..+120 deg), its labels, the goal in the robot frame (decoded from the
-observation's goal block) and odometry (``info["pose"]``, used only as the motion between two
-steps). They keep no map and no memory between episodes; ``reset(world, pair)`` ignores both
-arguments (the protocol's ``EpisodeAgent`` interface). Beams labelled movable are ignored, as
-the paper forced TARE-L to: the planners push balls, boxes and doors with the base. The arm
-stays retracted (L = 0).
+observation's goal block) and odometry (``info["odometry"]``, the drifting estimate under sensor
+noise, else ``info["pose"]``; used only as the motion over a few steps). They keep no map and
+nothing between episodes; ``reset(world, pair)`` ignores both arguments (the protocol's
+``EpisodeAgent`` interface). Beams labelled movable are ignored, as the paper forced TARE-L to:
+the planners push balls, boxes and doors with the base. The arm stays retracted (L = 0).
+
+Their scans go through a short memory of marked and cleared cells in the odometry frame
+(``curlnav.planners.scan_filter.ScanMemory``: spatial support, voting over the last 5 scans,
+clearing by the beams that pass), as a real stack's costmap: range noise, dropouts and spurious
+returns do not stop them. ``scan_filter=None`` gives the raw-scan planners of before issue 37.
 
 - ``TareLocalPlanner`` (``tare-l``), after the local planner of CMU's
   autonomous_exploration_development_environment (TARE's local planner, "TARE-L" in the paper):
 
   - a precomputed library of path primitives (``PathLibrary``): 7 groups of 49 paths of 3 m,
     fanned ahead of the robot, the whole fan rotated in steps of 10 deg;
-  - a path is blocked when a static scan point falls in the footprint swept along it (a
+  - a path is blocked when a static obstacle point falls in the footprint swept along it (a
     lookup table from a cell to the paths whose swept footprint covers it, built once);
   - the free paths are scored by how close their end direction lies to the goal's and by how
     little the robot must turn first, and summed per group: a group with many free paths (room
@@ -38,11 +43,13 @@ from __future__ import annotations
 
 import functools
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
 from curlnav.layout import ObservationLayout
+from curlnav.planners.scan_filter import ScanFilterConfig, ScanMemory, from_frame, to_frame
 from curlnav.sim import EnvConfig, StartGoal, World
 
 TARE_LABEL = "tare-l"
@@ -56,27 +63,47 @@ def goal_in_robot_frame(goal_frame: np.ndarray) -> tuple[float, float]:
     return float(np.sign(g[0]) * np.expm1(abs(g[0]))), float(np.sign(g[1]) * np.expm1(abs(g[1])))
 
 
+def odometry(info: dict) -> tuple[float, float, float]:
+    """The robot's own pose estimate ``(x, y, yaw)`` (m, rad) in ``info``: ``info["odometry"]``
+    where the environment gives one (it drifts under sensor noise), else ``info["pose"]`` (the
+    ROS 2 node's ``/odom``)."""
+    return info.get("odometry", info["pose"])
+
+
 def wrap(angle: float | np.ndarray) -> float | np.ndarray:
     """Angle (rad) wrapped to [-pi, pi)."""
     return (np.asarray(angle) + math.pi) % (2 * math.pi) - math.pi
 
 
 class ScanAgent:
-    """What both map-less planners share: the beams, the footprint and the static points of the
-    newest scan. ``act(observation, info) -> [v, w, L]`` (fractions of the robot's limits)."""
+    """What both map-less planners share: the beams, the footprint and the static points they
+    plan against. ``act(observation, info) -> [v, w, L]`` (fractions of the robot's limits).
+
+    ``scan_filter``: the short memory of marked and cleared cells the scans go through
+    (``curlnav.planners.scan_filter``), as a real stack's costmap; None plans against the raw
+    newest scan (the baselines before issue 37, which collapse under sensor noise)."""
 
     label = "scan agent"
 
-    def __init__(self, env_config: EnvConfig | None = None) -> None:
+    def __init__(self, env_config: EnvConfig | None = None,
+                 scan_filter: ScanFilterConfig | None = ScanFilterConfig()) -> None:
         self.env_config = env_config or EnvConfig()
         self.layout = ObservationLayout.from_env_config(self.env_config)
         robot = self.env_config.robot
         self.half_length, self.half_width = robot.base_length / 2, robot.base_width / 2  # m
         self.beam_angles = np.linspace(-self.env_config.lidar_fov / 2, self.env_config.lidar_fov / 2,
                                        self.env_config.lidar_beams)  # rad, beam 0 on the right
+        self.memory = None if scan_filter is None else ScanMemory(self.beam_angles, self.env_config.lidar_max_range,
+                                                                   scan_filter)
+        latency = getattr(getattr(self.env_config, "sensor_noise", None), "latency_steps", 0) or 0
+        self._poses: deque[tuple[float, float, float]] = deque(maxlen=int(latency) + 1)  # odometry, oldest first
 
     def reset(self, world: World, pair: StartGoal) -> None:
-        """Start an episode. The world and pair are not used: no map, no goal but the observation's."""
+        """Start an episode. The world and pair are not used: no map, no goal but the observation's;
+        the scan memory and the odometry history are emptied."""
+        self._poses.clear()
+        if self.memory is not None:
+            self.memory.reset()
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         raise TypeError(f"{type(self).__name__} needs odometry: call act(observation, info)")
@@ -89,6 +116,29 @@ class ScanAgent:
         r = ranges[static].astype(np.float64)
         a = self.beam_angles[static]
         return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+    def sense(self, observation: np.ndarray, info: dict) -> tuple[np.ndarray, float, float]:
+        """What to plan against now: ``(points, gx, gy)``, the static obstacle points ``(n, 2)``
+        and the goal, in the robot frame of now (m). Call once per control step: the scan goes
+        into the memory (without one: the newest scan's static points).
+
+        An observation late by ``latency_steps`` control periods (``EnvConfig.sensor_noise``; a
+        robot reads it from the scan's stamp) was seen from the odometry pose of that many steps
+        ago: its points and goal are moved into the frame of the odometry now, as a stack's
+        transform buffer does."""
+        pose = odometry(info)
+        self._poses.append(pose)
+        seen_from = self._poses[0]
+        ranges, labels, _ = self.layout.newest_frame(np.asarray(observation))
+        if self.memory is None:
+            points = self.static_points(observation)
+        else:
+            points = self.memory.update(ranges, labels, seen_from)
+        goal = np.array([self.goal(observation)])
+        if seen_from != pose:
+            points = from_frame(to_frame(points, seen_from), pose)
+            goal = from_frame(to_frame(goal, seen_from), pose)
+        return points, float(goal[0, 0]), float(goal[0, 1])
 
     def goal(self, observation: np.ndarray) -> tuple[float, float]:
         """The goal ``(dx, dy)`` in the robot frame (m), from the newest goal frame."""
@@ -210,8 +260,9 @@ class TareLocalPlanner(ScanAgent):
 
     label = TARE_LABEL
 
-    def __init__(self, env_config: EnvConfig | None = None, config: TareConfig | None = None) -> None:
-        super().__init__(env_config)
+    def __init__(self, env_config: EnvConfig | None = None, config: TareConfig | None = None,
+                 scan_filter: ScanFilterConfig | None = ScanFilterConfig()) -> None:
+        super().__init__(env_config, scan_filter)
         self.config = config or TareConfig()
         self.library = build_library(self.config, self.half_length, self.half_width)
         step = self.config.rotation_step_deg
@@ -226,18 +277,18 @@ class TareLocalPlanner(ScanAgent):
         self._chosen_at: tuple[float, float, float] | None = None  # odometry pose when it was chosen
 
     def reset(self, world: World, pair: StartGoal) -> None:
+        super().reset(world, pair)
         self.path, self._chosen_at = None, None
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
-        gx, gy = self.goal(observation)
-        pose = info["pose"]  # odometry: only the motion since the path was chosen is used
+        points, gx, gy = self.sense(observation, info)  # every scan goes into the memory
+        pose = odometry(info)  # only the motion since the path was chosen is used
         if self.path is not None and self._chosen_at is not None:
             # a turn in place toward the chosen path is finished before choosing again, so the
             # choice cannot flip between two sides of an obstacle at every step
             action = self.follow(self.path, self._since(pose), math.hypot(gx, gy))
             if action[0] == 0.0 and action[1] != 0.0:
                 return action
-        points = self.static_points(observation)
         self.path, self._chosen_at = self.choose_path(points, gx, gy), pose
         if self.path is None or len(self.path) < 2:
             return self.action(0.0, 0.0)  # trapped: no free path (TARE's planner publishes a 1-point path)
@@ -363,16 +414,19 @@ class DynamicWindowPlanner(ScanAgent):
 
     label = DWA_LABEL
 
-    def __init__(self, env_config: EnvConfig | None = None, config: DwaConfig | None = None) -> None:
-        super().__init__(env_config)
+    def __init__(self, env_config: EnvConfig | None = None, config: DwaConfig | None = None,
+                 scan_filter: ScanFilterConfig | None = ScanFilterConfig()) -> None:
+        super().__init__(env_config, scan_filter)
         self.config = config or DwaConfig()
         self._velocity = (0.0, 0.0)  # last command (m/s, rad/s): the window's centre
 
     def reset(self, world: World, pair: StartGoal) -> None:
+        super().reset(world, pair)
         self._velocity = (0.0, 0.0)
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
-        v, w = self.choose(self.static_points(observation), *self.goal(observation))
+        points, gx, gy = self.sense(observation, info)
+        v, w = self.choose(points, gx, gy)
         self._velocity = (v, w)
         return self.action(v, w)
 

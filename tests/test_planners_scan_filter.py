@@ -1,0 +1,229 @@
+"""tare-l and dwa filter their scans as real stacks do (issue 37, deliverable 4): a short memory of
+marked and cleared cells in the odometry frame, so that range noise, dropouts, spurious returns
+and mislabelled runs of beams do not make them stop or steer into walls.
+
+The truth is the geometry of a synthetic room (walls as segments, scans ray-cast against them);
+the noise is made here, independently of the simulator's sensor models."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from curlnav.layout import ObservationLayout
+from curlnav.planners.local import DynamicWindowPlanner, TareLocalPlanner
+from curlnav.planners.scan_filter import ScanFilterConfig, ScanMemory
+from curlnav.sim import EnvConfig
+
+CFG = EnvConfig()
+ANGLES = np.linspace(-CFG.lidar_fov / 2, CFG.lidar_fov / 2, CFG.lidar_beams)
+MAX_RANGE = CFG.lidar_max_range
+# a 12 m x 7 m room with a wall across it at x = 6 that has a 1.6 m doorway (y 2.7..4.3), a pillar
+# (0.4 m square) at (3, 5), walls as segments (x0, y0, x1, y1) in m
+ROOM = np.array([
+    (0, 0, 12, 0), (12, 0, 12, 7), (12, 7, 0, 7), (0, 7, 0, 0),
+    (6, 0, 6, 2.7), (6, 4.3, 6, 7),
+    (2.8, 4.8, 3.2, 4.8), (3.2, 4.8, 3.2, 5.2), (3.2, 5.2, 2.8, 5.2), (2.8, 5.2, 2.8, 4.8),
+], dtype=np.float64)
+
+
+def cast(pose: tuple[float, float, float]) -> np.ndarray:
+    """Exact ranges (m) of the 241 beams from ``pose`` against ``ROOM``, ``MAX_RANGE`` where none."""
+    x, y, yaw = pose
+    d = np.stack([np.cos(yaw + ANGLES), np.sin(yaw + ANGLES)], axis=1)  # (B, 2)
+    p0, p1 = ROOM[:, :2], ROOM[:, 2:]
+    e = p1 - p0  # (W, 2)
+    denom = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]  # (B, W)
+    wx, wy = p0[None, :, 0] - x, p0[None, :, 1] - y
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (wx * e[None, :, 1] - wy * e[None, :, 0]) / denom
+        u = (wx * d[:, None, 1] - wy * d[:, None, 0]) / denom
+    hit = (np.abs(denom) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
+    return np.minimum(np.where(hit, t, np.inf).min(axis=1), MAX_RANGE)
+
+
+def wall_distance(points: np.ndarray) -> np.ndarray:
+    """Distance (m) of each ``(n, 2)`` map point to the nearest wall of ``ROOM``."""
+    p0, p1 = ROOM[None, :, :2], ROOM[None, :, 2:]
+    e = p1 - p0
+    t = np.clip(((points[:, None] - p0) * e).sum(-1) / (e * e).sum(-1), 0, 1)
+    return np.hypot(*(points[:, None] - p0 - t[..., None] * e).transpose(2, 0, 1)).min(axis=1)
+
+
+def noisy(ranges: np.ndarray, rng: np.random.Generator, sigma=0.04, dropout=0.04, spurious=0.02,
+          dark=0.3, mislabel_run=0) -> tuple[np.ndarray, np.ndarray]:
+    """A real scanner's reading of ``ranges``: Gaussian range noise (``sigma`` m), dropouts to max
+    range (a fraction ``dropout`` of the beams), spurious short returns (``spurious``; uniform
+    short of the true range), with probability ``dark`` a run of 12 beams returning nothing (a
+    dark or glass surface), and optionally one run of ``mislabel_run`` static beams a segmenter
+    labels movable."""
+    r = ranges.copy()
+    back = r < MAX_RANGE
+    r[back] = np.clip(r[back] + rng.normal(0, sigma, back.sum()), 0.0, MAX_RANGE)
+    u = rng.random(len(r))
+    r = np.where(u < spurious, rng.uniform(0.3, 1.0, len(r)) * r, r)
+    r[(u >= spurious) & (u < spurious + dropout)] = MAX_RANGE
+    if rng.random() < dark:
+        start = int(rng.integers(0, len(r) - 12))
+        r[start:start + 12] = MAX_RANGE
+    labels = np.zeros(len(r))
+    if mislabel_run:
+        start = int(rng.integers(0, len(r) - mislabel_run))
+        labels[start:start + mislabel_run] = 1.0
+    return r, labels
+
+
+def to_map(points: np.ndarray, pose) -> np.ndarray:
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.stack([x + c * points[:, 0] - s * points[:, 1], y + s * points[:, 0] + c * points[:, 1]], axis=1)
+
+
+def raw_points(ranges: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    keep = (ranges < MAX_RANGE - 1e-3) & (labels < 0.5)
+    return np.stack([ranges[keep] * np.cos(ANGLES[keep]), ranges[keep] * np.sin(ANGLES[keep])], axis=1)
+
+
+def drive(steps: int = 30) -> list[tuple[float, float, float]]:
+    """Poses of a robot crossing the room toward the doorway, turning a little (5 Hz, 0.2 m/step)."""
+    return [(1.5 + 0.13 * k, 2.0 + 0.05 * k, 0.25 * math.sin(0.3 * k)) for k in range(steps)]
+
+
+def scores(points_by_step, poses, reach=4.0) -> tuple[float, float]:
+    """``(phantoms, gaps)`` over the run: obstacle points more than 0.2 m from every wall (per
+    scan), and beams whose true wall within ``reach`` has no obstacle point within 0.2 m of its
+    true hit (a fraction of such beams)."""
+    phantoms, gaps, walls = 0, 0, 0
+    for points, pose in zip(points_by_step, poses):
+        in_map = to_map(points, pose)
+        phantoms += int((wall_distance(in_map) > 0.2).sum())
+        truth = cast(pose)
+        near = truth <= reach
+        hits = to_map(np.stack([truth[near] * np.cos(ANGLES[near]), truth[near] * np.sin(ANGLES[near])], 1), pose)
+        if len(in_map):
+            d = np.hypot(hits[:, None, 0] - in_map[None, :, 0], hits[:, None, 1] - in_map[None, :, 1]).min(axis=1)
+        else:
+            d = np.full(len(hits), np.inf)
+        gaps += int((d > 0.2).sum())
+        walls += len(hits)
+    return phantoms / len(poses), gaps / max(walls, 1)
+
+
+def test_the_filtered_obstacles_match_the_true_walls_far_better_than_the_raw_scan():
+    rng = np.random.default_rng(37)
+    poses = drive()
+    memory = ScanMemory(ANGLES, MAX_RANGE)
+    raw, filtered = [], []
+    for pose in poses:
+        r, labels = noisy(cast(pose), rng)
+        raw.append(raw_points(r, labels))
+        filtered.append(memory.update(r, labels, pose))
+    raw_phantoms, raw_gaps = scores(raw, poses)
+    phantoms, gaps = scores(filtered, poses)
+    assert raw_phantoms >= 2.0, raw_phantoms  # the noise makes phantoms in the raw scan ...
+    assert phantoms <= raw_phantoms / 5, (phantoms, raw_phantoms)  # ... the memory drops nearly all
+    assert raw_gaps >= 0.005, raw_gaps  # dark surfaces open the walls ...
+    assert gaps <= raw_gaps / 3, (gaps, raw_gaps)  # ... the memory closes them
+
+
+def test_a_wall_a_segmenter_labels_movable_for_a_moment_stays_remembered():
+    rng = np.random.default_rng(3)
+    poses = drive(12)
+    memory = ScanMemory(ANGLES, MAX_RANGE)
+    for k, pose in enumerate(poses):
+        run = 25 if k == len(poses) - 1 else 0  # the last scan: 25 beams of wall labelled movable
+        r, labels = noisy(cast(pose), rng, spurious=0.0, dropout=0.0, dark=0.0, mislabel_run=run)
+        points = memory.update(r, labels, pose)
+    _, gaps = scores([points], poses[-1:])
+    _, raw_gaps = scores([raw_points(r, labels)], poses[-1:])
+    assert gaps < 0.02 and raw_gaps > gaps, (gaps, raw_gaps)
+
+
+def test_on_clean_scans_every_return_is_kept_and_nothing_phantom_is_added():
+    poses = drive(20)
+    memory = ScanMemory(ANGLES, MAX_RANGE)
+    for pose in poses:
+        r = cast(pose)
+        points = memory.update(r, np.zeros_like(r), pose)
+        newest = raw_points(r, np.zeros_like(r))
+        np.testing.assert_allclose(points[:len(newest)], newest)  # the newest scan's returns, all of them
+        assert (wall_distance(to_map(points, pose)) < 0.05).all()  # remembered ones lie on the walls too
+
+
+def test_a_lone_return_counts_from_its_second_scan_and_a_beam_through_a_remembered_point_clears_it():
+    memory = ScanMemory(ANGLES, MAX_RANGE)
+    pose = (0.0, 0.0, 0.0)
+    r = np.full(len(ANGLES), MAX_RANGE)
+    r[120] = 2.0  # a thin leg straight ahead, seen by one beam
+    assert len(memory.update(r, np.zeros_like(r), pose)) == 0  # once: could be a mixed pixel
+    assert len(memory.update(r, np.zeros_like(r), pose)) == 1  # twice: an obstacle
+    np.testing.assert_allclose(memory.update(np.full(len(ANGLES), MAX_RANGE), np.zeros_like(r), pose), [[2.0, 0.0]])
+    # a dropout clears nothing (above); a return beyond it does: the space is free
+    r[120] = 5.0
+    points = memory.update(r, np.zeros_like(r), pose)
+    assert not (np.hypot(points[:, 0] - 2.0, points[:, 1]) < 0.2).any(), points
+
+
+def test_the_scan_filter_settings_are_checked():
+    with pytest.raises(ValueError, match="votes"):
+        ScanFilterConfig(scans=3, votes=4)
+    with pytest.raises(ValueError, match="cell_m"):
+        ScanFilterConfig(cell_m=0.0)
+
+
+def observation(ranges: np.ndarray, labels: np.ndarray, pose, goal) -> np.ndarray:
+    """The policy's observation with every frame the given one (goal in the map frame)."""
+    lay = ObservationLayout.from_env_config(CFG)
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = c * (goal[0] - x) + s * (goal[1] - y), -s * (goal[0] - x) + c * (goal[1] - y)
+    frame = [math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy), math.atan2(dy, dx)]
+    return np.concatenate([np.tile(ranges, lay.range_frames), np.tile(labels, lay.label_frames),
+                           np.tile(frame, lay.goal_frames)]).astype(np.float32)
+
+
+@pytest.mark.parametrize("planner", [TareLocalPlanner, DynamicWindowPlanner], ids=["tare-l", "dwa"])
+def test_the_planners_act_on_noisy_scans_nearly_as_on_clean_ones(planner):
+    goal = (10.0, 3.5)  # through the doorway
+    poses = drive()
+    clean, filtered, raw = planner(CFG), planner(CFG), planner(CFG, scan_filter=None)
+    for agent in (clean, filtered, raw):
+        agent.reset(None, None)
+    rng = np.random.default_rng(11)
+    off_filtered, off_raw, stops = [], [], {"clean": 0, "filtered": 0, "raw": 0}
+    for pose in poses:
+        r = cast(pose)
+        nr, nl = noisy(r, rng)
+        info = {"pose": pose}
+        a_clean = clean.act(observation(r, np.zeros_like(r), pose, goal), info)
+        a_filtered = filtered.act(observation(nr, nl, pose, goal), info)
+        a_raw = raw.act(observation(nr, nl, pose, goal), info)
+        off_filtered.append(np.abs(a_filtered - a_clean)[:2].sum())
+        off_raw.append(np.abs(a_raw - a_clean)[:2].sum())
+        for name, a in (("clean", a_clean), ("filtered", a_filtered), ("raw", a_raw)):
+            stops[name] += bool(a[0] == 0.0 and a[1] == 0.0)
+    assert np.mean(off_filtered) <= 0.15, (np.mean(off_filtered), np.mean(off_raw))
+    assert np.mean(off_filtered) < np.mean(off_raw), (np.mean(off_filtered), np.mean(off_raw))
+    assert stops["filtered"] <= stops["clean"], stops
+
+
+def test_a_late_scan_is_planned_in_the_frame_of_now():
+    from curlnav.sim.config import SensorNoiseConfig
+
+    late = CFG.replace(sensor_noise=SensorNoiseConfig("none", latency_steps=1))
+    agent = DynamicWindowPlanner(late)
+    agent.reset(None, None)
+    before, now = (2.0, 2.0, 0.0), (2.2, 2.0, 0.3)
+    r = cast(before)
+    agent.sense(observation(r, np.zeros_like(r), before, (10.0, 3.5)), {"pose": before})
+    points, gx, gy = agent.sense(observation(r, np.zeros_like(r), before, (10.0, 3.5)), {"pose": now})
+    assert (wall_distance(to_map(points, now)) < 0.05).all()  # the scan of before, where the walls are now
+    np.testing.assert_allclose(to_map(np.array([[gx, gy]]), now), [[10.0, 3.5]], atol=1e-5)
+
+
+def test_a_scan_with_nothing_near_gives_no_obstacle_and_keeps_what_it_cannot_clear():
+    memory = ScanMemory(ANGLES, MAX_RANGE)
+    assert memory.update(np.full(len(ANGLES), MAX_RANGE), np.zeros(len(ANGLES)), (0.0, 0.0, 0.0)).shape == (0, 2)
+    assert memory.update(np.full(len(ANGLES), 6.0), np.zeros(len(ANGLES)), (0.0, 0.0, 0.0)).shape == (241, 2)
