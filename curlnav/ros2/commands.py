@@ -29,6 +29,9 @@ def add_ros2_commands(sub) -> None:
                    help="give a goal up after this long without 0.25 m of progress (s; /goal_state gave_up)")
     p.add_argument("--max-goal-m", type=float, default=10_000.0,
                    help="refuse goals with |x| or |y| beyond this in the odometry frame (m; /goal_state refused)")
+    p.add_argument("--max-nan-fraction", type=float, default=0.05,
+                   help="NaN ranges read as no return up to this fraction of a scan; a scan with more is refused "
+                        "(the robot stops)")
     p.add_argument("--stats-every-s", type=float, default=10.0, help="log counts and loop latency this often (s)")
     _common(p)
     p.set_defaults(func=_cmd_run)
@@ -103,7 +106,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     policy, layout = _agent(args.agent)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
-                        give_up_s=args.give_up_s, max_goal_m=args.max_goal_m)
+                        give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,
+                        max_nan_fraction=args.max_nan_fraction)
     topics = remap(NODE_TOPICS, args.remap)
     node = PolicyNode(policy, layout, config, follow_plan=args.global_plan)
     bus, domain = _bus(args, max_sample_bytes=NODE_MAX_SAMPLE_BYTES)

@@ -36,6 +36,9 @@ from curlnav.planners.global_plan import GlobalPlan, WaypointConfig
 #: A scan of more ranges is refused as malformed (work per message bounded; 2-D scanners give
 #: a few thousand: 3,600 at 0.1 degree over 360)
 MAX_SCAN_RANGES = 16_384
+#: A scan with more NaN ranges than this fraction is refused (a broken sensor); fewer read as no
+#: return, as the simulator's dropouts (REP 117: NaN is an erroneous measurement)
+MAX_NAN_FRACTION = 0.05
 #: A ``/plan`` of more poses is refused
 MAX_PLAN_POSES = 20_000
 #: Odometry farther than this from its origin (m) is refused (no overflow in the goal transform)
@@ -55,6 +58,7 @@ class NodeConfig:
     odom_frame: str = "odom"  # the frame /odom (and /goal_pose, /plan) must come in
     goal_tolerance_m: float = 0.8  # the goal is reached within this distance (m)
     max_goal_m: float = 10_000.0  # a goal with |x| or |y| beyond this (m, odom frame) is refused
+    max_nan_fraction: float = MAX_NAN_FRACTION  # NaN ranges read as no return up to this fraction of a scan, else refused
     give_up_s: float = 30.0  # give the goal up after this long without progress (s)
     progress_m: float = 0.25  # progress: the distance to go falls this much below its best so far (m)
     # /plan following (--global-plan); the node has no map, so no line-of-sight check against one
@@ -69,6 +73,8 @@ class NodeConfig:
             # commands go out on the first scan after 0.9 period: up to about 1.5 periods apart
             raise ValueError(f"silence_s ({self.silence_s:g} s) must be at least two control periods "
                              f"({2.0 / self.rate_hz:g} s at {self.rate_hz:g} Hz): the watchdog would stop between commands")
+        if not (isinstance(self.max_nan_fraction, (int, float)) and 0.0 <= self.max_nan_fraction <= 1.0):
+            raise ValueError(f"max_nan_fraction must be a fraction in 0..1, got {self.max_nan_fraction!r}")
         if self.max_goal_m > ODOM_BOUND_M:
             raise ValueError(f"max_goal_m must be at most {ODOM_BOUND_M:g} m, got {self.max_goal_m:g}")
 
@@ -171,14 +177,25 @@ def guard(command: Command, layout: ScanLayout) -> tuple[Command, str | None]:
 
 
 class ScanRefused(ValueError):
-    """A scan the node will not act on (NaN, wrong length, wrong frame, labels not 0..1)."""
+    """A scan the node will not act on (too many NaN, wrong length, wrong frame, labels not 0..1)."""
 
 
-def resample_scan(scan, layout: ScanLayout) -> tuple[np.ndarray, np.ndarray]:
+def resample_scan(scan, layout: ScanLayout, max_nan_fraction: float = MAX_NAN_FRACTION) -> tuple[np.ndarray, np.ndarray]:
     """``(ranges, labels)``, each ``(layout.beams,)`` float32, of a ``sensor_msgs/LaserScan``
-    (any object with its fields), or ``ScanRefused`` naming what is wrong. +Inf and ranges
-    beyond ``range_max`` read ``layout.max_range_m`` (no return), -Inf reads 0 (too close).
-    At most ``MAX_SCAN_RANGES`` ranges; the work is O(n log n) in the ranges."""
+    (any object with its fields), or ``ScanRefused`` naming what is wrong. At most
+    ``MAX_SCAN_RANGES`` ranges; the work is O(n log n) in the ranges.
+
+    The ranges read as the simulator's LiDAR gives them (REP 117's special values):
+
+    - +Inf (no return within range) and ranges beyond ``range_max`` read ``layout.max_range_m``,
+      the simulator's "nothing within max range"; ranges up to that, clipped at it;
+    - -Inf (too close to measure) and ranges below ``range_min`` read ``range_min`` (the obstacle
+      is at most that far; 0 when the scan gives none): the simulator measures down to 0;
+    - NaN (an erroneous measurement) reads as no return with label 0, as the simulator's
+      dropouts, while at most ``max_nan_fraction`` of the ranges are NaN; a scan with more is
+      refused (the sensor is failing: the robot stops rather than drive on a blind scan).
+
+    The labels (``intensities``) are taken as given on every other beam."""
     n, n_labels = len(scan.ranges), len(scan.intensities)
     if n == 0:
         raise ScanRefused("no ranges")
@@ -194,14 +211,20 @@ def resample_scan(scan, layout: ScanLayout) -> tuple[np.ndarray, np.ndarray]:
     expected = (a1 - a0) / inc + 1
     if abs(expected - n) > 1.01:
         raise ScanRefused(f"wrong length: {n} ranges, angle_min..angle_max by angle_increment gives {expected:.0f}")
-    if np.isnan(ranges).any():
-        raise ScanRefused(f"NaN range at beam {int(np.flatnonzero(np.isnan(ranges))[0])}")
+    nan = np.isnan(ranges)
+    if nan.any():
+        if nan.sum() > max_nan_fraction * n:
+            raise ScanRefused(f"too many NaN ranges: {int(nan.sum())} of {n} (at most {max_nan_fraction:.0%}), "
+                              f"the first at beam {int(np.flatnonzero(nan)[0])}")
+        ranges, labels = np.where(nan, np.inf, ranges), np.where(nan, 0.0, labels)  # no return, no label
     if not np.isfinite(labels).all() or (labels < 0).any() or (labels > 1).any():
         raise ScanRefused("intensities must be movable labels in 0..1 (reflectivity is not a label)")
     max_range = layout.max_range_m
     range_max = float(scan.range_max) if math.isfinite(scan.range_max) and scan.range_max > 0 else max_range
+    range_min = float(getattr(scan, "range_min", 0.0))
+    range_min = min(range_min, range_max, max_range) if math.isfinite(range_min) and range_min > 0 else 0.0
     r = np.where(ranges > range_max, max_range, ranges)
-    r = np.clip(np.nan_to_num(r, posinf=max_range, neginf=0.0), 0.0, max_range)
+    r = np.clip(np.nan_to_num(r, posinf=max_range, neginf=range_min), range_min, max_range)
     angles = a0 + inc * np.arange(n)
     angles = (angles + math.pi) % (2 * math.pi) - math.pi
     step = layout.fov_rad / (layout.beams - 1)
@@ -314,7 +337,7 @@ class PolicyNode:
         try:
             if frame != self.config.scan_frame:
                 raise ScanRefused(f"frame {frame!r}, expected {self.config.scan_frame!r}")
-            self._scan = resample_scan(scan, self.layout)
+            self._scan = resample_scan(scan, self.layout, self.config.max_nan_fraction)
         except ScanRefused as exc:
             self.counts["scans_refused"] += 1
             self.counts[f"scans_refused: {str(exc).split(':')[0]}"] += 1
