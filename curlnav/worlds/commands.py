@@ -1,4 +1,4 @@
-"""``curlnav worlds``: generate, show, scatter-balls and rank worlds (``add_commands``)."""
+"""``curlnav worlds``: generate, show, scatter-balls, rank and import-sdf worlds (``add_commands``)."""
 
 from __future__ import annotations
 
@@ -94,8 +94,28 @@ def _cmd_rank(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_import_sdf(args: argparse.Namespace) -> int:
+    from curlnav.worlds.sdf import world_from_sdf
+    from curlnav.worlds.world import save_world
+
+    source = Path(args.world)
+    out = Path(args.out) if args.out else source.with_suffix(".yaml")
+    if out.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"--out must be a world YAML path (.yaml), got {args.out!r}")
+    world, contents = world_from_sdf(source, args.resolution, args.margin, args.skip_unsupported)
+    path = save_world(world.with_changes(name=out.stem), out)
+    kinds = [s.kind for s in contents.shapes]
+    rows, cols = world.occupancy.shape
+    print(f"{path}: {kinds.count('box')} boxes and {kinds.count('cylinder')} cylinders of {source} on {cols} x {rows} "
+          f"cells of {world.resolution:g} m ({world.size[0]:.2f} m x {world.size[1]:.2f} m, origin "
+          f"({world.origin[0]:g}, {world.origin[1]:g})); no start/goal pairs (add them to train or evaluate on it)")
+    if contents.unsupported:
+        print(f"skipped {len(contents.unsupported)} unsupported: {', '.join(contents.unsupported)}")
+    return 0
+
+
 def add_commands(sub) -> None:
-    """``worlds generate|show|scatter-balls|rank``; the families in ``generate``'s help come from
+    """``worlds generate|show|scatter-balls|rank|import-sdf``; the families in ``generate``'s help come from
     ``curlnav.worlds.families.FAMILIES``."""
     from curlnav.worlds.families import FAMILIES
 
@@ -125,3 +145,16 @@ def add_commands(sub) -> None:
     p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")
     p.add_argument("--out", default="runs/ranking", help="folder for the table (CSV, JSON) and the picture")
     p.set_defaults(func=_cmd_rank)
+    p = worlds_sub.add_parser("import-sdf", help="a Gazebo world's static boxes and cylinders as a world file",
+                              description="Reads the static boxes and cylinders of a Gazebo SDF world (nested "
+                                          "model, link and collision poses composed) onto an occupancy grid. What "
+                                          "it cannot represent (meshes, heightmaps, spheres, planes other than the "
+                                          "ground, tilted shapes, non-static models, includes) is named and "
+                                          "refused (exit 2), or dropped with --skip-unsupported.")
+    p.add_argument("world", help="the SDF file (.world or .sdf)")
+    p.add_argument("--out", default=None, help="world YAML to write, its image beside it (default: WORLD.yaml beside the SDF)")
+    p.add_argument("--skip-unsupported", action="store_true", help="drop what cannot be represented, naming it")
+    p.add_argument("--resolution", type=float, default=0.025, help="m per cell (default 0.025: a 0.075 m cylinder "
+                                                                   "is 6 cells across)")
+    p.add_argument("--margin", type=float, default=1.0, help="m of free space around the shapes (default 1)")
+    p.set_defaults(func=_cmd_import_sdf)
