@@ -48,6 +48,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from curlnav.sim import get_world
     from curlnav.worlds.pairs import check_pairs_possible
 
+    if args.suite == "barn":
+        return _eval_barn(args)
+    if args.worlds is not None:
+        raise ValueError("--worlds A-B picks worlds of --suite barn; use --world for other worlds")
     suite = SUITES[args.suite] if args.suite else None
     if suite is not None:
         given = [flag for flag, value in (("--world", args.world), ("--pair", args.pair), ("--pairs", args.pairs),
@@ -96,6 +100,52 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _eval_barn(args: argparse.Namespace) -> int:
+    """``--suite barn``: the BARN Challenge's worlds, rules and score (``curlnav.evaluation.barn``)."""
+    from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.barn import BarnTrial, check_robot, jackal_env_config, reference_line, summarise, write_csv
+    from curlnav.evaluation.compare import Comparison
+    from curlnav.planners import GLOBAL_PLAN_SUFFIX, canonical, make_agent
+    from curlnav.worlds import barn
+
+    given = [flag for flag, value in (("--world", args.world), ("--pair", args.pair), ("--pairs", args.pairs),
+                                      ("--episodes", args.episodes), ("--seeds", args.seeds)) if value is not None]
+    if given:
+        raise ValueError(f"--suite barn fixes the worlds (--worlds A-B picks some), the start and the goal; drop "
+                         f"{', '.join(given)}")
+    numbers = barn.parse_range(args.worlds) if args.worlds else list(range(barn.COUNT))
+    sensor_noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set or ())
+    env_config = jackal_env_config(ExperimentConfig().eval_env.replace(sensor_noise=sensor_noise))
+    for spec in args.agents:
+        if canonical(spec) is None:
+            check_robot(spec.removesuffix(GLOBAL_PLAN_SUFFIX))
+    agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
+    if len(agents) < len(args.agents):
+        raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
+    print(f"suite barn: the BARN Challenge's worlds {numbers[0]}-{numbers[-1]} ({len(numbers)}), a Jackal from "
+          f"({barn.START[0]:g}, {barn.START[1]:g}) facing +y to the goal 10 m ahead, within {barn.GOAL_RADIUS:g} m, "
+          f"{barn.TIME_LIMIT:g} s, any collision ends the trial; in curlnav's simulator, not Gazebo")
+    if not sensor_noise.is_exact:
+        print(f"sensor noise: {sensor_noise.describe()} (every agent sees the same noisy observations)")
+    comparison = Comparison(agents, [barn.world(n) for n in numbers], lambda world: list(world.pairs), env_config)
+    from tqdm import tqdm
+
+    with tqdm(total=comparison.episode_count(1), unit="episode", desc="barn", disable=None) as bar:
+        episodes = comparison.run(1, on_episode=lambda e: bar.update())
+    trials = [BarnTrial.of(e.agent, int(e.world.rsplit("-", 1)[1]), e.success, e.base_collisions, e.time_s)
+              for e in episodes]
+    summaries = summarise(trials)
+    print(reference_line())
+    for summary in summaries:
+        for trial in sorted((t for t in trials if t.agent == summary.agent), key=lambda t: t.world):
+            print(trial.line())
+        print(summary.line())
+    if args.out:
+        files = write_csv(trials, summaries, args.out)
+        print(f"wrote {files['trials']} and {files['summary']}")
+    return 0
+
+
 def _cmd_policy_run(args: argparse.Namespace) -> int:
     from curlnav.evaluation.animation import drive_and_draw
     from curlnav.evaluation.protocol import evaluation_config
@@ -138,11 +188,16 @@ def add_commands(sub) -> None:
     p.add_argument("--seeds", type=int, default=None,
                    help="runs of every pair, each with its own ball places (worlds that re-place balls on reset; "
                         "default 1)")
-    p.add_argument("--suite", choices=["unseen"], default=None,
-                   help="a fixed set of worlds nobody trains on (unseen: NAMO office, indoor and auditorium at seeds "
-                        "300 and 301, barn-3x3 and slam-office at seed 300; 8 trials each: pairs x ball placements); prints "
+    p.add_argument("--suite", choices=["unseen", "barn"], default=None,
+                   help="a fixed set of worlds nobody trains on. unseen: NAMO office, indoor and auditorium at seeds "
+                        "300 and 301, barn-3x3 and slam-office at seed 300; 8 trials each: pairs x ball placements; prints "
                         "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
-                        "writes table2.md beside the CSV files and pictures")
+                        "writes table2.md beside the CSV files and pictures. barn: the BARN Challenge's 300 worlds "
+                        "(vendored), its start, goal, 1 m radius, 100 s, collision rule and score, with the Jackal and "
+                        "its LiDAR, in curlnav's simulator (not Gazebo); per world and overall success, collisions, "
+                        "timeouts, mean time and score beside the challenge's published DWA figure")
+    p.add_argument("--worlds", default=None, metavar="A-B",
+                   help="with --suite barn: only BARN worlds A to B (0-299; default all)")
     p.add_argument("--sensor-noise", default="none", metavar="PRESET",
                    help=f"imperfect senses for every agent: {', '.join(SENSOR_NOISE_PRESETS)} (default none: the "
                         "exact simulator); range noise, dropouts, spurious returns, label errors, latency, odometry "

@@ -1,0 +1,159 @@
+"""The BARN Challenge as a suite: ``curlnav eval AGENT... --suite barn [--worlds A-B]``.
+
+The challenge's 300 static worlds (``curlnav.worlds.barn``, vendored), its start, goal, success
+radius, time limit, collision rule and score (github.com/Daffan/the-barn-challenge, ``run.py``),
+driven in **curlnav's simulator, not Gazebo**: PyBullet contacts, an exact LiDAR ray cast on the
+occupancy grid (cylinders drawn at 0.025 m), commands at 5 Hz (``control_period``) instead of a
+ROS navigation stack's own rate, time counted from the first step (``run.py`` starts its clock when
+the robot has moved 0.1 m), one trial per world (the simulator is deterministic; the challenge runs
+each world 10 times because Gazebo is not), no wheel slip or sensor noise unless ``--sensor-noise``
+asks for them.
+
+The robot is the Clearpath Jackal (``jackal_env_config``): 0.508 x 0.430 m, 17 kg, up to 2.0 m/s
+(Clearpath's figures), with the challenge's Hokuyo UST-10LX: 270 degrees in 0.25 degree steps
+(1081 beams), 10 m range (its 0.06 m minimum range lies inside the footprint, so it changes
+nothing here). A policy artefact trained for another robot is refused (``check_robot``).
+
+Outcome per trial as ``run.py`` decides it: *collided* when the base touched an obstacle (any
+collision ends the trial, and a collision takes precedence over reaching the goal), else
+*succeeded* within ``GOAL_RADIUS`` of the goal before ``TIME_LIMIT``, else *timeout*. Score:
+``success * OT / clip(T, 2 OT, 8 OT)`` (``curlnav.worlds.barn.score``); the mean time is, as the
+challenge's ``report_test.py`` takes it, over the worlds with a success.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from curlnav.sim import EnvConfig
+from curlnav.sim.config import RobotConfig
+from curlnav.worlds import barn
+
+#: the challenge's own move_base DWA in Gazebo, from its README (50 worlds x 10 runs)
+REFERENCE = {"agent": "the challenge's DWA (move_base, Gazebo; its README: 50 worlds x 10 runs)", "success": 0.88,
+             "collisions": 0.048, "timeouts": 0.072, "mean_time_s": 33.4715, "score": 0.1693}
+#: Clearpath's Jackal: 508 x 430 x 250 mm, 17 kg, 2.0 m/s
+JACKAL = dataclasses.replace(RobotConfig.jackal(), base_length=0.508, base_width=0.430, base_mass=17.0,
+                             max_linear_speed=2.0)
+UST10_BEAMS = 1081  # 270 degrees in 0.25 degree steps, both ends included
+UST10_FOV = math.radians(270.0)
+UST10_RANGE = 10.0  # m
+FOOTPRINT_TOLERANCE = 0.02  # m: an artefact's recorded footprint within this of the Jackal's drives it
+
+
+def jackal_env_config(base: EnvConfig) -> EnvConfig:
+    """``base`` (the evaluation environment) with the Jackal, the challenge's LiDAR and its rules:
+    success within 1 m, 100 s (500 steps of 0.2 s), any collision ends the trial."""
+    return base.replace(robot=JACKAL, lidar_beams=UST10_BEAMS, lidar_fov=UST10_FOV, lidar_max_range=UST10_RANGE,
+                        goal_tolerance=barn.GOAL_RADIUS,
+                        max_episode_steps=int(round(barn.TIME_LIMIT / base.control_period)),
+                        end_on_base_collision=True)
+
+
+def check_robot(spec: str, robot: RobotConfig = JACKAL) -> None:
+    """Refuse (``ValueError``, one line) a policy artefact whose ``metadata.json`` records another
+    robot than ``robot`` (its ``name`` when recorded, else its footprint). Anything that is not an
+    artefact folder (a planner, a checkpoint) is left to its loader."""
+    path = Path(spec)
+    meta_path = path / "metadata.json" if path.is_dir() else path if path.name == "metadata.json" else None
+    if meta_path is None or not meta_path.is_file():
+        return
+    try:
+        recorded = json.loads(meta_path.read_text()).get("robot")
+    except (OSError, ValueError, AttributeError):
+        return  # the artefact loader names what is wrong with it
+    if not isinstance(recorded, dict):
+        raise ValueError(f"{spec}: its metadata records no robot; the barn suite drives only Jackal policies")
+    name = recorded.get("name")
+    try:
+        length, width = float(recorded["base_length"]), float(recorded["base_width"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{spec}: its metadata records no robot footprint; the barn suite drives only Jackal "
+                         "policies") from None
+    same = abs(length - robot.base_length) <= FOOTPRINT_TOLERANCE and abs(width - robot.base_width) <= FOOTPRINT_TOLERANCE
+    if (name is not None and str(name).lower() != "jackal") or not same:
+        called = f"{name}, " if name else ("husky, " if (length, width) == (0.99, 0.67) else "")
+        raise ValueError(f"{spec}: trained for another robot ({called}{length:g} x {width:g} m), not the Jackal "
+                         f"({robot.base_length:g} x {robot.base_width:g} m) the barn suite drives; refused")
+
+
+@dataclass(frozen=True)
+class BarnTrial:
+    """One agent on one BARN world: the outcome as ``run.py`` decides it and the score."""
+
+    agent: str
+    world: int
+    outcome: str  # succeeded | collided | timeout
+    time_s: float
+    optimal_time_s: float
+    score: float
+
+    @classmethod
+    def of(cls, agent: str, world: int, success: bool, base_collisions: int, time_s: float) -> BarnTrial:
+        outcome = "collided" if base_collisions > 0 else "succeeded" if success else "timeout"
+        return cls(agent, world, outcome, time_s, barn.optimal_time(world),
+                   barn.score(outcome == "succeeded", time_s, world))
+
+    def line(self) -> str:
+        return (f"barn: {self.agent} world {self.world}: {self.outcome} in {self.time_s:.1f} s, score {self.score:.4f} "
+                f"(OT {self.optimal_time_s:.2f} s)")
+
+
+@dataclass(frozen=True)
+class BarnSummary:
+    """One agent over the worlds it ran: rates (0..1), mean time (s, worlds with a success), mean score."""
+
+    agent: str
+    worlds: int
+    success: float
+    collisions: float
+    timeouts: float
+    mean_time_s: float
+    score: float
+
+    def line(self) -> str:
+        time = "-" if math.isnan(self.mean_time_s) else f"{self.mean_time_s:.1f}"
+        return (f"barn: {self.agent} success {self.success:.1%}, collisions {self.collisions:.1%}, timeouts "
+                f"{self.timeouts:.1%}, mean time {time} s, score {self.score:.4f} over {self.worlds} worlds")
+
+
+def summarise(trials: list[BarnTrial]) -> list[BarnSummary]:
+    """One summary per agent, in order of first appearance."""
+    out = []
+    for agent in dict.fromkeys(t.agent for t in trials):
+        group = [t for t in trials if t.agent == agent]
+        times = [t.time_s for t in group if t.outcome == "succeeded"]
+
+        def rate(outcome: str, group=group) -> float:
+            return sum(t.outcome == outcome for t in group) / len(group)
+
+        out.append(BarnSummary(agent, len(group), rate("succeeded"), rate("collided"), rate("timeout"),
+                               float(np.mean(times)) if times else float("nan"), float(np.mean([t.score for t in group]))))
+    return out
+
+
+def reference_line() -> str:
+    r = REFERENCE
+    return (f"barn: published reference, {r['agent']}: success {r['success']:.1%}, collisions {r['collisions']:.1%}, "
+            f"timeouts {r['timeouts']:.1%}, mean time {r['mean_time_s']:.1f} s, score {r['score']:.4f}")
+
+
+def write_csv(trials: list[BarnTrial], summaries: list[BarnSummary], out: str | Path) -> dict[str, Path]:
+    """``barn-trials.csv`` (a row per agent and world) and ``barn-summary.csv`` in ``out``."""
+    import csv
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"trials": out / "barn-trials.csv", "summary": out / "barn-summary.csv"}
+    for key, rows in (("trials", trials), ("summary", summaries)):
+        with open(paths[key], "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=[fl.name for fl in dataclasses.fields(rows[0])])
+            writer.writeheader()
+            writer.writerows(dataclasses.asdict(r) for r in rows)
+    return paths
