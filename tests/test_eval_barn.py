@@ -79,11 +79,13 @@ def test_an_artefact_for_another_robot_is_refused_and_a_jackal_one_is_not(tmp_pa
         check_robot(artefact(tmp_path, {"name": "turtlebot", "base_length": 0.508, "base_width": 0.43}, "turtlebot"))
 
 
+@pytest.mark.slow
 def test_eval_refuses_the_husky_policy_on_the_barn_suite_in_one_line():
     assert_one_line_error(run_curlnav("eval", "policies/namo-general", "--suite", "barn", "--worlds", "0-1"),
                           "policies/namo-general: trained for another robot", "refused")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, fragment", [
     (["--suite", "barn", "--worlds", "5-300"], "numbered 0-299"),
     (["--suite", "barn", "--worlds", "x"], "--worlds takes A-B"),

@@ -98,6 +98,7 @@ def test_shapes_out_of_a_ground_robots_reach_and_the_state_snapshot_are_left_out
     assert world.bounds[2] < 2.0
 
 
+@pytest.mark.slow
 def test_import_sdf_writes_a_world_file_the_loader_reads(tmp_path):
     path = sdf(tmp_path, box("b", "1 2 0.5 0 0 0", "1.0 0.5 1") + cylinder("c", "-1 0 0.5 0 0 0", 0.075))
     result = run_curlnav("worlds", "import-sdf", str(path), "--out", str(tmp_path / "out" / "w.yaml"))
@@ -108,6 +109,7 @@ def test_import_sdf_writes_a_world_file_the_loader_reads(tmp_path):
     assert occupied(world, [(0, 1), (-1, 0.1)]) == [False, False]
 
 
+@pytest.mark.slow
 def test_a_mesh_is_refused_in_one_line_naming_it(tmp_path):
     path = sdf(tmp_path, box("b", "1 2 0.5 0 0 0", "1 1 1") + MESH)
     line = assert_one_line_error(run_curlnav("worlds", "import-sdf", str(path), "--out", str(tmp_path / "w.yaml")),
@@ -115,6 +117,7 @@ def test_a_mesh_is_refused_in_one_line_naming_it(tmp_path):
     assert str(path) in line and not (tmp_path / "w.yaml").exists()
 
 
+@pytest.mark.slow
 def test_skip_unsupported_drops_and_names_what_it_cannot_represent(tmp_path):
     extra = (MESH + "<model name='hill'><static>1</static><link name='l'><collision name='c'><geometry><heightmap>"
              "<uri>file://h.png</uri></heightmap></geometry></collision></link></model>"
@@ -136,6 +139,7 @@ def test_skip_unsupported_drops_and_names_what_it_cannot_represent(tmp_path):
     assert world.bounds[2] < 2.6 and world.bounds[3] < 3.6  # the map holds only the static box
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text, fragment", [
     ("<sdf><world><model name='a'></world></sdf>", "not well-formed XML"),
     ("<robot name='r'/>", "root element is <robot>"),
@@ -185,6 +189,7 @@ def test_every_barn_world_imports_to_its_own_cylinder_lattice(tmp_path):
     assert not mismatched, f"import-sdf differs from the lattice on worlds {mismatched}"
 
 
+@pytest.mark.slow
 def test_a_barn_world_through_the_command_line(tmp_path):
     path = tmp_path / "world_7.world"
     path.write_bytes(barn.world_file(7))
