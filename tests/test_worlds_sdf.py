@@ -200,3 +200,18 @@ def test_a_barn_world_through_the_command_line(tmp_path):
     assert np.array_equal(world.occupancy, expected_grid(7, world))
     suite_world = barn.world(7)  # the suite's world: the same cylinders on its own frame
     assert abs(int(suite_world.occupancy.sum()) - int(world.occupancy.sum())) == 0
+
+
+def test_the_vendored_grids_have_the_barn_sets_published_difficulty():
+    """BARN's five metrics on the 300 grids (in the path files' orientation) and their reference
+    paths: the ranges recomputed from the BARN set (docs: difficulty metrics), to two decimals."""
+    from curlnav.worlds.metrics import barn_metrics
+
+    metrics = np.array([barn_metrics(barn.grid(n), barn.path_cells(n)) for n in range(barn.COUNT)])
+    published = {"distance": (1.18, 2.13, 6.96), "visibility": (2.92, 5.28, 12.16), "dispersion": (0.65, 4.51, 6.13),
+                 "characteristic dimension": (0.73, 3.22, 14.77), "tortuosity": (1.00, 1.17, 1.71)}
+    for column, (name, (low, median, high)) in zip(metrics.T, published.items()):
+        assert (column.min(), np.median(column), column.max()) == (
+            pytest.approx(low, abs=0.006), pytest.approx(median, abs=0.006), pytest.approx(high, abs=0.006)), name
+    lengths = [len(barn.path_cells(n)) for n in range(barn.COUNT)]
+    assert (min(lengths), max(lengths)) == (31, 47)  # "path lengths 31-47 cells"
