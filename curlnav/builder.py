@@ -19,6 +19,9 @@ from curlnav.learner.networks import BehaviourPolicy
 from curlnav.replay import NStepWriter, ReplayTable, SampleToInsertRatio
 
 if TYPE_CHECKING:
+    from curlnav.actor.service import ActorCore, ActorService, ActorServiceConfig
+    from curlnav.learner.service import LearnerService, LearnerServiceConfig
+    from curlnav.replay.service import ReplayService, ReplayServiceConfig
     from curlnav.sim import NamoEnv
 
 
@@ -142,27 +145,27 @@ class D4PGBuilder:
     # -- services ------------------------------------------------------------------------------
     # The service shells take the parts made above and never import the builder; their modules are
     # imported here, inside the methods, so the serial trainer never loads Zenoh.
-    def make_replay_service(self, cfg):
-        """The replay service of ``cfg`` (a ``ReplayServiceConfig``) around this experiment's table."""
+    def make_replay_service(self, cfg: ReplayServiceConfig) -> ReplayService:
+        """The replay service of ``cfg`` around this experiment's table."""
         from curlnav.replay.service import ReplayService
 
         return ReplayService(cfg, self.config, self.make_replay_table())
 
-    def make_actor_core(self, cfg):
-        """The episode loop of actor ``cfg`` (an ``ActorServiceConfig``), with its behaviour policy."""
+    def make_actor_core(self, cfg: ActorServiceConfig) -> ActorCore:
+        """The episode loop of actor ``cfg``, with its behaviour policy."""
         from curlnav.actor.service import ActorCore
 
         policy = self.make_behaviour_policy(cfg.actor_index, cfg.actor_count)
         return ActorCore(cfg, self.config, policy, self.make_actor_loop(cfg.actor_index, policy, cfg.envs))
 
-    def make_actor_service(self, cfg):
-        """The actor service of ``cfg`` (an ``ActorServiceConfig``) around ``make_actor_core``."""
+    def make_actor_service(self, cfg: ActorServiceConfig) -> ActorService:
+        """The actor service of ``cfg`` around ``make_actor_core``."""
         from curlnav.actor.service import ActorService
 
         return ActorService(cfg, self.config, self.make_actor_core(cfg))
 
-    def make_learner_service(self, cfg):
-        """The learner service of ``cfg`` (a ``LearnerServiceConfig``): this builder is its ``LearnerParts``."""
+    def make_learner_service(self, cfg: LearnerServiceConfig) -> LearnerService:
+        """The learner service of ``cfg``: this builder is its ``LearnerParts``."""
         from curlnav.learner.service import LearnerService
 
         return LearnerService(cfg, self.config, self)
