@@ -368,8 +368,10 @@ def test_loading_the_same_artefact_again_does_not_rerun_the_first_action_check(a
     in a process: a second load of the same artefact skips it, a changed actor.onnx does not."""
     import subprocess
 
+    from curlnav import policy
     from curlnav.policy import _FIRST_ACTION, PolicyArtefact
 
+    monkeypatch.setattr(policy, "_FIRST_ACTION_PASSED", set())  # another module may have loaded these bytes
     children = []
     run = subprocess.run
 
