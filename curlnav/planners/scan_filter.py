@@ -18,10 +18,15 @@ one missing beam opens a wall. ``ScanMemory`` does the same for ``tare-l`` and `
 - **marking and clearing** (Nav2's obstacle layer): the confirmed returns (supported or voted
   for) of the last ``scans`` scans are remembered in the odometry frame and handed back, moved into the robot
   frame, until a beam of the newest scan passes ``clear_margin_m`` beyond one (a return
-  further along the same direction, of any label: the space is free) or the memory ages out.
+  further along the same direction, of any label: the space is free) or the memory ages out;
+  where the newest scan measured a remembered return again, its own return stands alone (the
+  memory fills only what the newest scan missed, so range noise does not thicken the walls).
   A beam that returns nothing clears nothing (Nav2's ``inf_is_valid: false``): a dropout must
-  not open a wall. A beam labelled movable marks nothing but clears what it passes, so a wall
-  whose beams a segmenter mislabels stays remembered.
+  not open a wall. A beam labelled movable marks nothing but clears what it passes;
+- **label voting**: a return counts as static only where the last ``scans`` scans labelled its
+  cell static at least as often as movable. A segmenter errs on whole objects
+  at a time: a wall it labels movable for a moment stays remembered, and a ball it misses for a
+  moment does not become a wall the planners go round (they push balls).
 
 On clean scans every return of the newest scan is kept (a lone return of a thin object a step
 later), and the memory adds what the newest scan cannot see: the space behind the robot, and
@@ -52,7 +57,7 @@ class ScanFilterConfig:
     support_m: float = 0.2  # ... within this distance ...
     support_beams: float = 2.5  # ... or this many beam spacings at the return's range (oblique walls)
     clear_margin_m: float = 0.2  # a newest beam reaching this far beyond a remembered return clears it
-    range_m: float = 4.0  # returns further than this are not remembered (the planners look 3 m ahead)
+    range_m: float = 2.0  # returns further than this are not remembered (the nearer ones are what a path can hit first)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.scans, int) and isinstance(self.votes, int) and 1 <= self.votes <= self.scans):
@@ -91,8 +96,9 @@ class ScanMemory:
         self.max_range = float(max_range)
         self._spacing = float(np.abs(np.diff(self.beam_angles)).mean()) if len(self.beam_angles) > 1 else math.pi
         self._cos, self._sin = np.cos(self.beam_angles), np.sin(self.beam_angles)
-        # per scan: its static returns within range_m (odometry frame, m), their cells, and which had spatial support
-        self._scans: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=self.config.scans)
+        # per scan: its static returns within range_m (odometry frame, m), their cells, which had
+        # spatial support, and the cells of its movable returns within range_m
+        self._scans: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=self.config.scans)
 
     def reset(self) -> None:
         """Forget every scan (a new episode or goal: the odometry may have restarted)."""
@@ -140,30 +146,44 @@ class ScanMemory:
         local = np.stack([ranges * self._cos, ranges * self._sin], axis=1)
         points = to_frame(local[near], pose)
         keys = self.keys(points)
+        movable = returned & ~static & (ranges <= cfg.range_m)
         support = self.supported(ranges, static) | (static & ~self.spikes(ranges))
-        self._scans.append((points, keys, support[near]))
-        # votes: in how many of the remembered scans each cell or one of its neighbours was hit
-        spread = [np.unique((k[:, None] + _NEIGHBOURS[None, :]).ravel()) for _, k, _ in self._scans]
-        cells, counts = np.unique(np.concatenate(spread), return_counts=True)
+        self._scans.append((points, keys, support[near], self.keys(to_frame(local[movable], pose))))
 
-        def votes(k: np.ndarray) -> np.ndarray:
-            if len(cells) == 0:
-                return np.zeros(len(k), dtype=np.int64)
-            at = np.clip(np.searchsorted(cells, k), 0, len(cells) - 1)
-            return np.where(cells[at] == k, counts[at], 0)
+        def counter(key_sets, neighbours=_NEIGHBOURS):
+            """votes(keys): in how many of the remembered scans each cell (or a neighbour) was hit."""
+            spread = [np.unique((k[:, None] + neighbours[None, :]).ravel()) for k in key_sets]
+            cells, counts = np.unique(np.concatenate(spread), return_counts=True)
 
-        # the newest scan: supported returns at once, the others once their cell is voted for
-        taken = support | (static & (votes(self.keys(to_frame(local, pose))) >= cfg.votes))
+            def votes(k: np.ndarray) -> np.ndarray:
+                if len(cells) == 0:
+                    return np.zeros(len(k), dtype=np.int64)
+                at = np.clip(np.searchsorted(cells, k), 0, len(cells) - 1)
+                return np.where(cells[at] == k, counts[at], 0)
+            return votes
+
+        votes = counter([k for _, k, _, _ in self._scans])
+        # labels are voted on in the cell itself: a wall touching a ball stays static
+        static_votes = counter([k for _, k, _, _ in self._scans], _NEIGHBOURS[4:5])
+        movable_votes = counter([m for _, _, _, m in self._scans], _NEIGHBOURS[4:5])
+
+        def static_cell(k: np.ndarray) -> np.ndarray:
+            return static_votes(k) >= movable_votes(k)
+
+        # the newest scan: supported returns at once, the others once their cell is voted for;
+        # not where the segmenter said movable more often than static
+        all_keys = self.keys(to_frame(local, pose))
+        taken = static & (support | (votes(all_keys) >= cfg.votes)) & static_cell(all_keys)
         newest = local[taken]
         if len(self._scans) == 1:
             return newest
         # remembered returns: confirmed (supported in their scan or voted for), not in a cell the
         # newest scan marks; one per cell, the newest
         older = list(self._scans)[-2::-1]
-        old_points = np.concatenate([p for p, _, _ in older])
-        old_keys = np.concatenate([k for _, k, _ in older])
-        confirmed = np.concatenate([c for _, _, c in older]) | (votes(old_keys) >= cfg.votes)
-        keep = confirmed & ~np.isin(old_keys, keys[taken[near]])
+        old_points = np.concatenate([p for p, _, _, _ in older])
+        old_keys = np.concatenate([k for _, k, _, _ in older])
+        confirmed = np.concatenate([c for _, _, c, _ in older]) | (votes(old_keys) >= cfg.votes)
+        keep = confirmed & static_cell(old_keys) & ~np.isin(old_keys, keys[taken[near]])
         _, first = np.unique(old_keys[keep], return_index=True)
         kept = from_frame(old_points[keep][np.sort(first)], pose)
         # cleared: a newest beam in the same direction returns clear_margin_m beyond it
@@ -172,5 +192,8 @@ class ScanMemory:
         seen = (beam >= 0) & (beam < len(ranges))
         beam = np.clip(beam, 0, len(ranges) - 1)
         cleared = seen & returned[beam] & (ranges[beam] > d + cfg.clear_margin_m)
-        kept = kept[~cleared & (d <= cfg.range_m)]
+        # superseded: the newest scan measured it again (a static return taken near it on that
+        # beam); the memory fills only what the newest scan missed, so noise does not thicken walls
+        superseded = seen & taken[beam] & (np.abs(ranges[beam] - d) <= cfg.clear_margin_m)
+        kept = kept[~cleared & ~superseded & (d <= cfg.range_m)]
         return np.concatenate([newest, kept])
