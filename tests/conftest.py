@@ -286,6 +286,28 @@ def learner():
     server.close()
 
 
+# -- episodes ---------------------------------------------------------------------------------------
+def episode_loop(world, draws):
+    """A 3-step episode loop on ``world`` with random actions, drawing worlds with ``draws``."""
+    from curlnav.actor.loop import EpisodeLoop
+    from curlnav.replay.nstep import NStepWriter
+    from curlnav.sim import EnvConfig, NamoEnv
+
+    cfg = EnvConfig(max_episode_steps=3, end_on_base_collision=False)
+    rng = np.random.default_rng(0)
+    return EpisodeLoop(NamoEnv(world, cfg), lambda obs: rng.uniform([0, -1, 0], [1, 1, 1]).astype(np.float32),
+                       NStepWriter(ObservationLayout.from_env_config(cfg), 5, 0.99), draws)
+
+
+def one_episode(loop, seed: int, world: str) -> str:
+    """Runs one episode of ``loop`` on ``world`` (a distribution draws it); returns the world's name."""
+    loop.begin(seed, {"world": world})
+    while loop.step() is None:
+        pass
+    loop.flush()
+    return loop.env.world.name
+
+
 # -- the ROS 2 node's core: messages as plain objects (it takes any object with the fields) ----------
 def scan_of(ranges, labels=None, frame="base_link", fov=math.radians(240), angle_min=None, range_max=10.0):
     n = len(ranges)

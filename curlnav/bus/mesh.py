@@ -3,7 +3,7 @@
 One function says how each host's router runs (``router_flags``), and both ``curlnav bench
 hosts`` (hosts as network namespaces) and the Swarm stack file (``scripts/make-stack-file.py``:
 ``docker-stack.yml``) take their router command lines from it, so the deployment the docs describe
-is the one the bench runs (``tests/test_stack_file.py`` checks both).
+is the one the bench runs (``tests/test_deploy_stack_file.py`` checks both).
 
 * Every router listens on ``tls/0.0.0.0:MESH_PORT`` for the other hosts' routers (mutual TLS with
   the run's CA, its certificate ``--tls NAME`` from ``curlnav bus credentials --tls NAME=ADDRESS``)

@@ -5,7 +5,7 @@ writes; its routers run with the flags of ``curlnav.bus.mesh.router_flags``, as
 ``curlnav bench hosts``' routers do (a router per node, the others joined to the main one over
 mutual TLS, every service a client of its node's router on loopback); the credentials its header
 tells users to make hold every secret it mounts; Docker reads it (``docker stack config``, where
-the client is installed). The bench itself runs in ``tests/test_hosts.py``; a real single-node
+the client is installed). The bench itself runs in ``tests/test_bench_hosts.py``; a real single-node
 swarm deploy in ``scripts/compose-smoke.sh``."""
 
 from __future__ import annotations

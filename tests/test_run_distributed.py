@@ -95,7 +95,7 @@ def test_the_service_trains_advances_tracks_actors_and_survives_bad_input(cluste
     reply = evaluation(json.dumps({"epoch": epoch, "success_rate": 0.6, "episodes": 10}).encode())
     assert reply["advanced"] and reply["stage"] == "S3" and status()["stage"] == "S3"
     # 1000 malformed messages on each input key, each from the role allowed to send it (the bus
-    # refuses everyone else: tests/test_bus_auth.py): counted, nobody dies
+    # refuses everyone else: tests/test_bus_security.py): counted, nobody dies
     topo = Topology("itest")
     # an actor may put only under its own id (one bus identity per actor): actor-1 sends the garbage
     sessions = {role: cluster.bus_session(role, ident="actor-1") for role in ("actor", "learner", "replay")}

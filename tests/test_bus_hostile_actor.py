@@ -189,7 +189,7 @@ class Run:
 
         # the attacker holds the shared actor user (``--shared-actor``, older runs), which may put
         # under any actor id: what the services refuse must hold even then (an identity per actor,
-        # as compose replicas claim, refuses these ids at the router already: test_bus_auth)
+        # as compose replicas claim, refuses these ids at the router already: test_bus_security)
         make_credentials(self.cluster.bus_dir, RUN, actors=1, shared_actor=True)
         self.dir = self.cluster.run_dir
         self.sessions = []

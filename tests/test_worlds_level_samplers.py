@@ -78,17 +78,17 @@ def test_plr_replays_the_levels_at_the_edge_of_what_the_policy_can_do():
 
 
 def test_the_episode_loop_feeds_each_outcome_to_the_sampler_of_the_world_it_drew():
-    from tests.test_world_distributions import _episode, _loop
+    from conftest import episode_loop, one_episode
 
     draws = WorldDraws(seed=[0, 1])
-    loop = _loop("t-maze:0", draws)  # 3-step episodes: each ends unsuccessful
+    loop = episode_loop("t-maze:0", draws)  # 3-step episodes: each ends unsuccessful
     try:
-        names = [_episode(loop, i, TMAZE) for i in range(6)]
+        names = [one_episode(loop, i, TMAZE) for i in range(6)]
         sampler = draws._samplers[TMAZE]
         seen = {f"t-maze-doors-{s}" for s in sampler.success}
         assert set(names) == seen and all(v == 0.0 for v in sampler.success.values())
         assert draws.levels(TMAZE)["seen"] == len(seen)
-        _episode(loop, 7, "t-maze:0")  # a plain world: its outcome is nobody's level
+        one_episode(loop, 7, "t-maze:0")  # a plain world: its outcome is nobody's level
         assert set(sampler.success.values()) == {0.0} and draws.levels("t-maze-doors:0-19") is None
     finally:
         loop.close()

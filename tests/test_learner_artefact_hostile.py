@@ -4,7 +4,7 @@ that reads a file beside (or outside) its folder or allocates 1e10 floats at its
 a learner whose artefact never ends, in size or in time. Each ends in one ``curlnav: error:`` line
 (exit 2) at a bounded cost, and nothing is kept.
 
-Real processes: the CLI in a subprocess under an address-space cap (``test_hostile.curlnav``),
+Real processes: the CLI in a subprocess under an address-space cap (``conftest.run_capped``),
 real ``http.server`` learners on loopback, real ONNX models built with ``onnx.helper``."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """``curlnav experiment``'s report is made from saved runs alone and marks each finding by our
-numbers (the runs themselves are exercised by tests/test_curriculum_options.py)."""
+numbers (the runs themselves are exercised by tests/test_scheduler_curriculum.py)."""
 
 from __future__ import annotations
 

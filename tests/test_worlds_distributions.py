@@ -8,13 +8,11 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import episode_loop, one_episode
 
-from curlnav.actor.loop import EpisodeLoop
 from curlnav.config import CurriculumConfig, ExperimentConfig
-from curlnav.layout import ObservationLayout
-from curlnav.replay import NStepWriter
 from curlnav.scheduler.curriculum import CurriculumError, check_curriculum, load_curriculum
-from curlnav.sim import EnvConfig, NamoEnv, get_world
+from curlnav.sim import NamoEnv, get_world
 from curlnav.worlds.distribution import DistributionError, WorldDistribution, WorldDraws
 from curlnav.worlds.heldout import HELD_OUT_FROM, HeldOutSeedError, held_out_seeds, training_seeds
 
@@ -106,26 +104,11 @@ def test_same_seed_same_draws():
     assert [a.resolve(TINY).name for _ in range(12)] == [b.resolve(TINY).name for _ in range(12)]
 
 
-def _loop(world, draws: WorldDraws) -> EpisodeLoop:
-    cfg = EnvConfig(max_episode_steps=3, end_on_base_collision=False)
-    rng = np.random.default_rng(0)
-    return EpisodeLoop(NamoEnv(world, cfg), lambda obs: rng.uniform([0, -1, 0], [1, 1, 1]).astype(np.float32),
-                       NStepWriter(ObservationLayout.from_env_config(cfg), 5, 0.99), draws)
-
-
-def _episode(loop: EpisodeLoop, seed: int, world: str) -> str:
-    loop.begin(seed, {"world": world})
-    while loop.step() is None:
-        pass
-    loop.flush()
-    return loop.env.world.name
-
-
 def test_the_episode_loop_draws_a_world_per_episode_and_keeps_the_scenes_of_its_pool_built():
     draws = WorldDraws(seed=0)
-    loop = _loop("t-maze:0", draws)
+    loop = episode_loop("t-maze:0", draws)
     try:
-        names = [_episode(loop, i, TINY) for i in range(12)]
+        names = [one_episode(loop, i, TINY) for i in range(12)]
         assert loop.env.scene_cache >= draws.cache > 1
         assert len(set(names)) >= 3 and all(n.startswith("t-maze-") for n in names)
         assert loop.env.scene_builds == draws.generated, "a pooled world switched back to is not rebuilt"

@@ -2,7 +2,7 @@
 ``--scale``) each claim a different ``actor-<n>`` and authenticate as it; a dead replica's
 identity is free again; when every identity is held the replica stops with one line that says
 what to do. No Docker: processes racing on one folder, as replicas race on the ``bus-actors``
-volume. Compose itself: ``tests/test_containers.py`` (distinct identities of live replicas, no
+volume. Compose itself: ``tests/test_deploy_containers.py`` (distinct identities of live replicas, no
 shared actor user)."""
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ keeps every batch until the replay acknowledges it, bounded in memory and on dis
 from the oldest, in order; the replay accepts an actor's batches only in sequence (a resend is a
 duplicate, a batch above a gap waits for the gap); the scheduler marks a cut-off actor lost and
 takes it back without touching the curriculum. These tests drive the cores over a channel that
-loses what is put while it is cut; the real partition is in ``test_hosts.py``."""
+loses what is put while it is cut; the real partition is in ``test_bench_hosts.py``."""
 
 from __future__ import annotations
 
