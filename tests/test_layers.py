@@ -188,7 +188,6 @@ def test_every_package_is_in_the_order():
                                                                        or f"curlnav.{r}" in MAPPED)
 
 
-@pytest.mark.xfail(strict=False, reason="curlnav/evaluation/__init__.py: __all__ leaves out commands (WP-B, issue 36)")
 def test_package_faces_name_what_they_offer():
     """Every package declares ``__all__``, and every name in it is there: bound in the
     ``__init__`` (or served by its ``__getattr__``) or a submodule. A face that imports nothing

@@ -3,7 +3,8 @@ pairs (`pairs`), the resolver of world specs and the built-in worlds (`builtin`)
 (the registry `families`; `generators`, `namo`, `tmaze`, `slam_like`, `scatter`), distributions of
 worlds (`distribution`), the held-out seeds (`heldout`), curriculum levels (`levels`), the BARN
 navigation-difficulty metrics (`metrics`), the ranking that orders a curriculum (`rank`), a world's
-picture (`picture`) and the `curlnav worlds` commands (`commands`). Submodules are imported on use."""
+picture (`picture`), Gazebo SDF worlds read onto the grid (`sdf`), the BARN Challenge's vendored
+worlds (`barn`) and the `curlnav worlds` commands (`commands`). Submodules are imported on use."""
 
-__all__ = ["builtin", "commands", "distribution", "families", "generators", "heldout", "levels", "metrics", "namo", "pairs",
-           "picture", "rank", "scatter", "slam_like", "tmaze", "world"]
+__all__ = ["barn", "builtin", "commands", "distribution", "families", "generators", "heldout", "levels", "metrics", "namo",
+           "pairs", "picture", "rank", "scatter", "sdf", "slam_like", "tmaze", "world"]
