@@ -399,7 +399,7 @@ def test_the_node_stops_when_scan_falls_silent_and_refuses_malformed_scans(curln
 
     # malformed scans: each refused at once with a stop, and counted
     malformed = [
-        LaserScan(**{**good_scan().__dict__, "ranges": [6.0] * 120 + [math.nan] + [6.0] * 120}),  # NaN
+        LaserScan(**{**good_scan().__dict__, "ranges": [math.nan] * 241}),  # NaN on every beam (a failing sensor)
         LaserScan(**{**good_scan().__dict__, "ranges": [6.0] * 200, "intensities": [0.0] * 200}),  # wrong length
         good_scan(frame="laser"),  # wrong frame
         LaserScan(**{**good_scan().__dict__, "intensities": [37.0] * 241}),  # reflectivity, not labels
@@ -474,7 +474,7 @@ def test_other_beam_layouts_are_resampled_and_malformed_scans_refused():
     # a coarser scanner (2 degrees apart): every policy beam takes the nearest input beam
     r, _ = resample_scan(scan_of(np.linspace(1, 9, 121), np.zeros(121)), layout)
     assert np.isfinite(r).all() and r[0] == 1.0 and r[-1] == 9.0
-    bad = {"NaN": scan_of([5.0] * 120 + [math.nan] + [5.0] * 120, [0.0] * 241),
+    bad = {"NaN": scan_of([math.nan if k % 4 == 0 else 5.0 for k in range(241)], [0.0] * 241),  # 25 % NaN
            "length": ns(**{**scan_of([5.0] * 241, [0.0] * 241).__dict__, "ranges": [5.0] * 200,
                            "intensities": [0.0] * 200}),
            "labels": scan_of([5.0] * 241, [0.0] * 240),
