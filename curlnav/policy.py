@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import re
 from pathlib import Path
 
@@ -286,8 +287,11 @@ def _first_action_bounded(path: Path, size: int) -> None:
         return
     bound = f"{FIRST_ACTION_MEMORY_BYTES >> 20} MiB"
     try:
+        # one thread each: a BLAS or ONNX Runtime pool sized to a many-core machine must not fill the bound
+        threads = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
         result = subprocess.run([sys.executable, "-c", _FIRST_ACTION, str(path), str(size), str(FIRST_ACTION_MEMORY_BYTES)],
-                                capture_output=True, text=True, timeout=FIRST_ACTION_TIMEOUT_S)
+                                capture_output=True, text=True, timeout=FIRST_ACTION_TIMEOUT_S,
+                                env={**os.environ, **threads})
     except subprocess.TimeoutExpired:
         raise ArtefactError(f"{path}: its first action took over {FIRST_ACTION_TIMEOUT_S:g} s; refused") from None
     if result.returncode != 0:

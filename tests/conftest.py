@@ -77,7 +77,7 @@ def run_curlnav(*args: str, cwd: Path | None = None, timeout: float = 180,
     ``peak_mb`` (its VmHWM) and ``wall_s`` (its own time, start-up excluded)."""
     if limit_mb is None:
         return subprocess.run([sys.executable, "-m", "curlnav.cli", *args], capture_output=True, text=True,
-                              timeout=timeout, cwd=cwd)
+                              timeout=timeout, cwd=cwd or ROOT)
 
     def cap():
         import resource
@@ -85,7 +85,7 @@ def run_curlnav(*args: str, cwd: Path | None = None, timeout: float = 180,
         resource.setrlimit(resource.RLIMIT_AS, (limit_mb << 20, limit_mb << 20))
 
     result = subprocess.run([sys.executable, "-c", _MEASURED, *args], capture_output=True, text=True,
-                            timeout=timeout, cwd=cwd, preexec_fn=cap)
+                            timeout=timeout, cwd=cwd or ROOT, preexec_fn=cap)
     figures = [line.split() for line in result.stdout.splitlines() if line.startswith("peak_rss_mb")]
     result.peak_mb, result.wall_s = (float(figures[-1][1]), float(figures[-1][3])) if figures else (float("nan"),) * 2
     return result

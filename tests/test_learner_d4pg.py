@@ -214,7 +214,8 @@ def test_serial_training_smoke_run_writes_logs_checkpoint_and_artefact_and_resum
     summary = json.loads((run / "summary.json").read_text())
     assert summary["env_steps"] == 400 and summary["updates"] > 0
     # resume: counters continue from the checkpoint instead of starting over
-    result = subprocess.run(base[:8] + ["500"] + base[9:] + ["--minutes", "3", "--resume"], capture_output=True,
+    # a budget well above the first session's (the budget counts every session; a resume needs a minute left)
+    result = subprocess.run(base[:8] + ["500"] + base[9:] + ["--minutes", "10", "--resume"], capture_output=True,
                             text=True, timeout=400)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "resumed from" in result.stdout

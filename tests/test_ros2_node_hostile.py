@@ -314,7 +314,8 @@ def test_over_dds_a_huge_goal_gives_no_non_finite_cmd_vel_and_goal_state_says_re
 
 @pytest.mark.net
 def test_over_dds_after_a_narrow_huge_scan_the_robot_is_never_a_second_without_a_command(curlnav, domain_id):  # noqa: F811
-    node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback")
+    # --silence-s 0.4 (two control periods): the watchdog's stop comes well inside the 1.0 s bound on a loaded machine
+    node = curlnav("ros2", "run", str(POLICY), "--domain-id", str(domain_id), "--loopback", "--silence-s", "0.4")
     robot = Robot(domain_id)
     wait_for("the node", lambda: "on domain" in output_of(node), 40, [node])
     robot.send_goal(6.0, 1.0, until=lambda state: state == "active")
@@ -339,7 +340,7 @@ def test_the_watchdog_stops_the_robot_while_the_control_loop_is_blocked(domain_i
     """The shell (``run_node``) on a real bus, with a policy that blocks the control loop for
     2.5 s at its 6th action: stops go out meanwhile, so no gap over ``silence_s`` + a margin."""
     from curlnav.policy import PolicyArtefact
-    from curlnav.ros2.node import PolicyNode, ScanLayout, run_node
+    from curlnav.ros2.node import NodeConfig, PolicyNode, ScanLayout, run_node
     from curlnav.ros2.topics import NODE_TOPICS, Bus
 
     robot = Robot(domain_id)  # first: its participant sets up the domain on loopback
@@ -351,7 +352,7 @@ def test_the_watchdog_stops_the_robot_while_the_control_loop_is_blocked(domain_i
             time.sleep(2.5)
         return policy(obs)
 
-    node = PolicyNode(slow_policy, ScanLayout.of(policy.metadata))
+    node = PolicyNode(slow_policy, ScanLayout.of(policy.metadata), NodeConfig(silence_s=0.4))
     bus, halt, lines = Bus(domain_id), threading.Event(), []
     shell = threading.Thread(target=run_node, args=(node, bus, NODE_TOPICS),
                              kwargs={"stop": halt.is_set, "log": lines.append}, daemon=True)

@@ -230,7 +230,7 @@ def test_a_resumed_distributed_run_goes_on_from_its_counts_not_from_zero(tmp_pat
     rows = list(csv.DictReader((run / "metrics.csv").open()))
     before = rows[-1]
     assert int(before["env_steps"]) >= 300
-    resumed = subprocess.run(base + ["--resume", "--max-env-steps", str(int(before["env_steps"]) + 200)],
+    resumed = subprocess.run(base + ["--resume", "--max-env-steps", str(int(before["env_steps"]) + 200), "--minutes", "15"],
                              capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-2000:]
     new = list(csv.DictReader((run / "metrics.csv").open()))[len(rows):]
