@@ -43,6 +43,13 @@ def delayed(*args: str) -> list[str]:
     return [sys.executable, "-c", DELAYED, *args]
 
 
+def ctrl_c_heard() -> None:
+    """In the launcher's child, before exec: SIGINT at its default. A test runner started in the
+    background by a non-interactive shell ignores SIGINT, its children inherit that, and the
+    launcher (rightly, as under nohup) keeps a signal it was started ignoring."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt_when(process: subprocess.Popen, done, deadline_s: float, what: str) -> None:
     """Poll ``done()`` until it holds (or the deadline passes, or the launcher exits), then Ctrl-C
     the launcher and wait for its orderly stop."""
@@ -81,7 +88,7 @@ def resumed_run(tmp_path_factory):
         with log.open("w") as out:
             launched.append(time.time())
             command = [sys.executable, "-m", "curlnav.cli", *args] if session == 1 else delayed(*args, "--resume")
-            process = subprocess.Popen(command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
+            process = subprocess.Popen(command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT, preexec_fn=ctrl_c_heard)
             _interrupt_when(process, lambda: len(_evaluations_in(run_dir / "eval.csv")) >= wanted, 300,
                             f"{wanted} evaluations in session {session}")
         outputs.append(log.read_text())
