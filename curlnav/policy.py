@@ -25,6 +25,7 @@ class PolicyArtefact:
         self.metadata = self._read_metadata()
         meta_path = self.folder / "metadata.json"
         check_metadata(self.metadata, meta_path)  # every field a reader uses, before any is used
+        verified: dict[str, str] = {}  # file name -> its sha256, read and matched here
         for name, expected in self._files(self.metadata, meta_path).items():
             path = self.folder / name
             if path.is_symlink() or not path.is_file():
@@ -33,8 +34,9 @@ class PolicyArtefact:
                 actual = sha256_of(path)
                 if actual != expected:
                     raise ArtefactError(f"{path}: sha256 {actual} does not match metadata ({expected})")
+                verified[name] = actual
         self.observation_size = self.metadata["observation"]["size"]
-        self.session = _onnx_session(self.folder / "actor.onnx", self.observation_size)
+        self.session = _onnx_session(self.folder / "actor.onnx", self.observation_size, verified.get("actor.onnx"))
 
     @classmethod
     def listed_files(cls, folder: str | Path) -> dict[str, str]:
@@ -272,17 +274,18 @@ print(repr(action.shape), repr([float(v) for v in np.ravel(action)[:8]]))
 _FIRST_ACTION_PASSED: set[tuple[str, int]] = set()  # (sha256 of actor.onnx, observation size) checked in this process
 
 
-def _first_action_bounded(path: Path, size: int) -> None:
+def _first_action_bounded(path: Path, size: int, sha256: str | None = None) -> None:
     """Open ``path`` and run its first action (a zero observation) in a child process whose
     address space is ``FIRST_ACTION_MEMORY_BYTES`` (or the lower hard limit this process has),
     within ``FIRST_ACTION_TIMEOUT_S``: a graph that allocates gigabytes at session start or at its
     first action is refused here, in one line, instead of taking this process (a robot's node)
     down. The action must be (1, 3), finite. A pass is remembered for the process by the sha256 of
-    ``path`` and ``size``: loading the same artefact again does not run the child again."""
+    ``path`` (``sha256``: already read from this very file by the caller, else read here) and
+    ``size``: loading the same artefact again does not run the child again."""
     import subprocess
     import sys
 
-    key = (sha256_of(path), size)
+    key = (sha256 or sha256_of(path), size)
     if key in _FIRST_ACTION_PASSED:
         return
     bound = f"{FIRST_ACTION_MEMORY_BYTES >> 20} MiB"
@@ -305,15 +308,16 @@ def _first_action_bounded(path: Path, size: int) -> None:
     _FIRST_ACTION_PASSED.add(key)
 
 
-def _onnx_session(path: Path, size: int):
+def _onnx_session(path: Path, size: int, sha256: str | None = None):
     """An ONNX Runtime session on ``path`` with the artefact's input and output names, or
     ``ArtefactError`` naming the file: no external data, input ``observation`` (batch, ``size``),
-    output ``action`` (batch, 3), and a first action that ran within a memory bound."""
+    output ``action`` (batch, 3), and a first action that ran within a memory bound (``sha256``:
+    the file's digest when the caller has just read it, so it is not read twice)."""
     import onnxruntime as ort
     from onnxruntime.capi.onnxruntime_pybind11_state import Fail, InvalidArgument, InvalidGraph, InvalidProtobuf, NoSuchFile
 
     _check_self_contained(path)
-    _first_action_bounded(path, size)  # before this process opens it: opening may allocate too (constant folding)
+    _first_action_bounded(path, size, sha256)  # before this process opens it: opening may allocate too (constant folding)
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
     try:
