@@ -104,19 +104,48 @@ def world_file(n: int) -> bytes:
     return lzma.decompress((DATA / "worlds" / f"world_{check_index(n)}.world.xz").read_bytes())
 
 
-def cylinders(n: int) -> list[Shape]:
-    """World ``n``'s cylinders as footprints (m, world frame)."""
-    j, k = np.nonzero(lattice(n))
+def lattice_cylinders(cells: np.ndarray) -> list[Shape]:
+    """A ``(64, 30)`` lattice's cylinders as footprints (m, world frame)."""
+    j, k = np.nonzero(cells)
     return [Shape("cylinder", f"unit_cylinder_{i}", -(kk + 0.5) * CELL, (jj + 0.5) * CELL, radius=CYLINDER_RADIUS)
             for i, (jj, kk) in enumerate(zip(j.tolist(), k.tolist()))]
 
 
-def world(n: int, resolution: float = DEFAULT_RESOLUTION) -> World:
-    """World ``n`` as a curlnav ``World`` on ``BOUNDS`` at ``resolution`` (m; a cell is occupied
-    when its centre lies in a cylinder), with the challenge's start/goal pair ``"barn"``."""
+def cylinders(n: int) -> list[Shape]:
+    """World ``n``'s cylinders as footprints (m, world frame)."""
+    return lattice_cylinders(lattice(n))
+
+
+def start_area() -> np.ndarray:
+    """The lattice every challenge world shares outside its BARN grid, bool (64, 30): the back wall
+    (row 0) and the side walls (columns 0 and 29); the grid's rows 34..63 are left free."""
+    cells = np.zeros((64, 30), dtype=bool)
+    cells[0, :] = True
+    cells[:, 0] = cells[:, -1] = True
+    return cells
+
+
+def lattice_of_grid(grid_cells: np.ndarray) -> np.ndarray:
+    """The challenge's lattice around a 30 x 30 BARN grid oriented as the path files (the inverse
+    of ``grid``): ``start_area`` with the grid in rows 34..63."""
+    if grid_cells.shape != (30, 30):
+        raise ValueError(f"a BARN grid is 30 x 30 cells, got {grid_cells.shape}")
+    cells = start_area()
+    cells[FIELD_ROW0:FIELD_ROW0 + 30, :] = np.asarray(grid_cells, dtype=bool).T[:, ::-1]
+    return cells
+
+
+def lattice_world(cells: np.ndarray, name: str, source: str, resolution: float = DEFAULT_RESOLUTION) -> World:
+    """A ``(64, 30)`` lattice as a curlnav ``World`` on ``BOUNDS`` at ``resolution`` (m; a cell is
+    occupied when its centre lies in a cylinder), with the challenge's start/goal pair ``"barn"``."""
     x0, y0, x1, y1 = BOUNDS
     shape = (round((y1 - y0) / resolution), round((x1 - x0) / resolution))
-    occupancy = rasterise(cylinders(n), resolution, (x0, y0), shape)
+    occupancy = rasterise(lattice_cylinders(cells), resolution, (x0, y0), shape)
     pair = StartGoal("barn", START[0], START[1], START[2], GOAL[0], GOAL[1])
-    return World(name=f"barn-world-{check_index(n)}", occupancy=occupancy, resolution=resolution, origin=(x0, y0),
-                 wall_height=0.5, pairs=(pair,), source=f"barn-challenge:world_{n}")
+    return World(name=name, occupancy=occupancy, resolution=resolution, origin=(x0, y0), wall_height=0.5,
+                 pairs=(pair,), source=source)
+
+
+def world(n: int, resolution: float = DEFAULT_RESOLUTION) -> World:
+    """World ``n`` as a curlnav ``World`` (``lattice_world``), with the challenge's pair ``"barn"``."""
+    return lattice_world(lattice(n), f"barn-world-{check_index(n)}", f"barn-challenge:world_{n}", resolution)

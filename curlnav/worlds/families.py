@@ -40,6 +40,8 @@ class Family:
 
 FAMILIES: dict[str, Family] = {
     "barn": Family("curlnav.worlds.generators:barn", "the BARN benchmark's cellular automaton"),
+    "barn-course": Family("curlnav.worlds.barn_course:barn_course", "BARN grids set in the BARN Challenge's layout "
+                          "(cylinders, start area, Jackal start and goal): training worlds for its suite"),
     "barn-3x3": Family("curlnav.worlds.generators:barn_3x3", "3 x 3 BARN blocks scaled to 36 m, 8 balls re-placed every reset"),
     "t-maze": Family("curlnav.worlds.generators:t_maze", "five rooms in a T joined by hinged doors and narrow gates, "
                      "one ball per room, curriculum pairs p1..p4"),
