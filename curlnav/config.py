@@ -252,8 +252,18 @@ class ExperimentConfig:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)
     seed: int = 0  # environment draws, exploration noise and sampling (each actor adds its index)
+    #: the robot profile (``curlnav.sim.robots``: husky, jackal or a profile file) that set
+    #: ``env.robot`` and the LiDAR fields; left out of the hash while it is the default
+    robot: str = field(default="husky", metadata={"hash": "omit-default"})
 
     def __post_init__(self) -> None:
+        from curlnav.sim.robots import PROFILES
+
+        _require(isinstance(self.robot, str) and bool(self.robot), f"robot must be a profile name or file, got {self.robot!r}")
+        if self.robot in PROFILES:
+            _require(self.env.robot.name == self.robot,
+                     f"env.robot is the {self.env.robot.name}'s, but robot says {self.robot}: set the robot with "
+                     f"robot: NAME (or --robot), not env.robot fields alone")
         _require(isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0,
                  f"seed must be a non-negative integer, got {self.seed!r}")
         _require(self.d4pg.seed >= 0, f"d4pg.seed must be non-negative, got {self.d4pg.seed!r}")
@@ -403,7 +413,19 @@ def experiment_from_dict(data: dict, base: ExperimentConfig | None = None) -> Ex
     if preset is not None:
         base = ExperimentConfig.preset(str(preset))
     base_dict = config_to_dict(base or ExperimentConfig())
+    if "robot" in data:  # the profile first; the file's own env fields then win
+        _with_robot(base_dict, data["robot"])
     return config_from_dict(ExperimentConfig, _merge(base_dict, data))
+
+
+def _with_robot(data: dict, spec: Any) -> None:
+    """Set ``data`` (a config dict) to robot profile ``spec``: ``robot`` and the env's robot and LiDAR."""
+    from curlnav.sim.robots import load_profile
+
+    profile = load_profile(spec if isinstance(spec, str) else repr(spec))
+    env = profile.apply(config_from_dict(EnvConfig, data["env"], "env"))
+    data["env"] = config_to_dict(env)
+    data["robot"] = spec
 
 
 def _merge(base: dict, top: dict) -> dict:
@@ -439,6 +461,9 @@ def apply_overrides(cfg: ExperimentConfig, overrides: list[str]) -> ExperimentCo
         key = key.strip()
         if not sep or not key:
             raise ConfigError(f"an override must look like section.field=value, got {item!r}")
+        if key == "robot":
+            _with_robot(data, raw.strip())
+            continue
         node = data
         parts = key.split(".")
         for part in parts[:-1]:

@@ -198,6 +198,14 @@ def check_metadata(metadata: dict, meta_path: Path) -> None:
 
     robot = section("robot", required=False)
     for key, value in robot.items():
+        if key == "name":  # the profile's name (curlnav.sim.robots)
+            if not (isinstance(value, str) and re.fullmatch(r"[a-z0-9][a-z0-9_-]{0,39}", value)):
+                refuse("robot.name", "a profile name (1-40 of a-z, 0-9, - and _)", value)
+            continue
+        if key == "arm":
+            if not isinstance(value, bool):
+                refuse("robot.arm", "true or false", value)
+            continue
         if not _is_number(value, 0, MAX_ROBOT_SIZE_M):
             refuse(f"robot.{shown(key, 40)[1:-1]}", f"a finite number above 0 and at most {MAX_ROBOT_SIZE_M:g}", value)
     training = section("training", required=False)

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 
 from curlnav.policy import sha256_of  # the one checksum of artefact files, for writer and reader
 from curlnav.sim.config import EnvConfig
+from curlnav.sim.robots import robot_metadata
 
 if TYPE_CHECKING:
     from .d4pg import D4PGState
@@ -102,8 +103,7 @@ def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, 
             "units": ["m/s", "rad/s", "m"],
             "note": "physical command = action * scale",
         },
-        "robot": {k: getattr(robot, k) for k in ("base_length", "base_width", "arm_reach", "max_linear_speed",
-                                                  "max_angular_speed")},
+        "robot": robot_metadata(env_config),
         "training": {"learner_steps": state.steps, "env_steps": env_steps, "curriculum_stage": curriculum_stage,
                      "worlds": list(worlds), "preset": state.config.preset, "d4pg": state.config.to_dict(),
                      **(extra or {})},

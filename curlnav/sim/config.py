@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -20,9 +21,15 @@ class ConfigError(ValueError):
 class RobotConfig:
     """A differential-drive base with a one-DOF pushing arm (the end effector).
 
-    Presets: ``husky()`` (the paper's robot, the default) and ``jackal()`` (the BARN benchmark's).
+    Presets: ``husky()`` (the paper's robot, the default) and ``jackal()`` (the BARN benchmark's);
+    whole profiles, with their LiDARs, are ``curlnav.sim.robots.PROFILES``.
     """
 
+    #: the profile's name (``husky``, ``jackal`` or a file's own): what a policy artefact records
+    #: and checks against the robot it is asked to drive
+    name: str = field(default="husky", metadata={"hash": "omit-default"})
+    #: False: no pushing arm (the stick has no collision shape and action[2] is ignored)
+    arm: bool = field(default=True, metadata={"hash": "omit-default"})
     base_length: float = 0.99  # m, along the heading
     base_width: float = 0.67  # m
     base_height: float = 0.31  # m
@@ -43,8 +50,10 @@ class RobotConfig:
 
     @staticmethod
     def jackal() -> RobotConfig:
-        return RobotConfig(base_length=0.51, base_width=0.43, base_height=0.25, base_mass=17.0,
-                           max_linear_speed=0.5, max_angular_speed=1.57, arm_reach=0.3,
+        """Clearpath's Jackal (its published 0.508 x 0.430 x 0.250 m, 17 kg, 2.0 m/s), no arm; turn
+        rate 1.57 rad/s, the BARN Challenge's own move_base limit."""
+        return RobotConfig(name="jackal", arm=False, base_length=0.508, base_width=0.430, base_height=0.25,
+                           base_mass=17.0, max_linear_speed=2.0, max_angular_speed=1.57, arm_reach=0.3,
                            arm_length=0.3, drive_force=1000.0)
 
     @property
@@ -53,7 +62,11 @@ class RobotConfig:
         return 0.5 * math.hypot(self.base_length, self.base_width)
 
     def validate(self) -> None:
-        _positive(self, [f.name for f in dataclasses.fields(self)])
+        if not isinstance(self.name, str) or not re.fullmatch(r"[a-z0-9][a-z0-9_-]{0,39}", self.name):
+            raise ConfigError(f"robot.name must be 1-40 characters of a-z, 0-9, - and _, got {self.name!r}")
+        if not isinstance(self.arm, bool):
+            raise ConfigError(f"robot.arm must be true or false, got {self.arm!r}")
+        _positive(self, [f.name for f in dataclasses.fields(self) if f.name not in ("name", "arm")])
 
 
 @dataclass(frozen=True)

@@ -212,12 +212,12 @@ class NamoEnv(gym.Env):
         reward_cfg = cfg.reward
         x0, y0, yaw0 = self._pose
         sensors = self.sensors
+        arm = a[2] * robot.arm_reach if robot.arm else 0.0  # no arm: action[2] is ignored
         if sensors is not None and sensors.moves_differently:
             linear, angular = sensors.actuator.profile(a[0] * robot.max_linear_speed, a[1] * robot.max_angular_speed)
-            self.scene.drive(linear, angular, a[2] * robot.arm_reach, yaw0)
+            self.scene.drive(linear, angular, arm, yaw0)
         else:
-            self.scene.drive(a[0] * robot.max_linear_speed, a[1] * robot.max_angular_speed,
-                             a[2] * robot.arm_reach, yaw0)
+            self.scene.drive(a[0] * robot.max_linear_speed, a[1] * robot.max_angular_speed, arm, yaw0)
         x, y, yaw, _ = self.scene.robot_pose()
         if sensors is not None:
             sensors.odometry.update((x0, y0, yaw0), (x, y, yaw), sensors.actuator.slip)

@@ -66,6 +66,9 @@ def _robot_urdf(cfg: EnvConfig) -> str:
     arm_x = r.base_length / 2 - r.arm_length / 2  # at zero displacement the tip is at the bumper
     small = 'ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"'
     izz = r.base_mass * (r.base_length ** 2 + r.base_width ** 2) / 12
+    # a robot without an arm (``RobotConfig.arm``) keeps the joint, so joint indices stay, but no stick
+    stick = (f'\n    <collision><geometry><box size="{r.arm_length} {r.arm_width} {r.arm_thickness}"/></geometry>'
+             '</collision>') if r.arm else ""
     return f"""<?xml version="1.0"?>
 <robot name="namo_robot">
   <link name="world_anchor"><inertial><mass value="0"/><inertia {small}/></inertial></link>
@@ -76,8 +79,7 @@ def _robot_urdf(cfg: EnvConfig) -> str:
     <collision><geometry><box size="{r.base_length} {r.base_width} {r.base_height}"/></geometry></collision>
   </link>
   <link name="end_effector">
-    <inertial><mass value="1.0"/><inertia {small}/></inertial>
-    <collision><geometry><box size="{r.arm_length} {r.arm_width} {r.arm_thickness}"/></geometry></collision>
+    <inertial><mass value="1.0"/><inertia {small}/></inertial>{stick}
   </link>
   <joint name="x" type="prismatic"><parent link="world_anchor"/><child link="slider_x"/>
     <axis xyz="1 0 0"/><limit lower="-1e6" upper="1e6" effort="1e9" velocity="1e3"/></joint>

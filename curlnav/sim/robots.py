@@ -1,0 +1,179 @@
+"""Robot profiles: a base, its arm (or none) and its LiDAR, selected by name or file.
+
+``robot: husky | jackal | FILE.yaml`` in an experiment config (``curlnav train --robot``,
+``curlnav eval --robot``, ``curlnav ros2 run --robot``) sets ``EnvConfig.robot`` and the LiDAR
+fields of ``EnvConfig`` from one profile (``RobotProfile.apply``); later ``env.*`` settings still
+win. A policy artefact records its robot (``robot.name`` and footprint in ``metadata.json``) and
+``check_robot`` refuses, in one line, to drive another.
+
+Built-in profiles (manufacturers' published figures; ``docs/robots.md``):
+
+- ``husky``: Clearpath Husky class, 0.99 x 0.67 x 0.31 m, 50 kg, 1.0 m/s, 1.0 rad/s, a 0.5 m
+  pushing arm; a 241-beam, 240-degree LiDAR to 10 m (the paper's 3-D LiDAR cut to 2-D).
+- ``jackal``: Clearpath Jackal, 0.508 x 0.430 x 0.250 m, 17 kg, 2.0 m/s, 1.57 rad/s (the BARN
+  Challenge's move_base limit), no arm; the challenge's Hokuyo UST-10LX (270 degrees in 0.25
+  degree steps, 10 m) read at every 4th beam: 271 beams, 1 degree apart, the same angles as
+  beams 0, 4, ..., 1080 of the full scan (``curlnav ros2 run`` resamples a 1081-beam scan to them).
+
+A profile file (YAML) gives ``name``, any ``RobotConfig`` field (``base_length``, ``base_width``,
+``base_height``, ``base_mass``, ``max_linear_speed``, ``max_angular_speed``, ``drive_force``,
+``arm`` true/false, ``arm_reach`` ...; m, kg, m/s, rad/s, N) and ``lidar: {beams, fov_deg, range_m,
+height_m}``; fields left out keep the Husky's. See ``docs/robots.md`` for an example.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .config import ConfigError, EnvConfig, RobotConfig
+
+#: an artefact's recorded footprint within this of the robot's drives it (m)
+FOOTPRINT_TOLERANCE = 0.02
+LIDAR_KEYS = ("beams", "fov_deg", "range_m", "height_m")
+
+
+@dataclass(frozen=True)
+class RobotProfile:
+    """A robot and its LiDAR: beams (count), field of view (rad, centred on the heading), range
+    and scan-plane height (m)."""
+
+    robot: RobotConfig
+    lidar_beams: int
+    lidar_fov: float
+    lidar_max_range: float
+    lidar_height: float
+
+    @property
+    def name(self) -> str:
+        return self.robot.name
+
+    def apply(self, env: EnvConfig) -> EnvConfig:
+        """``env`` with this robot and LiDAR (everything else unchanged)."""
+        return env.replace(robot=self.robot, lidar_beams=self.lidar_beams, lidar_fov=self.lidar_fov,
+                           lidar_max_range=self.lidar_max_range, lidar_height=self.lidar_height)
+
+    def describe(self) -> str:
+        r = self.robot
+        arm = f"a {r.arm_reach:g} m arm" if r.arm else "no arm"
+        return (f"{r.name}: {r.base_length:g} x {r.base_width:g} m, {r.base_mass:g} kg, {r.max_linear_speed:g} m/s, "
+                f"{r.max_angular_speed:g} rad/s, {arm}; LiDAR {self.lidar_beams} beams over "
+                f"{math.degrees(self.lidar_fov):g} deg to {self.lidar_max_range:g} m")
+
+
+PROFILES: dict[str, RobotProfile] = {
+    "husky": RobotProfile(RobotConfig.husky(), 241, math.radians(240.0), 10.0, 0.3),
+    "jackal": RobotProfile(RobotConfig.jackal(), 271, math.radians(270.0), 10.0, 0.3),
+}
+
+
+def profile_of_env(env: EnvConfig) -> RobotProfile:
+    """The profile an environment config holds."""
+    return RobotProfile(env.robot, env.lidar_beams, env.lidar_fov, env.lidar_max_range, env.lidar_height)
+
+
+def load_profile(spec: str) -> RobotProfile:
+    """A built-in profile by name, or a profile file; ``ConfigError`` (one line) otherwise."""
+    if not isinstance(spec, str) or not spec.strip():
+        raise ConfigError(f"robot must be {', '.join(PROFILES)} or a profile file (.yaml), got {spec!r}")
+    if spec in PROFILES:
+        return PROFILES[spec]
+    path = Path(spec)
+    if path.suffix not in (".yaml", ".yml", ".json"):
+        raise ConfigError(f"unknown robot {spec!r}: choose {', '.join(PROFILES)} or give a profile file (.yaml)")
+    from curlnav.files import FileRefused, read_yaml
+
+    try:
+        data = read_yaml(path, what="robot profile")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the robot profile: {exc.strerror or exc}") from None
+    except FileRefused as exc:
+        raise ConfigError(str(exc)) from None
+    try:
+        return profile_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def profile_from_dict(data: Any) -> RobotProfile:
+    """A profile from a file's mapping (see the module docstring); ``ConfigError`` naming the field."""
+    from curlnav.config import config_from_dict
+
+    if not isinstance(data, dict):
+        raise ConfigError("a robot profile is a mapping of name, robot fields and lidar")
+    data = dict(data)
+    if "name" not in data:
+        raise ConfigError("a robot profile needs a name")
+    if data["name"] in PROFILES:
+        raise ConfigError(f"name {data['name']!r} is a built-in profile's; give your robot its own name")
+    lidar = data.pop("lidar", None) or {}
+    if not isinstance(lidar, dict):
+        raise ConfigError("lidar must be a mapping of " + ", ".join(LIDAR_KEYS))
+    unknown = sorted(set(map(str, lidar)) - set(LIDAR_KEYS))
+    if unknown:
+        raise ConfigError(f"unknown lidar key {unknown[0]}; known: {', '.join(LIDAR_KEYS)}")
+    robot = config_from_dict(RobotConfig, data, "robot")
+    husky = PROFILES["husky"]
+    values = {"beams": lidar.get("beams", husky.lidar_beams),
+              "fov_deg": lidar.get("fov_deg", math.degrees(husky.lidar_fov)),
+              "range_m": lidar.get("range_m", husky.lidar_max_range),
+              "height_m": lidar.get("height_m", husky.lidar_height)}
+    for key, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            raise ConfigError(f"lidar.{key} must be a positive number, got {value!r}")
+    if not isinstance(values["beams"], int) or values["beams"] > 16384:
+        raise ConfigError(f"lidar.beams must be a whole number 1-16384, got {values['beams']!r}")
+    if values["fov_deg"] > 360:
+        raise ConfigError(f"lidar.fov_deg must be at most 360, got {values['fov_deg']!r}")
+    profile = RobotProfile(robot, values["beams"], math.radians(values["fov_deg"]), float(values["range_m"]),
+                           float(values["height_m"]))
+    profile.apply(EnvConfig())  # validates the whole environment with it
+    return profile
+
+
+def recorded_robot(meta: dict) -> tuple[str, float, float]:
+    """``(name, base_length, base_width)`` an artefact's metadata records; an artefact from before
+    profiles has no name: a Husky footprint (0.99 x 0.67 m) is the ``husky``, another is ``unnamed``."""
+    robot = meta.get("robot")
+    if not isinstance(robot, dict):
+        raise ValueError("its metadata records no robot")
+    try:
+        length, width = float(robot["base_length"]), float(robot["base_width"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError("its metadata records no robot footprint") from None
+    name = robot.get("name")
+    if name is None:
+        husky = PROFILES["husky"].robot
+        name = "husky" if (length, width) == (husky.base_length, husky.base_width) else "unnamed"
+    return str(name), length, width
+
+
+def check_robot(meta: dict, robot: RobotConfig, what: str) -> None:
+    """Refuse (``ValueError``, one line) an artefact's metadata ``meta`` that records another robot
+    than ``robot``: another name, or a footprint more than ``FOOTPRINT_TOLERANCE`` off."""
+    try:
+        name, length, width = recorded_robot(meta)
+    except ValueError as exc:
+        raise ValueError(f"{what}: {exc}; it cannot drive the {robot.name}") from None
+    same_size = (abs(length - robot.base_length) <= FOOTPRINT_TOLERANCE
+                 and abs(width - robot.base_width) <= FOOTPRINT_TOLERANCE)
+    if name != robot.name or not same_size:
+        raise ValueError(f"{what}: trained for the {name} ({length:g} x {width:g} m), not the {robot.name} "
+                         f"({robot.base_length:g} x {robot.base_width:g} m); refused")
+
+
+def robot_metadata(env: EnvConfig) -> dict:
+    """What an artefact records of its robot (``metadata.json``'s ``robot``)."""
+    r = env.robot
+    out = {k: getattr(r, k) for k in ("base_length", "base_width", "arm_reach", "max_linear_speed",
+                                      "max_angular_speed")}
+    out.update(name=r.name, arm=r.arm)
+    return out
+
+
+def replace_robot(env: EnvConfig, **changes: Any) -> EnvConfig:
+    """``env`` with robot fields changed (a convenience for tests and studies)."""
+    return env.replace(robot=dataclasses.replace(env.robot, **changes))
