@@ -71,18 +71,18 @@ def artefact(tmp_path, robot: dict, name: str = "artefact"):
 
 def test_an_artefact_for_another_robot_is_refused_and_a_jackal_one_is_not(tmp_path):
     husky = {"base_length": 0.99, "base_width": 0.67, "max_linear_speed": 1.0}
-    with pytest.raises(ValueError, match=r"trained for another robot \(husky, 0.99 x 0.67 m\), not the Jackal"):
+    with pytest.raises(ValueError, match=r"trained for the husky \(0.99 x 0.67 m\), not the jackal \(0.508 x 0.43 m\); refused"):
         check_robot(artefact(tmp_path, husky))
     check_robot(artefact(tmp_path, {"name": "jackal", "base_length": 0.508, "base_width": 0.43}, "jackal"))
     check_robot(artefact(tmp_path, {"base_length": 0.51, "base_width": 0.43}, "jackal-unnamed"))
-    with pytest.raises(ValueError, match=r"another robot \(turtlebot, "):
+    with pytest.raises(ValueError, match=r"trained for the turtlebot \(0.508 x 0.43 m\), not the jackal"):
         check_robot(artefact(tmp_path, {"name": "turtlebot", "base_length": 0.508, "base_width": 0.43}, "turtlebot"))
 
 
 @pytest.mark.slow
 def test_eval_refuses_the_husky_policy_on_the_barn_suite_in_one_line():
     assert_one_line_error(run_curlnav("eval", "policies/namo-general", "--suite", "barn", "--worlds", "0-1"),
-                          "policies/namo-general: trained for another robot", "refused")
+                          "policies/namo-general: trained for the husky (0.99 x 0.67 m), not the jackal", "refused")
 
 
 @pytest.mark.slow

@@ -9,10 +9,12 @@ the robot has moved 0.1 m), one trial per world (the simulator is deterministic;
 each world 10 times because Gazebo is not), no wheel slip or sensor noise unless ``--sensor-noise``
 asks for them.
 
-The robot is the Clearpath Jackal (``jackal_env_config``): 0.508 x 0.430 m, 17 kg, up to 2.0 m/s
-(Clearpath's figures), with the challenge's Hokuyo UST-10LX: 270 degrees in 0.25 degree steps
-(1081 beams), 10 m range (its 0.06 m minimum range lies inside the footprint, so it changes
-nothing here). A policy artefact trained for another robot is refused (``check_robot``).
+The robot is the Clearpath Jackal (``jackal_env_config``, the ``jackal`` robot profile): 0.508 x
+0.430 m, 17 kg, up to 2.0 m/s (Clearpath's figures), no arm, with the challenge's Hokuyo UST-10LX:
+270 degrees in 0.25 degree steps (1081 beams), 10 m range (its 0.06 m minimum range lies inside the
+footprint, so it changes nothing here). A policy artefact trained for another robot is refused
+(``check_robot``); a Jackal policy with a coarser LiDAR (the profile's 271 beams) reads the full
+scan through the ROS 2 node's resampler (``ResampledScanPolicy``).
 
 Outcome per trial as ``run.py`` decides it: *collided* when the base touched an obstacle (any
 collision ends the trial, and a collision takes precedence over reaching the goal), else
@@ -26,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,23 +36,23 @@ import numpy as np
 
 from curlnav.sim import EnvConfig
 from curlnav.sim.config import RobotConfig
+from curlnav.sim.robots import PROFILES
+from curlnav.sim.robots import check_robot as check_artefact_robot
 from curlnav.worlds import barn
 
 #: the challenge's own move_base DWA in Gazebo, from its README (50 worlds x 10 runs)
 REFERENCE = {"agent": "the challenge's DWA (move_base, Gazebo; its README: 50 worlds x 10 runs)", "success": 0.88,
              "collisions": 0.048, "timeouts": 0.072, "mean_time_s": 33.4715, "score": 0.1693}
-#: Clearpath's Jackal: 508 x 430 x 250 mm, 17 kg, 2.0 m/s
-JACKAL = dataclasses.replace(RobotConfig.jackal(), base_length=0.508, base_width=0.430, base_mass=17.0,
-                             max_linear_speed=2.0)
+#: Clearpath's Jackal (the ``jackal`` robot profile: 508 x 430 x 250 mm, 17 kg, 2.0 m/s, no arm)
+JACKAL = PROFILES["jackal"].robot
 UST10_BEAMS = 1081  # 270 degrees in 0.25 degree steps, both ends included
 UST10_FOV = math.radians(270.0)
 UST10_RANGE = 10.0  # m
-FOOTPRINT_TOLERANCE = 0.02  # m: an artefact's recorded footprint within this of the Jackal's drives it
 
 
 def jackal_env_config(base: EnvConfig) -> EnvConfig:
-    """``base`` (the evaluation environment) with the Jackal, the challenge's LiDAR and its rules:
-    success within 1 m, 100 s (500 steps of 0.2 s), any collision ends the trial."""
+    """``base`` (the evaluation environment) with the Jackal, the challenge's full LiDAR and its
+    rules: success within 1 m, 100 s (500 steps of 0.2 s), any collision ends the trial."""
     return base.replace(robot=JACKAL, lidar_beams=UST10_BEAMS, lidar_fov=UST10_FOV, lidar_max_range=UST10_RANGE,
                         goal_tolerance=barn.GOAL_RADIUS,
                         max_episode_steps=int(round(barn.TIME_LIMIT / base.control_period)),
@@ -58,29 +61,80 @@ def jackal_env_config(base: EnvConfig) -> EnvConfig:
 
 def check_robot(spec: str, robot: RobotConfig = JACKAL) -> None:
     """Refuse (``ValueError``, one line) a policy artefact whose ``metadata.json`` records another
-    robot than ``robot`` (its ``name`` when recorded, else its footprint). Anything that is not an
-    artefact folder (a planner, a checkpoint) is left to its loader."""
+    robot than ``robot`` (``curlnav.sim.robots.check_robot``). Anything that is not an artefact
+    folder (a planner, a checkpoint) is left to its loader."""
     path = Path(spec)
     meta_path = path / "metadata.json" if path.is_dir() else path if path.name == "metadata.json" else None
     if meta_path is None or not meta_path.is_file():
         return
     try:
-        recorded = json.loads(meta_path.read_text()).get("robot")
-    except (OSError, ValueError, AttributeError):
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError):
         return  # the artefact loader names what is wrong with it
-    if not isinstance(recorded, dict):
-        raise ValueError(f"{spec}: its metadata records no robot; the barn suite drives only Jackal policies")
-    name = recorded.get("name")
-    try:
-        length, width = float(recorded["base_length"]), float(recorded["base_width"])
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{spec}: its metadata records no robot footprint; the barn suite drives only Jackal "
-                         "policies") from None
-    same = abs(length - robot.base_length) <= FOOTPRINT_TOLERANCE and abs(width - robot.base_width) <= FOOTPRINT_TOLERANCE
-    if (name is not None and str(name).lower() != "jackal") or not same:
-        called = f"{name}, " if name else ("husky, " if (length, width) == (0.99, 0.67) else "")
-        raise ValueError(f"{spec}: trained for another robot ({called}{length:g} x {width:g} m), not the Jackal "
-                         f"({robot.base_length:g} x {robot.base_width:g} m) the barn suite drives; refused")
+    if not isinstance(meta, dict):
+        return
+    check_artefact_robot(meta, robot, spec)
+
+
+class ResampledScanPolicy:
+    """A policy whose LiDAR is coarser than the suite's (the Jackal profile reads 271 of the
+    UST-10LX's 1081 beams): every frame of the suite's scan goes through ``resample_scan``, the
+    ROS 2 node's own preprocessing of a ``LaserScan`` (each of the policy's beams takes the
+    nearest return among the scan's beams within half a step of it), so the policy drives here
+    as it would on the robot."""
+
+    def __init__(self, policy, env_config: EnvConfig, metadata: dict) -> None:
+        from curlnav.layout import ObservationLayout
+        from curlnav.ros2.node import ScanLayout
+
+        self.policy = policy
+        self.env_layout = ObservationLayout.from_env_config(env_config)
+        self.scan_layout = ScanLayout.of(metadata)
+        self.fov = env_config.lidar_fov
+        self.range_max = env_config.lidar_max_range
+        if (self.scan_layout.range_frames, self.scan_layout.label_frames, self.scan_layout.goal_frames) != (
+                self.env_layout.range_frames, self.env_layout.label_frames, self.env_layout.goal_frames):
+            raise ValueError("the policy's frame counts differ from the suite's; it cannot be resampled")
+
+    def _scan(self, ranges: np.ndarray, labels: np.ndarray):
+        from types import SimpleNamespace
+
+        n = len(ranges)
+        return SimpleNamespace(ranges=ranges, intensities=labels, angle_min=-self.fov / 2, angle_max=self.fov / 2,
+                               angle_increment=self.fov / (n - 1), range_min=0.0, range_max=self.range_max)
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        from curlnav.ros2.node import resample_scan
+
+        e = self.env_layout
+        obs = np.asarray(observation, dtype=np.float32)
+        n, rf, lf = e.beams, e.range_frames, e.label_frames
+        ranges = obs[:rf * n].reshape(rf, n)
+        labels = obs[rf * n:(rf + lf) * n].reshape(lf, n)
+        out_r, out_l = [], []
+        for k in range(max(rf, lf)):
+            r, lab = resample_scan(self._scan(ranges[min(k, rf - 1)], labels[min(k, lf - 1)]), self.scan_layout)
+            if k < rf:
+                out_r.append(r)
+            if k < lf:
+                out_l.append(lab)
+        return self.policy(np.concatenate([*out_r, *out_l, obs[(rf + lf) * n:]]))
+
+
+def policy_loader(env_config: EnvConfig, load: Callable[[str], object]) -> Callable[[str], object]:
+    """``load`` (a path -> policy) for the suite: a Jackal artefact with a coarser LiDAR than
+    ``env_config``'s is wrapped in ``ResampledScanPolicy``; any other robot is refused first."""
+
+    def loader(spec: str):
+        check_robot(spec, env_config.robot)
+        policy = load(spec)
+        metadata = getattr(policy, "metadata", None)
+        beams = (metadata or {}).get("observation", {}).get("layout", {}).get("beams")
+        if metadata is not None and beams != env_config.lidar_beams:
+            return ResampledScanPolicy(policy, env_config, metadata)
+        return policy
+
+    return loader
 
 
 @dataclass(frozen=True)

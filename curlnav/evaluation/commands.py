@@ -44,8 +44,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         table_ii,
         write_csv,
     )
+    from curlnav.evaluation.barn import check_robot
     from curlnav.planners import make_agent
     from curlnav.sim import get_world
+    from curlnav.sim.robots import load_profile
     from curlnav.worlds.pairs import check_pairs_possible
 
     if args.suite == "barn":
@@ -64,13 +66,21 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise ValueError(f"--seeds must be at least 1, got {args.seeds}")
     sensor_noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set or ())
-    env_config = ExperimentConfig().eval_env.replace(sensor_noise=sensor_noise)
+    profile = load_profile(args.robot or "husky")
+    env_config = profile.apply(ExperimentConfig().eval_env.replace(sensor_noise=sensor_noise))
+    if args.robot:
+        print(f"robot {profile.describe()}")
     if not sensor_noise.is_exact:
         print(f"sensor noise: {sensor_noise.describe()} (every agent sees the same noisy observations)")
     worlds = [get_world(spec) for spec in (suite.worlds if suite else args.world or ["open-room"])]
     for world in worlds:
         check_pairs_possible(world)
-    agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
+
+    def load(spec: str):  # an artefact drives only the robot it was trained for
+        check_robot(spec, env_config.robot)
+        return _load_policy(spec)
+
+    agents = dict(make_agent(spec, env_config, load, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
     pairs_of = suite.pairs_of if suite else lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes)
@@ -103,11 +113,21 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _eval_barn(args: argparse.Namespace) -> int:
     """``--suite barn``: the BARN Challenge's worlds, rules and score (``curlnav.evaluation.barn``)."""
     from curlnav.config import ExperimentConfig
-    from curlnav.evaluation.barn import BarnTrial, check_robot, jackal_env_config, reference_line, summarise, write_csv
+    from curlnav.evaluation.barn import (
+        BarnTrial,
+        check_robot,
+        jackal_env_config,
+        policy_loader,
+        reference_line,
+        summarise,
+        write_csv,
+    )
     from curlnav.evaluation.compare import Comparison
     from curlnav.planners import GLOBAL_PLAN_SUFFIX, canonical, make_agent
     from curlnav.worlds import barn
 
+    if args.robot not in (None, "jackal"):
+        raise ValueError(f"--suite barn drives the Jackal (the challenge's robot); drop --robot {args.robot}")
     given = [flag for flag, value in (("--world", args.world), ("--pair", args.pair), ("--pairs", args.pairs),
                                       ("--episodes", args.episodes), ("--seeds", args.seeds)) if value is not None]
     if given:
@@ -119,7 +139,8 @@ def _eval_barn(args: argparse.Namespace) -> int:
     for spec in args.agents:
         if canonical(spec) is None:
             check_robot(spec.removesuffix(GLOBAL_PLAN_SUFFIX))
-    agents = dict(make_agent(spec, env_config, _load_policy, args.global_plan) for spec in args.agents)
+    load = policy_loader(env_config, _load_policy)
+    agents = dict(make_agent(spec, env_config, load, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
     print(f"suite barn: the BARN Challenge's worlds {numbers[0]}-{numbers[-1]} ({len(numbers)}), a Jackal from "
@@ -198,6 +219,10 @@ def add_commands(sub) -> None:
                         "timeouts, mean time and score beside the challenge's published DWA figure")
     p.add_argument("--worlds", default=None, metavar="A-B",
                    help="with --suite barn: only BARN worlds A to B (0-299; default all)")
+    p.add_argument("--robot", default=None, metavar="PROFILE",
+                   help="the robot every agent drives: husky (default), jackal (the default and only choice of "
+                        "--suite barn) or a profile file (docs/robots.md); a policy artefact trained for another "
+                        "robot is refused")
     p.add_argument("--sensor-noise", default="none", metavar="PRESET",
                    help=f"imperfect senses for every agent: {', '.join(SENSOR_NOISE_PRESETS)} (default none: the "
                         "exact simulator); range noise, dropouts, spurious returns, label errors, latency, odometry "

@@ -136,7 +136,7 @@ def profile_from_dict(data: Any) -> RobotProfile:
 
 def recorded_robot(meta: dict) -> tuple[str, float, float]:
     """``(name, base_length, base_width)`` an artefact's metadata records; an artefact from before
-    profiles has no name: a Husky footprint (0.99 x 0.67 m) is the ``husky``, another is ``unnamed``."""
+    profiles has no name: the built-in profile of its footprint (within ``FOOTPRINT_TOLERANCE``)."""
     robot = meta.get("robot")
     if not isinstance(robot, dict):
         raise ValueError("its metadata records no robot")
@@ -145,9 +145,9 @@ def recorded_robot(meta: dict) -> tuple[str, float, float]:
     except (KeyError, TypeError, ValueError):
         raise ValueError("its metadata records no robot footprint") from None
     name = robot.get("name")
-    if name is None:
-        husky = PROFILES["husky"].robot
-        name = "husky" if (length, width) == (husky.base_length, husky.base_width) else "unnamed"
+    if name is None:  # from before profiles: the built-in robot of that footprint, if any
+        name = next((p.name for p in PROFILES.values() if abs(p.robot.base_length - length) <= FOOTPRINT_TOLERANCE
+                     and abs(p.robot.base_width - width) <= FOOTPRINT_TOLERANCE), "unnamed robot")
     return str(name), length, width
 
 
