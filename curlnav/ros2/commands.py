@@ -45,6 +45,9 @@ def add_ros2_commands(sub) -> None:
 
 
 def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", default="husky", metavar="PROFILE",
+                   help="the robot: husky (default), jackal or a profile file (docs/robots.md); a policy artefact "
+                        "trained for another robot is refused")
     p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: ROS_DOMAIN_ID, else 0)")
     p.add_argument("--loopback", action="store_true", help="keep DDS on this machine (loopback, no multicast)")
     p.add_argument("--remap", action="append", default=[], metavar="KEY:=/TOPIC",
@@ -70,11 +73,15 @@ def _bus(args, max_sample_bytes: int | None = None):
     return Bus(domain, loopback=args.loopback, max_sample_bytes=max_sample_bytes), domain
 
 
-def _agent(name: str):
+def _agent(name: str, robot: str = "husky"):
     """``(agent, layout)`` for ``curlnav ros2 run AGENT``: a map-less planner of the registry
-    (``curlnav.planners.PLANNERS``) on the evaluation environment's scan and robot, or a policy
-    artefact with the layout of its metadata."""
+    (``curlnav.planners.PLANNERS``) on the evaluation environment's scan and robot profile
+    ``robot``, or a policy artefact with the layout of its metadata, refused (one line) when it
+    was trained for another robot than ``robot``."""
     from curlnav.planners import PLANNERS, canonical, make_planner
+    from curlnav.sim.robots import check_robot, load_profile
+
+    profile = load_profile(robot)
 
     from .node import ScanLayout
 
@@ -85,11 +92,12 @@ def _agent(name: str):
                              f"artefact or a map-less planner ({', '.join(p.name for p in PLANNERS.values() if p.map_less)})")
         from curlnav.config import ExperimentConfig
 
-        env_config = ExperimentConfig().eval_env
+        env_config = profile.apply(ExperimentConfig().eval_env)
         return make_planner(planner, env_config), ScanLayout.from_env_config(env_config)
     from curlnav.policy import PolicyArtefact
 
     policy = PolicyArtefact(name)
+    check_robot(policy.metadata, profile.robot, name)
     layout = ScanLayout.of(policy.metadata)
     if layout.limits_problem():
         raise ValueError(f"{name}: {layout.limits_problem()}: the node cannot bound its commands")
@@ -103,7 +111,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from .node import NodeConfig, PolicyNode, run_node
     from .topics import NODE_MAX_SAMPLE_BYTES, NODE_TOPICS, remap
 
-    policy, layout = _agent(args.agent)
+    policy, layout = _agent(args.agent, args.robot)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,
@@ -124,7 +132,10 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from .topics import SIM_TOPICS, remap
 
     topics = remap(SIM_TOPICS, args.remap)
-    robot = SimRobot(args.world, args.pair, seed=args.seed)
+    from curlnav.sim import EnvConfig
+    from curlnav.sim.robots import load_profile
+
+    robot = SimRobot(args.world, args.pair, seed=args.seed, config=load_profile(args.robot).apply(EnvConfig()))
     try:
         bus, domain = _bus(args)
         x, y, yaw = robot.pose

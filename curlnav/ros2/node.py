@@ -93,6 +93,7 @@ class ScanLayout:
     max_angular_speed: float = 1.0  # rad/s at |action[1]| = 1
     arm_reach: float = 0.5  # m at action[2] = 1
     control_period_s: float = 0.2
+    arm: bool = True  # False: the robot has no arm (metadata robot.arm), /arm_cmd stays 0
 
     @classmethod
     def of(cls, metadata: dict) -> ScanLayout:
@@ -106,7 +107,8 @@ class ScanLayout:
                        range_frames=int(layout.get("range_frames", 4)), label_frames=int(layout.get("label_frames", 4)),
                        goal_frames=int(layout.get("goal_frames", 10)), max_linear_speed=float(scale[0]),
                        max_angular_speed=float(scale[1]), arm_reach=float(scale[2]),
-                       control_period_s=float(obs.get("control_period_s", 0.2)))
+                       control_period_s=float(obs.get("control_period_s", 0.2)),
+                       arm=metadata.get("robot", {}).get("arm", True) is not False)
         except (AttributeError, IndexError, KeyError, TypeError, ValueError, OverflowError) as exc:
             raise ValueError(f"metadata: the observation layout or action.scale cannot be read ({exc})") from None
 
@@ -118,7 +120,7 @@ class ScanLayout:
         return cls(beams=cfg.lidar_beams, fov_rad=cfg.lidar_fov, max_range_m=cfg.lidar_max_range,
                    range_frames=cfg.range_frames, label_frames=cfg.label_frames, goal_frames=cfg.goal_frames,
                    max_linear_speed=robot.max_linear_speed, max_angular_speed=robot.max_angular_speed,
-                   arm_reach=robot.arm_reach, control_period_s=cfg.control_period)
+                   arm_reach=robot.arm_reach, control_period_s=cfg.control_period, arm=robot.arm)
 
     @property
     def limits(self) -> tuple[float, float, float]:
@@ -531,8 +533,8 @@ class PolicyNode:
             command, why = Command(0.0, 0.0, 0.0, f"stopped: unsafe command (policy action {action.tolist()})"), "nan"
         else:
             v, w, arm = float(np.clip(action[0], 0, 1)), float(np.clip(action[1], -1, 1)), float(np.clip(action[2], 0, 1))
-            command, why = guard(Command(v * lay.max_linear_speed, w * lay.max_angular_speed, arm * lay.arm_reach,
-                                         "active"), lay)
+            command, why = guard(Command(v * lay.max_linear_speed, w * lay.max_angular_speed,
+                                         arm * lay.arm_reach if lay.arm else 0.0, "active"), lay)
         if why is not None:
             self.counts["unsafe_commands"] += 1
             return self._stop(command.state)

@@ -24,6 +24,7 @@ OPTION_FIELDS = {
     "eval_episodes": "evaluation.episodes",
     "stop_at_success": "evaluation.stop_at_success",
     "seed": "seed",
+    "robot": "robot",
 }
 
 
@@ -52,6 +53,9 @@ def add_train_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stop-at-success", type=float, default=None,
                    help="stop when a held-out evaluation reaches this rate (evaluation.stop_at_success)")
     p.add_argument("--seed", type=int, default=None, help="experiment seed (seed)")
+    p.add_argument("--robot", default=None, metavar="PROFILE",
+                   help="robot profile: husky (default), jackal or a profile file: the base, arm and LiDAR "
+                        "(robot; docs/robots.md)")
 
 
 def option_overrides(args: argparse.Namespace) -> list[str]:
