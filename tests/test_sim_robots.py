@@ -110,7 +110,8 @@ def test_an_artefact_records_its_robot_and_refuses_another_in_one_line(jackal_ar
     husky_meta = json.loads((artefact / "metadata.json").read_text())
     check_robot(meta, PROFILES["jackal"].robot, "j")
     check_robot(husky_meta, PROFILES["husky"].robot, "h")
-    with pytest.raises(ValueError, match=r"^j: trained for the jackal \(0.508 x 0.43 m\), not the husky \(0.99 x 0.67 m\); refused$"):
+    refusal = r"^j: trained for the jackal \(0.508 x 0.43 m\), not the husky \(0.99 x 0.67 m\); refused$"
+    with pytest.raises(ValueError, match=refusal):
         check_robot(meta, PROFILES["husky"].robot, "j")
     with pytest.raises(ValueError, match=r"^h: trained for the husky \(0.99 x 0.67 m\), not the jackal"):
         check_robot(husky_meta, PROFILES["jackal"].robot, "h")

@@ -33,6 +33,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     """Evaluate one or more agents (policies and the planners of ``curlnav.planners.PLANNERS``) side
     by side (``curlnav.evaluation.compare``)."""
     from curlnav.config import ExperimentConfig
+    from curlnav.evaluation.barn import check_robot
     from curlnav.evaluation.compare import (
         OVERALL,
         SUITES,
@@ -44,7 +45,6 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         table_ii,
         write_csv,
     )
-    from curlnav.evaluation.barn import check_robot
     from curlnav.planners import make_agent
     from curlnav.sim import get_world
     from curlnav.sim.robots import load_profile
