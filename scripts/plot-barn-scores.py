@@ -6,7 +6,8 @@ BARN's five metrics (``curlnav.worlds.metrics.barn_metrics`` on its grid and its
 z-scored over the 300 worlds and combined as ``distance + visibility + characteristic dimension``
 taken negatively plus ``dispersion + tortuosity`` (higher: harder; BARN publishes no weights).
 
-Usage: ``scripts/plot-barn-scores.py DIR/barn-trials.csv OUT.png`` (prints the table).
+Usage: ``scripts/plot-barn-scores.py TRIALS.csv [TRIALS.csv ...] OUT.png`` (prints the table); with
+several files (runs of different agents), an agent found in two keeps the later file's trials.
 """
 
 from __future__ import annotations
@@ -36,10 +37,17 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    trials_path, png = sys.argv[1], sys.argv[2]
+    if len(sys.argv) < 3:
+        print("usage: scripts/plot-barn-scores.py TRIALS.csv [TRIALS.csv ...] OUT.png", file=sys.stderr)
+        return 2
+    *trials_paths, png = sys.argv[1:]
     scores: dict[str, dict[int, float]] = defaultdict(dict)
-    with open(trials_path) as f:
-        for row in csv.DictReader(f):
+    for trials_path in trials_paths:
+        with open(trials_path) as f:
+            rows = list(csv.DictReader(f))
+        for agent in {row["agent"] for row in rows}:
+            scores.pop(agent, None)  # the later file's run of an agent replaces an earlier one
+        for row in rows:
             scores[row["agent"]][int(row["world"])] = float(row["score"])
     hard = difficulty()
     edges = np.quantile(hard, np.linspace(0, 1, BINS + 1))
