@@ -480,7 +480,8 @@ def apply_overrides(cfg: ExperimentConfig, overrides: list[str]) -> ExperimentCo
 
 
 #: environment variables that set one field each (what containers have always used)
-ENV_ALIASES = {"CURLNAV_WORLD": "curriculum.world", "CURLNAV_CURRICULUM": "curriculum.file", "CURLNAV_SEED": "seed"}
+ENV_ALIASES = {"CURLNAV_WORLD": "curriculum.world", "CURLNAV_CURRICULUM": "curriculum.file", "CURLNAV_SEED": "seed",
+               "CURLNAV_ROBOT": "robot"}
 
 
 def overrides_from_environment(environ: dict[str, str] | None = None) -> list[str]:
