@@ -60,6 +60,9 @@ def test_robot_in_the_config_sets_the_robot_and_its_lidar_and_env_fields_still_w
     path.write_text("robot: jackal\nenv: {lidar_beams: 541, max_episode_steps: 500}\n")
     cfg = load_config(path)
     assert cfg.env.robot.name == "jackal" and cfg.env.lidar_beams == 541 and cfg.env.max_episode_steps == 500
+    # containers: CURLNAV_ROBOT (docker compose passes it to every service); empty is unset
+    assert resolve_config(environ={"CURLNAV_ROBOT": "jackal"}).env.robot.name == "jackal"
+    assert resolve_config(environ={"CURLNAV_ROBOT": ""}).env.robot.name == "husky"
     # the default config's hash is the one of before profiles (runs resume, services agree)
     assert config_hash(ExperimentConfig()) == "e1337c51f22c6a058e25516fba3793a221e06f50df2e71a73f4a1bc2df38271a"
     assert config_hash(cfg) != config_hash(ExperimentConfig())
