@@ -106,3 +106,35 @@ def test_the_suite_prints_per_world_lines_the_reference_and_the_last_line(tmp_pa
     m = LAST_LINE.match([line for line in lines if line.startswith("barn: ")][-1])
     assert m and m.group(1) == "oracle" and m.group(7) == "2", lines[-3:]
     assert (tmp_path / "barn-trials.csv").read_text().count("\n") == 3
+
+
+def test_a_jackal_policy_reads_the_full_scan_as_its_own_lidar_through_the_nodes_resampler():
+    """The suite's 1081-beam UST-10LX scan, resampled for a 271-beam Jackal policy, against the
+    271-beam LiDAR it was trained with, at the challenge's start in world 0: the full scan holds every
+    policy angle, so the resampler decimates it and the policy reads what it read in training."""
+    from curlnav.evaluation.barn import ResampledScanPolicy
+    from curlnav.layout import ObservationLayout
+    from curlnav.sim import NamoEnv
+    from curlnav.sim.robots import PROFILES
+
+    suite_cfg = jackal_env_config(ExperimentConfig().eval_env)
+    own_cfg = PROFILES["jackal"].apply(suite_cfg)
+    seen = []
+    meta = {"observation": {"layout": ObservationLayout.from_env_config(own_cfg).to_dict(),
+                            "lidar_fov_rad": own_cfg.lidar_fov, "control_period_s": 0.2},
+            "action": {"scale": [2.0, 1.57, 0.3]}}
+    wrapped = ResampledScanPolicy(lambda obs: seen.append(obs) or np.zeros(3, np.float32), suite_cfg, meta)
+    observations = []
+    for cfg in (suite_cfg, own_cfg):
+        env = NamoEnv(barn.world(0), cfg)
+        try:
+            observations.append(env.reset(seed=0, options={"pair": "barn"})[0])
+        finally:
+            env.close()
+    wrapped(observations[0])
+    layout = ObservationLayout.from_env_config(own_cfg)
+    assert seen[0].shape == observations[1].shape == (layout.size,)
+    resampled, own = layout.newest_frame(seen[0]), layout.newest_frame(observations[1])
+    np.testing.assert_allclose(resampled[0], own[0], atol=1e-4)
+    assert own[0].min() < 3.0  # it sees the walls and cylinders around the start
+    assert (resampled[1] == own[1]).all() and (resampled[2] == own[2]).all()

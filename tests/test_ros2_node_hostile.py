@@ -185,10 +185,15 @@ def test_the_resampler_is_linear_in_the_ranges_and_agrees_with_the_old_one_on_or
         n = int(rng.integers(3, 3000))
         scans[f"random {k}"] = scan_of(rng.uniform(0.1, 11, n), rng.integers(0, 2, n),
                                        fov=float(rng.uniform(0.05, 2 * math.pi)), angle_min=float(rng.uniform(-4, 1)))
+    aligned = scans.pop("360 deg, 0.5 deg apart")  # holds every policy angle: decimated (issue 38), not min-pooled
     for name, scan in scans.items():
         new, old = resample_scan(scan, layout), old_resample(scan, layout)
         np.testing.assert_array_equal(new[0], old[0], err_msg=f"{name}: ranges")
         np.testing.assert_array_equal(new[1], old[1], err_msg=f"{name}: labels")
+    r, labels = resample_scan(aligned, layout)
+    every_other = slice(120, 601, 2)  # -180 + 0.5 k degrees: k = 120 is -120, k = 600 is +120
+    np.testing.assert_array_equal(r, np.minimum(np.asarray(aligned.ranges)[every_other], 10.0).astype(np.float32))
+    np.testing.assert_array_equal(labels, np.asarray(aligned.intensities)[every_other].astype(np.float32))
 
 
 # -- 5. the goal's lifecycle -----------------------------------------------------------------------------------

@@ -182,6 +182,10 @@ class ScanRefused(ValueError):
     """A scan the node will not act on (too many NaN, wrong length, wrong frame, labels not 0..1)."""
 
 
+#: an input beam this close to a policy beam's angle is that beam's reading (rad; 0.001 degree)
+ALIGNED_RAD = math.radians(0.001)
+
+
 def resample_scan(scan, layout: ScanLayout, max_nan_fraction: float = MAX_NAN_FRACTION) -> tuple[np.ndarray, np.ndarray]:
     """``(ranges, labels)``, each ``(layout.beams,)`` float32, of a ``sensor_msgs/LaserScan``
     (any object with its fields), or ``ScanRefused`` naming what is wrong. At most
@@ -197,7 +201,13 @@ def resample_scan(scan, layout: ScanLayout, max_nan_fraction: float = MAX_NAN_FR
       dropouts, while at most ``max_nan_fraction`` of the ranges are NaN; a scan with more is
       refused (the sensor is failing: the robot stops rather than drive on a blind scan).
 
-    The labels (``intensities``) are taken as given on every other beam."""
+    The labels (``intensities``) are taken as given on every other beam.
+
+    A scan with a beam at every policy angle it covers (within ``ALIGNED_RAD``: a finer scan of the
+    same field, e.g. the UST-10LX's 1081 beams for the Jackal profile's 271) is decimated, as the
+    simulator's LiDAR reads exactly at the policy's angles. Otherwise each policy beam takes the
+    nearest return among the input beams of its bin (within half a policy step), or, when its bin
+    holds none, the nearest input beam within that beam's own increment."""
     n, n_labels = len(scan.ranges), len(scan.intensities)
     if n == 0:
         raise ScanRefused("no ranges")
@@ -230,12 +240,22 @@ def resample_scan(scan, layout: ScanLayout, max_nan_fraction: float = MAX_NAN_FR
     angles = a0 + inc * np.arange(n)
     angles = (angles + math.pi) % (2 * math.pi) - math.pi
     step = layout.fov_rad / (layout.beams - 1)
-    index = np.rint((angles + layout.fov_rad / 2) / step).astype(np.int64)
+    position = (angles + layout.fov_rad / 2) / step
+    index = np.rint(position).astype(np.int64)
     inside = (index >= 0) & (index < layout.beams)
+    # a scan with a beam at every policy angle it covers (a finer scan of the same field: every k-th
+    # beam) is decimated, as the simulator's LiDAR reads exactly at those angles; any other is
+    # min-pooled over each policy beam's bin
+    at_angle = inside & (np.abs(position - index) * step <= ALIGNED_RAD)
+    exact = np.zeros(layout.beams, dtype=bool)
+    exact[index[at_angle]] = True
+    covered = np.zeros(layout.beams, dtype=bool)
+    covered[index[inside]] = True
+    use = at_angle if covered.any() and exact[covered].all() else inside
     out = np.full(layout.beams, np.inf)
-    np.minimum.at(out, index[inside], r[inside])
+    np.minimum.at(out, index[use], r[use])
     out_labels = np.zeros(layout.beams)
-    hit = inside & (r == out[np.clip(index, 0, layout.beams - 1)])
+    hit = use & (r == out[np.clip(index, 0, layout.beams - 1)])
     np.maximum.at(out_labels, index[hit], labels[hit])  # the label of the bin's nearest return
     empty = np.flatnonzero(~np.isfinite(out))
     if len(empty):  # a coarser input: the nearest input beam within its own increment
