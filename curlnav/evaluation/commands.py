@@ -209,11 +209,13 @@ def add_commands(sub) -> None:
     p.add_argument("--seeds", type=int, default=None,
                    help="runs of every pair, each with its own ball places (worlds that re-place balls on reset; "
                         "default 1)")
-    p.add_argument("--suite", choices=["unseen", "barn"], default=None,
+    p.add_argument("--suite", choices=["unseen", "real", "barn"], default=None,
                    help="a fixed set of worlds nobody trains on. unseen: NAMO office, indoor and auditorium at seeds "
                         "300 and 301, barn-3x3 and slam-office at seed 300; 8 trials each: pairs x ball placements; prints "
                         "Table II's layout (success with a 95%% interval, contact events, time, SPL), and with --out "
-                        "writes table2.md beside the CSV files and pictures. barn: the BARN Challenge's 300 worlds "
+                        "writes table2.md beside the CSV files and pictures. real: nine real buildings' SLAM maps "
+                        "(vendored, whole; unknown cells are walls), 6 pairs 6-20 m apart and 8 balls on their paths "
+                        "per map, fixed by seed; the same outputs as unseen. barn: the BARN Challenge's 300 worlds "
                         "(vendored), its start, goal, 1 m radius, 100 s, collision rule and score, with the Jackal and "
                         "its LiDAR, in curlnav's simulator (not Gazebo); per world and overall success, collisions, "
                         "timeouts, mean time and score beside the challenge's published DWA figure")

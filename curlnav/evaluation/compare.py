@@ -37,6 +37,7 @@ import numpy as np
 from curlnav.evaluation.protocol import EVAL_SEED, StepRecorder, evaluate, held_out_pairs
 from curlnav.planners.oracle import GridPlanner, polyline_length
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
+from curlnav.worlds import real_maps
 from curlnav.worlds.pairs import draws_random_pairs
 
 DEFAULT_EPISODES = 50  # held-out pairs per world when neither pairs nor episodes are given
@@ -397,7 +398,19 @@ UNSEEN = Suite(
     about="NAMO office, indoor and auditorium at seeds 300 and 301 (8 of each world's own pairs, every one through "
           "a door; their balls stay put), barn-3x3 at seed 300 (4 held-out pairs x 2 placements of its 8 balls), "
           "slam-office at seed 300 (a 92 m x 72 m SLAM-like floor without balls, 8 held-out pairs 10-20 m apart)")
-SUITES = {UNSEEN.name: UNSEEN}
+#: ``curlnav eval AGENT... --suite real``: nine real buildings as SLAM stacks mapped them, vendored
+#: whole (``curlnav.worlds.real_maps.MAPS``: sources, licences, how unknown cells count); on each, 6 pairs
+#: 6-20 m apart (shortest path at most 30 m, within the 60 s limit) and 8 balls on their shortest
+#: paths, all from one seed: 54 trials per agent.
+REAL = Suite(
+    "real",
+    real_maps.specs(),
+    trials=real_maps.PAIRS, ball_placements=1,
+    about=f"{len(real_maps.MAPS)} real buildings' SLAM maps, vendored whole (Willow Garage, Fraunhofer IPA's office, "
+          "Yujin Robot's R&D office, six floors of two University of Tokyo buildings: lobby, offices, lab, corridor, "
+          "basement); 6 pairs 6-20 m apart and 8 balls on their shortest paths per map, fixed by seed; unknown cells "
+          "are walls")
+SUITES = {UNSEEN.name: UNSEEN, REAL.name: REAL}
 
 
 def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float, float]:

@@ -4,7 +4,8 @@ pairs (`pairs`), the resolver of world specs and the built-in worlds (`builtin`)
 worlds (`distribution`), the held-out seeds (`heldout`), curriculum levels (`levels`), the BARN
 navigation-difficulty metrics (`metrics`), the ranking that orders a curriculum (`rank`), a world's
 picture (`picture`), Gazebo SDF worlds read onto the grid (`sdf`), the BARN Challenge's vendored
-worlds (`barn`) and the `curlnav worlds` commands (`commands`). Submodules are imported on use."""
+worlds (`barn`), real buildings' vendored SLAM maps and the real suite's tasks (`real_maps`) and the
+`curlnav worlds` commands (`commands`). Submodules are imported on use."""
 
 __all__ = ["barn", "builtin", "commands", "distribution", "families", "generators", "heldout", "levels", "metrics", "namo",
-           "pairs", "picture", "rank", "scatter", "sdf", "slam_like", "tmaze", "world"]
+           "pairs", "picture", "rank", "real_maps", "scatter", "sdf", "slam_like", "tmaze", "world"]

@@ -101,7 +101,8 @@ BUILTIN_WORLDS: dict[str, Callable[[], World]] = {
 }
 
 #: the forms every world argument takes (one resolver, ``get_world``): for command-line help
-WORLD_FORMS = "built-in world name, world YAML path, or FAMILY:SEED for a generated world (e.g. t-maze:0)"
+WORLD_FORMS = ("built-in world name, world YAML path, FAMILY:SEED for a generated world (e.g. t-maze:0), or "
+               "real:NAME for a real building's SLAM map with the real suite's pairs and balls (e.g. real:willow-garage)")
 
 _CACHE: dict[str, World] = {}
 _DISTRIBUTION = re.compile(r"^[a-z0-9][a-z0-9-]*:\d+-\d+(\(.*\))?$")
@@ -111,8 +112,9 @@ def get_world(spec: str | os.PathLike | World) -> World:
     """The one resolver of a world argument (every command, service and curriculum file): a
     built-in name, a path to a world YAML, ``FAMILY:SEED`` for a generated world
     (``t-maze:0``, ``barn-3x3:12``: ``curlnav.worlds.families``), a world distribution's key
-    (``barn-3x3:0-99(fill_pct=0.1~0.3)``: its first world, ``curlnav.worlds.distribution``), or a
-    ``World`` (returned as is).
+    (``barn-3x3:0-99(fill_pct=0.1~0.3)``: its first world, ``curlnav.worlds.distribution``),
+    ``real:NAME`` for a real building's vendored SLAM map with the ``real`` suite's pairs and balls
+    (``curlnav.worlds.real_maps``), or a ``World`` (returned as is).
 
     Raises ``WorldError`` naming the forms and the known built-ins when ``spec`` is none of them.
     """
@@ -136,6 +138,10 @@ def get_world(spec: str | os.PathLike | World) -> World:
                 raise WorldError(str(exc)) from None
             _CACHE[key] = distribution.world(distribution.lo)
         return _CACHE[key]
+    if key.startswith("real:"):  # a vendored real map (its task is cached there)
+        from curlnav.worlds import real_maps
+
+        return real_maps.task(key.removeprefix("real:"))
     family, sep, seed = key.rpartition(":")
     if sep and seed.isdigit():
         from curlnav.worlds.families import FAMILIES, generate
@@ -145,5 +151,5 @@ def get_world(spec: str | os.PathLike | World) -> World:
                 _CACHE[key] = generate(family, int(seed))
             return _CACHE[key]
         raise WorldError(f"unknown world family {family!r} in {key!r}: FAMILY:SEED takes one of {', '.join(FAMILIES)}")
-    raise WorldError(f"unknown world {key!r}: not a built-in ({', '.join(BUILTIN_WORLDS)}), not a world YAML file "
-                     f"and not FAMILY:SEED (a generated world, e.g. t-maze:0)")
+    raise WorldError(f"unknown world {key!r}: not a built-in ({', '.join(BUILTIN_WORLDS)}), not a world YAML file, "
+                     f"not FAMILY:SEED (a generated world, e.g. t-maze:0) and not real:NAME (a real building's map)")

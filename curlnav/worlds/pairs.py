@@ -101,16 +101,16 @@ class PairSampler:
         return self._members[label]
 
     def draw(self, rng: np.random.Generator, excluded: set | frozenset = frozenset(),
-             name: str = "random") -> StartGoal:
+             name: str = "random", max_distance: float = math.inf) -> StartGoal:
         """A seeded pair: start and goal on connected free C-space cells at least
-        ``spec.min_distance`` apart, the footprint free at the start's yaw, not in ``excluded``
-        (``pair_key`` tuples)."""
+        ``spec.min_distance`` and at most ``max_distance`` (m, straight line) apart, the footprint
+        free at the start's yaw, not in ``excluded`` (``pair_key`` tuples)."""
         world, spec = self.world, self.spec
         for _ in range(MAX_TRIES):
             sy, sx = self.starts[rng.integers(len(self.starts))]
             same = self._component(int(self.labels[sy, sx]))
             d = np.hypot(same[:, 0] - sy, same[:, 1] - sx) * world.resolution
-            far = same[d >= spec.min_distance]
+            far = same[(d >= spec.min_distance) & (d <= max_distance)]
             if len(far) == 0:
                 continue
             gy, gx = far[rng.integers(len(far))]
@@ -122,7 +122,8 @@ class PairSampler:
             if not footprint_free(world, start[0], start[1], yaw, *self.footprint, margin=FOOTPRINT_MARGIN):
                 continue
             return StartGoal(name, start[0], start[1], yaw, goal[0], goal[1])
-        raise WorldError(f"{world.source}: world {world.name!r}: found no start/goal pair {spec.min_distance:g} m apart "
+        apart = f"{spec.min_distance:g}-{max_distance:g} m" if math.isfinite(max_distance) else f"{spec.min_distance:g} m"
+        raise WorldError(f"{world.source}: world {world.name!r}: found no start/goal pair {apart} apart "
                          f"in {MAX_TRIES} tries")
 
 

@@ -1,0 +1,167 @@
+"""The real-map suite (``curlnav eval AGENT... --suite real``): real buildings' SLAM maps vendored
+byte for byte with their sources and licences, loaded whole, unknown cells as walls, and the
+suite's pairs and balls fixed by seed, reachable for the Husky, on the shortest paths."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import re
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+from scipy import ndimage
+
+from curlnav.cli import main
+from curlnav.evaluation.compare import SUITES
+from curlnav.worlds import real_maps
+from curlnav.worlds.builtin import get_world
+from curlnav.worlds.pairs import FOOTPRINT_MARGIN, HUSKY_FOOTPRINT, footprint_free
+from curlnav.worlds.rank import path_points, world_paths
+from curlnav.worlds.world import WorldError, map_server_values
+
+#: kept apart for an independent check of the suite: no map may come from them
+FORBIDDEN = ("turtlebot/turtlebot_apps", "utexas-bwi/bwi_common", "mit-racecar/racecar_simulator",
+             "f1tenth/f1tenth_simulator", "b-it-bots/mas_domestic_robotics", "RobotnikAutomation/summit_xl_common",
+             "aws-robotics/aws-robomaker-small-house-world")
+OPEN_LICENCES = {"BSD", "MIT", "Apache-2.0", "CC-BY-4.0"}
+SMALL = ("yujin-rnd", "jsk-eng8-6f")  # the quickest to build: the quick loop's determinism check
+
+vendored = pytest.mark.skipif(bool(real_maps.missing()), reason="the real maps are not vendored here "
+                              "(scripts/vendor-real-maps.py writes them into curlnav/worlds/data/real)")
+
+
+def manifest() -> dict[str, str]:
+    """``<name>/<file>`` -> sha256 of the original bytes."""
+    lines = real_maps.MANIFEST.read_text().splitlines()
+    return {path: digest for digest, path in (line.split("  ", 1) for line in lines if line)}
+
+
+# -- sources and licences --------------------------------------------------------------------------
+def test_the_manifest_names_every_original_file_of_every_map_and_nothing_else():
+    expected = {f"{m.name}/{file}" for m in real_maps.MAPS.values() for file in m.originals}
+    assert set(manifest()) == expected
+    assert all(re.fullmatch(r"[0-9a-f]{64}", digest) for digest in manifest().values())
+
+
+@vendored
+def test_the_vendored_bytes_are_the_sources_bytes():
+    for path, digest in manifest().items():
+        name, file = path.split("/", 1)
+        assert hashlib.sha256(real_maps.original_bytes(name, file)).hexdigest() == digest, path
+
+
+def test_every_source_md_names_its_repository_commit_paths_and_an_open_licence():
+    assert len(real_maps.MAPS) >= 8
+    for m in real_maps.MAPS.values():
+        text = (m.folder / "SOURCE.md").read_text()
+        assert f"https://github.com/{m.repository}" in text and m.commit in text and re.fullmatch(r"[0-9a-f]{40}", m.commit)
+        assert m.image in text and m.licence_file in text and (m.yaml is None or m.yaml in text)
+        assert m.licence in OPEN_LICENCES and f"Licence: {m.licence}" in text
+        assert "real building" in text and m.why_real in text
+
+
+def test_no_map_comes_from_a_repository_kept_apart():
+    texts = [real_maps.MANIFEST.read_text()] + [(m.folder / "SOURCE.md").read_text() for m in real_maps.MAPS.values()]
+    for m in real_maps.MAPS.values():
+        assert m.repository.lower() not in {f.lower() for f in FORBIDDEN}, m.name
+        assert not ("navigation2" in m.repository and "warehouse" in m.image.lower()), m.name
+        texts.append(" ".join((m.repository, m.image, m.yaml or "", m.building, m.why_real)))
+    for text in texts:
+        for forbidden in FORBIDDEN:
+            assert forbidden.lower() not in text.lower(), forbidden
+
+
+# -- loading ---------------------------------------------------------------------------------------
+@vendored
+def test_every_map_loads_whole_at_a_sensible_size_and_resolution_with_unknown_cells_as_walls():
+    for m in real_maps.MAPS.values():
+        world = real_maps.map_world(m.name)
+        rows, cols = world.occupancy.shape
+        assert 0.02 <= world.resolution <= 0.1, m.name
+        assert 15.0 <= cols * world.resolution <= 100.0 and 15.0 <= rows * world.resolution <= 100.0, m.name
+        assert 0.03 < (~world.occupancy).mean() < 0.7, m.name
+        assert world.name == f"real-{m.name}" and world.source == f"real:{m.name}"
+        assert not world.pairs and not world.balls
+        # whole, never cropped: the grid is the image, and map_server's unknown (-1) is an obstacle
+        meta = yaml.safe_load(real_maps.original_bytes(m.name, m.yaml_name))
+        with Image.open(io.BytesIO(real_maps.original_bytes(m.name, m.originals[1]))) as img:
+            assert img.size == (cols, rows), m.name
+            values = np.flipud(map_server_values(img, "trinary", bool(meta["negate"]), meta["occupied_thresh"],
+                                                 meta["free_thresh"]))
+        unknown = values == -1
+        assert unknown.any(), m.name  # a SLAM map: space beyond its walls was never seen
+        assert world.occupancy[unknown].all() and world.occupancy[values == 100].all(), m.name
+        assert not world.occupancy[values == 0].any(), m.name
+
+
+def test_an_unknown_real_map_is_one_line_naming_the_maps():
+    with pytest.raises(WorldError, match="unknown real map 'atlantis'; choose from willow-garage"):
+        get_world("real:atlantis")
+
+
+# -- the suite -------------------------------------------------------------------------------------
+def check_task(world) -> None:
+    """The suite's promises for one task world (see curlnav.worlds.real_maps)."""
+    assert [p.name for p in world.pairs] == [f"p{i + 1}" for i in range(real_maps.PAIRS)]
+    assert len(world.balls) == real_maps.BALLS and all(b.region is None for b in world.balls)
+    free, graph = real_maps.cspace_graph(world)
+    labels, _ = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))
+    for pair in world.pairs:
+        assert real_maps.MIN_DISTANCE <= pair.distance <= real_maps.MAX_DISTANCE, pair
+        (sy, sx), (gy, gx) = world.cell_of(pair.x, pair.y), world.cell_of(pair.gx, pair.gy)
+        assert free[sy, sx] and free[gy, gx] and labels[sy, sx] == labels[gy, gx], pair  # connected on the C-space grid
+        assert pair.distance <= real_maps.path_length(world, graph, pair) <= real_maps.MAX_PATH_M, pair
+        assert footprint_free(world, pair.x, pair.y, pair.yaw, *HUSKY_FOOTPRINT, margin=FOOTPRINT_MARGIN), pair
+    # balls on the pairs' shortest paths (scatter_balls' own C-space grid), clear of walls
+    _, paths = world_paths(world)
+    points = np.vstack([np.column_stack(path_points(world, path)) for path in paths])
+    for ball in world.balls:
+        assert np.hypot(points[:, 0] - ball.x, points[:, 1] - ball.y).min() < 1e-3, ball
+        assert not world.is_occupied(ball.x, ball.y)
+
+
+@vendored
+@pytest.mark.parametrize("name", SMALL)
+def test_a_task_is_the_same_every_time_and_keeps_the_suites_promises(name):
+    world = real_maps.task.__wrapped__(name)
+    again = real_maps.task.__wrapped__(name)
+    assert world.pairs == again.pairs and world.balls == again.balls
+    assert np.array_equal(world.occupancy, again.occupancy)
+    check_task(world)
+
+
+@vendored
+@pytest.mark.slow
+def test_every_task_of_the_suite_keeps_its_promises_and_fits_the_time_limit():
+    from curlnav.config import ExperimentConfig
+
+    env = ExperimentConfig().eval_env
+    reach = env.max_episode_steps * env.control_period * env.robot.max_linear_speed  # m in a trial at full speed
+    assert real_maps.MAX_PATH_M <= 0.6 * reach
+    for name in real_maps.MAPS:
+        check_task(real_maps.task(name))
+
+
+def test_the_real_suite_runs_every_map_with_its_pairs():
+    suite = SUITES["real"]
+    assert suite.worlds == tuple(f"real:{name}" for name in real_maps.MAPS)
+    assert suite.trials == real_maps.PAIRS and suite.ball_placements == 1
+    assert len(suite.about) < 400 and "unknown cells are walls" in suite.about
+
+
+@vendored
+def test_the_suite_runs_each_pair_once_in_order():
+    world = get_world("real:yujin-rnd")
+    assert world is real_maps.task("yujin-rnd")
+    assert SUITES["real"].pairs_of(world) == list(world.pairs)
+
+
+def test_eval_offers_the_real_suite_and_refuses_to_change_it(capsys):
+    assert main(["eval", "oracle", "--suite", "real", "--pairs", "2"]) != 0
+    assert "--suite real fixes the worlds" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    assert "real: nine real buildings" in " ".join(capsys.readouterr().out.split())
