@@ -60,7 +60,7 @@ class RealMap:
 
     name: str
     building: str  # what and where, one line
-    kind: str  # office, lab, lobby, basement...
+    kind: str  # office, lab, hall, corridor, basement
     repository: str  # owner/name on GitHub
     commit: str
     image: str  # the map image (PGM)
@@ -93,7 +93,7 @@ class RealMap:
 
 _JSK = "jsk-ros-pkg/jsk_demos"
 _JSK_COMMIT = "b3f43475740f58402adcc24ee89bbcca6b692367"
-_JSK_WHY = ("jsk_maps/README.md: floor maps of the JSK lab's buildings made with their PR2 (pr2_2dnav, "
+_JSK_WHY = ("jsk_maps/README.md (as of 2024) says how the lab's floor maps are made: with their PR2 (pr2_2dnav, "
             "map_saver while driven by joystick), partial maps merged with GIMP")
 
 
@@ -108,9 +108,10 @@ MAPS: dict[str, RealMap] = {m.name: m for m in (
             "office", "ros-planning/navigation_tutorials", "115e46ec9e65d49756b5d2155326ad2c1694d1e6",
             "navigation_stage/stage_config/maps/willow-full-0.05.pgm", None, "BSD",
             "navigation_stage/package.xml",
-            "the laser map of Willow Garage's building that the navigation stack's tutorials localise "
-            "in (amcl) and Stage renders; launch/move_base_amcl_5cm.launch serves it with "
-            "`map_server willow-full-0.05.pgm 0.05`",
+            "the map of Willow Garage's building that the navigation stack's tutorials localise in (amcl) "
+            "and Stage renders, served by launch/move_base_amcl_5cm.launch as `map_server willow-full-0.05.pgm "
+            "0.05`; the source does not say how it was made, the map shows a laser SLAM map's marks (rays "
+            "through doorways and windows, ragged walls, clutter)",
             yaml_text="image: willow-full-0.05.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: 0\n"
                       "occupied_thresh: 0.65\nfree_thresh: 0.196\n"),
     RealMap("ipa-office", "Fraunhofer IPA, office floor (4th floor), Stuttgart", "office", "ipa320/cob_environments",
@@ -124,7 +125,7 @@ MAPS: dict[str, RealMap] = {m.name: m for m in (
             "BSD", "package.xml",
             "maps/yujin_rnd_hokuyo: the R&D office mapped with a Hokuyo laser (commit c3445fd: 'cropped "
             "version of yujin_rnd map')"),
-    _jsk("eng2-2f", "University of Tokyo, Engineering Building 2, 2nd floor: the open hall and lobby", "lobby"),
+    _jsk("eng2-2f", "University of Tokyo, Engineering Building 2, 2nd floor: a large open hall with pillars", "hall"),
     _jsk("eng2-3f", "University of Tokyo, Engineering Building 2, 3rd floor", "office"),
     _jsk("eng2-7f", "University of Tokyo, Engineering Building 2, 7th floor (the JSK lab's floor)", "lab"),
     _jsk("eng8-1f", "University of Tokyo, Engineering Building 8, ground floor", "office"),
