@@ -98,10 +98,28 @@ def load_profile(spec: str) -> RobotProfile:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def _robot_from_dict(data: dict) -> RobotConfig:
+    """``RobotConfig`` from a profile file's fields; ``ConfigError`` naming an unknown or mistyped one."""
+    fields = {f.name: f for f in dataclasses.fields(RobotConfig)}
+    values: dict[str, Any] = {}
+    for key, value in data.items():
+        if key not in fields:
+            raise ConfigError(f"unknown config key robot.{key}; known: {', '.join(sorted(fields))}")
+        if key == "name":
+            values[key] = value if isinstance(value, str) else repr(value)
+        elif key == "arm":
+            if not isinstance(value, bool):
+                raise ConfigError(f"robot.arm must be true or false, got {value!r}")
+            values[key] = value
+        elif isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"RobotConfig.{key} must be a positive number, got {value!r}")
+        else:
+            values[key] = float(value)
+    return RobotConfig(**values)
+
+
 def profile_from_dict(data: Any) -> RobotProfile:
     """A profile from a file's mapping (see the module docstring); ``ConfigError`` naming the field."""
-    from curlnav.config import config_from_dict
-
     if not isinstance(data, dict):
         raise ConfigError("a robot profile is a mapping of name, robot fields and lidar")
     data = dict(data)
@@ -115,7 +133,7 @@ def profile_from_dict(data: Any) -> RobotProfile:
     unknown = sorted(set(map(str, lidar)) - set(LIDAR_KEYS))
     if unknown:
         raise ConfigError(f"unknown lidar key {unknown[0]}; known: {', '.join(LIDAR_KEYS)}")
-    robot = config_from_dict(RobotConfig, data, "robot")
+    robot = _robot_from_dict(data)
     husky = PROFILES["husky"]
     values = {"beams": lidar.get("beams", husky.lidar_beams),
               "fov_deg": lidar.get("fov_deg", math.degrees(husky.lidar_fov)),
