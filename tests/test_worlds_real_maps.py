@@ -1,6 +1,8 @@
-"""The real-map suite (``curlnav eval AGENT... --suite real``): real buildings' SLAM maps vendored
-byte for byte with their sources and licences, loaded whole, unknown cells as walls, and the
-suite's pairs and balls fixed by seed, reachable for the Husky, on the shortest paths."""
+"""The real-map suite (``curlnav eval AGENT... --suite real``): real buildings' SLAM maps, downloaded
+by ``scripts/vendor-real-maps.py`` (never committed) and checked byte for byte against the committed
+manifest, their sources and licences, loaded whole, unknown cells as walls, and the suite's pairs
+and balls fixed by seed, reachable for the Husky, on the shortest paths. Where the maps are absent
+(a fresh clone, CI: the tests need no network), the tests that read them skip."""
 
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ FORBIDDEN = ("turtlebot/turtlebot_apps", "utexas-bwi/bwi_common", "mit-racecar/r
 OPEN_LICENCES = {"BSD", "MIT", "Apache-2.0", "CC-BY-4.0"}
 SMALL = ("yujin-rnd", "jsk-eng8-6f")  # the quickest to build: the quick loop's determinism check
 
-vendored = pytest.mark.skipif(bool(real_maps.missing()), reason="the real maps are not vendored here "
+vendored = pytest.mark.skipif(bool(real_maps.missing()), reason="the real maps are not downloaded here "
                               "(scripts/vendor-real-maps.py writes them into curlnav/worlds/data/real)")
 
 

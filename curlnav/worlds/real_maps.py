@@ -1,12 +1,14 @@
-"""Real buildings as SLAM stacks mapped them, vendored (``curlnav/worlds/data/real``), and the tasks of
+"""Real buildings as SLAM stacks mapped them (downloaded into ``curlnav/worlds/data/real``), and the tasks of
 ``curlnav eval AGENT... --suite real`` on them.
 
 Each map in ``MAPS`` is a ROS ``map_server`` map (YAML + PGM) that a robot with a laser scanner built
 in a real building (gmapping-style SLAM, by the source's own account), from a repository under an
-open licence. ``scripts/vendor-real-maps.py`` fetched them; ``data/real/<name>/`` keeps the YAML and
-the licence file byte for byte, the image xz-compressed (decompressed: byte for byte), and a
-``SOURCE.md`` (repository, commit, paths, licence, why the map is real); ``data/real/MANIFEST.sha256``
-holds the sha256 of every original file. Maps are used whole, never cropped.
+open licence. The maps are not in this repository: ``scripts/vendor-real-maps.py`` downloads them
+once from their sources at pinned commits into ``data/real/<name>/`` (ignored by git): the YAML and
+the licence file byte for byte, the image xz-compressed (decompressed: byte for byte). Committed are
+each map's ``SOURCE.md`` (repository, commit, paths, licence, why the map is real) and
+``data/real/MANIFEST.sha256``, the sha256 of every original file, which the loader and the tests
+check. Maps are used whole, never cropped.
 
 **Unknown cells.** ``map_server`` gives a pixel between the thresholds the value -1 (unknown), and
 ``curlnav.worlds.world`` makes every cell that is not free (0) an obstacle in the simulator: a wall
@@ -157,12 +159,12 @@ def original_bytes(name: str, file: str) -> bytes:
 
 
 def map_world(name: str) -> World:
-    """The vendored map as a ``World`` (no pairs, no balls), named ``real-<name>``."""
+    """The downloaded map as a ``World`` (no pairs, no balls), named ``real-<name>``."""
     m = check_name(name)
     absent = missing(name)
     if absent:
-        raise WorldError(f"real map {name!r} is not vendored here ({absent[0]} is missing); "
-                         f"scripts/vendor-real-maps.py fetches it")
+        raise WorldError(f"real map {name!r} is not downloaded here ({absent[0]} is missing); "
+                         f"scripts/vendor-real-maps.py downloads the real maps once (needs GitHub)")
     with tempfile.TemporaryDirectory(prefix="curlnav-real-") as tmp:
         yaml_path = Path(tmp) / m.yaml_name
         yaml_path.write_bytes(original_bytes(name, m.yaml_name))
