@@ -54,6 +54,10 @@ FAMILIES: dict[str, Family] = {
     "auditorium": Family("curlnav.worlds.generators:auditorium", "arcs of seating around a stage, entered through a corridor"),
     "slam-office": Family("curlnav.worlds.slam_like:slam_office", "a large office floor as a SLAM stack maps it "
                           "(0.05 m cells, ragged walls, furniture, noise)"),
+    "slam-floor": Family("curlnav.worlds.slam_like:slam_floor", "a NAMO office floor of real widths as a SLAM map"),
+    "slam-namo-office": Family("curlnav.worlds.slam_like:slam_namo_office", "namo-office degraded as a SLAM map"),
+    "slam-namo-indoor": Family("curlnav.worlds.slam_like:slam_namo_indoor", "namo-indoor degraded as a SLAM map"),
+    "slam-namo-auditorium": Family("curlnav.worlds.slam_like:slam_namo_auditorium", "namo-auditorium degraded as a SLAM map"),
     "t-maze-doors": Family("curlnav.worlds.tmaze:t_maze_doors", "T-Mazes that vary, whose pairs must push doors open"),
     "namo-auditorium": Family("curlnav.worlds.namo:namo_auditorium", "unseen NAMO world: a lobby, doors, a hall"),
     "namo-office": Family("curlnav.worlds.namo:namo_office", "unseen NAMO world: rooms off a corridor through doors"),

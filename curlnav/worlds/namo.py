@@ -102,19 +102,21 @@ def reachable(world: World, pair: StartGoal, doors_closed: bool = False,
     return GridGraph(cs).shortest_paths([s], [g])[0] is not None
 
 
-class _Floor:
-    """A floor plan being drawn on a walled grid: walls, door gaps with their doors, furniture."""
+class FloorPlan:
+    """A floor plan being drawn on a walled grid of ``resolution`` m cells (``RESOLUTION`` for the
+    NAMO floors): walls, door gaps with their doors, furniture."""
 
-    def __init__(self, width: float, height: float) -> None:
-        self.width, self.height = width, height
-        self.grid = np.zeros((int(round(height / RESOLUTION)), int(round(width / RESOLUTION))), dtype=bool)
+    def __init__(self, width: float, height: float, resolution: float = RESOLUTION) -> None:
+        self.width, self.height, self.resolution = width, height, resolution
+        self.grid = np.zeros((int(round(height / resolution)), int(round(width / resolution))), dtype=bool)
         self.grid[0, :] = self.grid[-1, :] = self.grid[:, 0] = self.grid[:, -1] = True
         self.doors: list[Door] = []
 
     def fill(self, x0: float, y0: float, x1: float, y1: float, value: bool = True) -> None:
         """Every cell that overlaps ``[x0, x1] x [y0, y1]`` (m)."""
-        r0, r1 = max(int(math.floor(y0 / RESOLUTION + 1e-9)), 0), int(math.ceil(y1 / RESOLUTION - 1e-9))
-        c0, c1 = max(int(math.floor(x0 / RESOLUTION + 1e-9)), 0), int(math.ceil(x1 / RESOLUTION - 1e-9))
+        res = self.resolution
+        r0, r1 = max(int(math.floor(y0 / res + 1e-9)), 0), int(math.ceil(y1 / res - 1e-9))
+        c0, c1 = max(int(math.floor(x0 / res + 1e-9)), 0), int(math.ceil(x1 / res - 1e-9))
         self.grid[r0:r1, c0:c1] = value
 
     def wall_x(self, x: float, y0: float, y1: float) -> None:
@@ -123,28 +125,32 @@ class _Floor:
     def wall_y(self, y: float, x0: float, x1: float) -> None:
         self.fill(x0, y - WALL / 2, x1, y + WALL / 2)
 
-    def door_x(self, x: float, y_centre: float) -> None:
-        """A doorway in the wall along x = ``x``, its door opening toward +x."""
-        y0 = y_centre - DOOR_GAP / 2
-        self.fill(x - WALL, y0, x + WALL, y0 + DOOR_GAP, value=False)
-        self.doors.append(Door(hinge_x=x, hinge_y=y0, width=DOOR_GAP - 0.04, closed_angle=math.pi / 2,
-                               swing="right", mass=1.0, hinge_friction=0.3))
+    def door_x(self, x: float, y_centre: float, gap: float = DOOR_GAP, panel: bool = True) -> None:
+        """A doorway ``gap`` m wide in the wall along x = ``x``, its door (``panel``; else an open
+        doorway) opening toward +x."""
+        y0 = y_centre - gap / 2
+        self.fill(x - WALL, y0, x + WALL, y0 + gap, value=False)
+        if panel:
+            self.doors.append(Door(hinge_x=x, hinge_y=y0, width=gap - 0.04, closed_angle=math.pi / 2,
+                                   swing="right", mass=1.0, hinge_friction=0.3))
 
-    def door_y(self, y: float, x_centre: float) -> None:
-        """A doorway in the wall along y = ``y``, its door opening toward +y."""
-        x0 = x_centre - DOOR_GAP / 2
-        self.fill(x0, y - WALL, x0 + DOOR_GAP, y + WALL, value=False)
-        self.doors.append(Door(hinge_x=x0, hinge_y=y, width=DOOR_GAP - 0.04, closed_angle=0.0, swing="left",
-                               mass=1.0, hinge_friction=0.3))
+    def door_y(self, y: float, x_centre: float, gap: float = DOOR_GAP, panel: bool = True) -> None:
+        """A doorway ``gap`` m wide in the wall along y = ``y``, its door (``panel``; else an open
+        doorway) opening toward +y."""
+        x0 = x_centre - gap / 2
+        self.fill(x0, y - WALL, x0 + gap, y + WALL, value=False)
+        if panel:
+            self.doors.append(Door(hinge_x=x0, hinge_y=y, width=gap - 0.04, closed_angle=0.0, swing="left",
+                                   mass=1.0, hinge_friction=0.3))
 
     def world(self, family: str, seed: int, starts: list[Region], goals: list[Region], pairs: int,
               balls: int) -> World:
         """The finished world: ``pairs`` pairs from ``starts`` to ``goals`` through doors, then
         ``balls`` balls on their paths."""
-        world = World(name=f"{family}-{seed}", occupancy=self.grid, resolution=RESOLUTION, doors=tuple(self.doors),
-                      source=f"generated:{family} seed={seed}")
+        world = World(name=f"{family}-{seed}", occupancy=self.grid, resolution=self.resolution,
+                      doors=tuple(self.doors), source=f"generated:{family} seed={seed}")
         rng = np.random.default_rng([seed, 1])
-        world = world.with_changes(pairs=_door_pairs(world, starts, goals, pairs, rng))
+        world = world.with_changes(pairs=door_pairs(world, starts, goals, pairs, rng))
         return scatter_balls(world, balls, seed=seed) if balls else world
 
 
@@ -161,10 +167,12 @@ def _cells_in(world: World, free: np.ndarray, regions: list[Region]) -> np.ndarr
     return np.argwhere(inside & free)
 
 
-def _door_pairs(world: World, starts: list[Region], goals: list[Region], count: int,
-                rng: np.random.Generator) -> tuple[StartGoal, ...]:
+def door_pairs(world: World, starts: list[Region], goals: list[Region], count: int,
+               rng: np.random.Generator) -> tuple[StartGoal, ...]:
     """``count`` pairs, start in ``starts`` and goal in ``goals``, whose shortest path crosses a
-    door and every door on it the way it opens (see the module docstring)."""
+    door and every door on it the way it opens (see the module docstring). ``world`` has
+    ``RESOLUTION`` cells and its origin at (0, 0); a finer plan passes its coarsened copy
+    (``curlnav.worlds.rank.resample``), whose pairs hold on the fine grid too."""
     cs = inflate(world.occupancy, int(round(CSPACE_RADIUS_M / RESOLUTION)))
     graph = GridGraph(cs)
     start_cells, goal_cells = _cells_in(world, ~cs, starts), _cells_in(world, ~cs, goals)
@@ -204,7 +212,7 @@ def namo_office(seed: int = 0, width: float = 22.0, height: float = 14.0, corrid
     desks against the room walls. Pairs go from the lower rooms or the corridor's west end
     upward through one or two doors."""
     rng = np.random.default_rng(seed)
-    floor = _Floor(width, height)
+    floor = FloorPlan(width, height)
     y_low = (height - corridor) / 2 + rng.uniform(-0.8, 0.8)
     y_high = y_low + corridor
     floor.wall_y(y_low, 0, width)
@@ -228,7 +236,7 @@ def namo_indoor(seed: int = 0, width: float = 24.0, height: float = 18.0, pairs:
     south-west one has one from its west or south neighbour, so all are reachable going east
     and north. A table and a column in each room. Pairs go east and north through doors."""
     rng = np.random.default_rng(seed)
-    floor = _Floor(width, height)
+    floor = FloorPlan(width, height)
     xs = [0.0, width / 3 + rng.uniform(-0.8, 0.8), 2 * width / 3 + rng.uniform(-0.8, 0.8), width]
     ys = [0.0, height / 3 + rng.uniform(-0.6, 0.6), 2 * height / 3 + rng.uniform(-0.6, 0.6), height]
     for x in xs[1:-1]:
@@ -259,7 +267,7 @@ def namo_auditorium(seed: int = 0, width: float = 24.0, height: float = 16.0, pa
     """A lobby along the south wall joined by three doors to a hall: rows of seats broken by
     two aisles, a stage along the north wall. Pairs go from the lobby into the hall."""
     rng = np.random.default_rng(seed)
-    floor = _Floor(width, height)
+    floor = FloorPlan(width, height)
     lobby = 3.6 + rng.uniform(-0.3, 0.3)
     floor.wall_y(lobby, 0, width)
     for k in range(3):
