@@ -132,6 +132,8 @@ def test_eval_and_the_ros2_node_refuse_the_wrong_robot_in_one_line(jackal_artefa
                                       "--episodes", "1"), "trained for the husky", "not the jackal", "refused")
     assert_one_line_error(run_curlnav("eval", "oracle", "--suite", "barn", "--robot", "husky", "--worlds", "0"),
                           "--suite barn drives the Jackal")
+    assert_one_line_error(run_curlnav("policy", "run", str(jackal_artefact), "--robot", "husky", "--world",
+                                      "open-room"), "trained for the jackal", "not the husky", "refused")
     with pytest.raises(ValueError, match="trained for the jackal .* not the husky"):
         _agent(str(jackal_artefact), "husky")
     policy, layout = _agent(str(jackal_artefact), "jackal")

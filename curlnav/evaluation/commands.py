@@ -171,9 +171,16 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
     from curlnav.evaluation.animation import drive_and_draw
     from curlnav.evaluation.protocol import evaluation_config
     from curlnav.policy import PolicyArtefact
+    from curlnav.sim.robots import PROFILES, check_robot, load_profile, recorded_robot
 
     policy = PolicyArtefact(args.artefact)
-    return drive_and_draw(policy, args.world, args.pair, args.seed, evaluation_config(), args.out,
+    if args.robot is None:  # the artefact's own robot, when it is a built-in profile
+        name = recorded_robot(policy.metadata)[0] if isinstance(policy.metadata.get("robot"), dict) else "husky"
+        args.robot = name if name in PROFILES else "husky"
+    profile = load_profile(args.robot)
+    check_robot(policy.metadata, profile.robot, args.artefact)
+    env_config = profile.apply(evaluation_config())
+    return drive_and_draw(policy, args.world, args.pair, args.seed, env_config, args.out,
                           f"policy-v{policy.version}", gif=args.gif, mcap=args.mcap,
                           recorder=_mcap_file if args.mcap else None)
 
@@ -248,6 +255,9 @@ def add_commands(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="episode seed (pair draw, ball places)")
     p.add_argument("--out", default="runs/policy-run", help="folder for the picture")
     p.add_argument("--gif", action="store_true", help="also write an animated GIF of the episode beside the picture")
+    p.add_argument("--robot", default=None, metavar="PROFILE",
+                   help="the robot: husky, jackal or a profile file (default: the artefact's own built-in robot); "
+                        "an artefact trained for another robot is refused")
     p.add_argument("--mcap", default=None, metavar="FILE",
                    help="also write the episode to an MCAP file with ROS 2 schemas (Foxglove opens it)")
     p.set_defaults(func=_cmd_policy_run)
