@@ -252,18 +252,15 @@ class ExperimentConfig:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)
     seed: int = 0  # environment draws, exploration noise and sampling (each actor adds its index)
-    #: the robot profile (``curlnav.sim.robots``: husky, jackal or a profile file) that set
-    #: ``env.robot`` and the LiDAR fields; left out of the hash while it is the default
+    #: the name of the robot profile (``curlnav.sim.robots``: husky, jackal or a profile file's
+    #: ``name``) that set ``env.robot`` and the LiDAR fields; left out of the hash while it is the default
     robot: str = field(default="husky", metadata={"hash": "omit-default"})
 
     def __post_init__(self) -> None:
-        from curlnav.sim.robots import PROFILES
-
-        _require(isinstance(self.robot, str) and bool(self.robot), f"robot must be a profile name or file, got {self.robot!r}")
-        if self.robot in PROFILES:
-            _require(self.env.robot.name == self.robot,
-                     f"env.robot is the {self.env.robot.name}'s, but robot says {self.robot}: set the robot with "
-                     f"robot: NAME (or --robot), not env.robot fields alone")
+        _require(isinstance(self.robot, str) and bool(self.robot), f"robot must be a profile name, got {self.robot!r}")
+        _require(self.env.robot.name == self.robot,
+                 f"env.robot is the {self.env.robot.name}'s, but robot says {self.robot}: set the robot with "
+                 f"robot: NAME or FILE (or --robot), not env.robot fields alone")
         _require(isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0,
                  f"seed must be a non-negative integer, got {self.seed!r}")
         _require(self.d4pg.seed >= 0, f"d4pg.seed must be non-negative, got {self.d4pg.seed!r}")
@@ -414,18 +411,32 @@ def experiment_from_dict(data: dict, base: ExperimentConfig | None = None) -> Ex
         base = ExperimentConfig.preset(str(preset))
     base_dict = config_to_dict(base or ExperimentConfig())
     if "robot" in data:  # the profile first; the file's own env fields then win
-        _with_robot(base_dict, data["robot"])
+        own_name = data.get("env", {}).get("robot", {}).get("name") if isinstance(data.get("env"), dict) else None
+        _with_robot(base_dict, data.pop("robot"), saved_name=own_name)
     return config_from_dict(ExperimentConfig, _merge(base_dict, data))
 
 
-def _with_robot(data: dict, spec: Any) -> None:
-    """Set ``data`` (a config dict) to robot profile ``spec``: ``robot`` and the env's robot and LiDAR."""
-    from curlnav.sim.robots import load_profile
+def _with_robot(data: dict, spec: Any, saved_name: Any = None) -> None:
+    """Set ``data`` (a config dict) to robot profile ``spec`` (a built-in name or a profile file):
+    ``robot`` becomes the profile's name, the env's robot and LiDAR its values. A no-op when ``data``
+    already holds that robot (settings made after it stay); a name that is neither built in nor a
+    file is accepted only as the one ``saved_name`` gives (a saved config: its env is resolved)."""
+    from curlnav.sim.robots import PROFILES, load_profile
 
-    profile = load_profile(spec if isinstance(spec, str) else repr(spec))
+    if not isinstance(spec, str) or not spec.strip():
+        raise ConfigError(f"robot must be {', '.join(PROFILES)} or a profile file (.yaml), got {shown(spec)}")
+    spec = spec.strip()
+    if spec == data.get("robot") and data["env"]["robot"].get("name") == spec:
+        return  # already this robot
+    if spec not in PROFILES and not spec.endswith((".yaml", ".yml", ".json")) and spec == saved_name:
+        data["robot"] = spec  # a saved config of a profile file: its env fields hold the robot
+        return
+    profile = load_profile(spec)
+    if profile.name == data.get("robot") and data["env"]["robot"].get("name") == profile.name:
+        return
     env = profile.apply(config_from_dict(EnvConfig, data["env"], "env"))
     data["env"] = config_to_dict(env)
-    data["robot"] = spec
+    data["robot"] = profile.name
 
 
 def _merge(base: dict, top: dict) -> dict:

@@ -143,12 +143,33 @@ def _checkpoint_policy(p: Path):
         raise ValueError(f"{p}: not a safetensors file ({exc}); {POLICY_EXPECTED}") from None
     if "curlnav" not in meta:
         raise ValueError(f"{p}: a safetensors file without curlnav checkpoint metadata; {POLICY_EXPECTED}")
-    from .d4pg import act, load_checkpoint
+    from .d4pg import load_checkpoint
 
     try:
-        state, _ = load_checkpoint(p)
+        state, extra = load_checkpoint(p)
     except (SafetensorError, KeyError, TypeError, RuntimeError) as exc:
         detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ValueError(f"{p}: a damaged or incompatible curlnav checkpoint ({detail})") from None
     state.actor.eval()
-    return lambda obs: act(state.actor, obs)
+    return CheckpointPolicy(state, extra)
+
+
+class CheckpointPolicy:
+    """The actor of a training checkpoint (``obs -> action``) with an artefact-like ``metadata``:
+    its observation layout and, when the checkpoint records them, its robot and LiDAR field of view
+    (``curlnav.sim.robots.sensor_metadata``), so that it is checked against the robot it is asked to
+    drive as an artefact is."""
+
+    def __init__(self, state, extra: dict) -> None:
+        self.state = state
+        observation: dict = {"layout": state.layout.to_dict()}
+        if isinstance(extra.get("lidar_fov_rad"), (int, float)):
+            observation["lidar_fov_rad"] = float(extra["lidar_fov_rad"])
+        self.metadata: dict = {"observation": observation}
+        if isinstance(extra.get("robot"), dict):
+            self.metadata["robot"] = extra["robot"]
+
+    def __call__(self, obs):
+        from .d4pg import act
+
+        return act(self.state.actor, obs)

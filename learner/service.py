@@ -32,6 +32,7 @@ from curlnav.config import ConfigError, ExperimentConfig, config_differences, co
 from curlnav.layout import ObservationLayout
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import PriorityUpdate, SampledBatch, ServiceStatus, Weights
+from curlnav.sim.robots import sensor_metadata
 
 from .artefact import export_policy, training_worlds
 from .d4pg import TensorBatch, compile_networks, load_checkpoint, read_metrics, save_checkpoint, set_amp, sgd_step
@@ -185,7 +186,8 @@ class LearnerService:
         return self.latest_weights
 
     def checkpoint(self) -> None:
-        save_checkpoint(self.state, self.data_dir / "latest.safetensors", extra={"version": self.version})
+        save_checkpoint(self.state, self.data_dir / "latest.safetensors",
+                        extra={"version": self.version, **sensor_metadata(self.experiment.env)})
 
     def export(self) -> Path:
         folder = self.data_dir / "artefacts" / f"v{self.version}"

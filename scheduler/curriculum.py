@@ -219,6 +219,9 @@ def _stage_world(path: Path, where: str, world: str | dict) -> str:
             return WorldDistribution.parse(world).key
     except DistributionError as exc:
         raise CurriculumError(f"{path}: {where}: {exc}") from None
+    if world.startswith("real:"):
+        raise CurriculumError(f"{path}: {where}: {world[:60]} is a map of the real suite, kept for evaluation: "
+                              f"nobody trains or tunes on it")
     family, sep, seed = world.rpartition(":")
     if sep and seed.isdigit() and is_held_out(family, int(seed)):
         raise CurriculumError(f"{path}: {where}: {world[:60]} is a held-out world (seeds >= 100 of every family are "

@@ -12,10 +12,26 @@ import numpy as np
 import pytest
 from conftest import assert_one_line_error, run_curlnav
 
-from curlnav.config import ConfigError, ExperimentConfig, apply_overrides, config_hash, load_config, resolve_config
+from curlnav.config import (
+    ConfigError,
+    ExperimentConfig,
+    apply_overrides,
+    config_hash,
+    config_to_yaml,
+    load_config,
+    resolve_config,
+)
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig, NamoEnv
-from curlnav.sim.robots import PROFILES, check_robot, load_profile, profile_of_env, recorded_robot
+from curlnav.sim.robots import (
+    PROFILES,
+    check_observation,
+    check_robot,
+    load_profile,
+    profile_of_env,
+    recorded_robot,
+    sensor_metadata,
+)
 
 PROFILE_FILE = """\
 name: turtlebot4
@@ -75,14 +91,30 @@ def test_a_profile_file_is_read_and_bad_ones_are_refused_naming_what(tmp_path):
     assert profile.name == "turtlebot4" and profile.lidar_beams == 361
     assert profile.lidar_fov == pytest.approx(2 * math.pi) and profile.robot.max_linear_speed == 0.31
     cfg = apply_overrides(ExperimentConfig(), [f"robot={good}"])
-    assert cfg.env.robot.name == "turtlebot4" and cfg.robot == str(good)
+    assert cfg.env.robot.name == "turtlebot4" and cfg.robot == "turtlebot4"  # the name, not the path
+    # the same file by another path: the same config and hash; its saved config loads without the file
+    moved = tmp_path / "elsewhere" / "profile.yaml"
+    moved.parent.mkdir()
+    moved.write_text(PROFILE_FILE)
+    assert config_hash(apply_overrides(ExperimentConfig(), [f"robot={moved}"])) == config_hash(cfg)
+    saved = tmp_path / "saved.yaml"
+    saved.write_text(config_to_yaml(cfg))
+    good.unlink()
+    moved.unlink()
+    assert config_hash(load_config(saved)) == config_hash(cfg)
+    # naming the robot the config already has changes nothing made after it
+    tuned = apply_overrides(ExperimentConfig(), ["robot=jackal", "env.lidar_beams=541", "robot=jackal"])
+    assert tuned.env.lidar_beams == 541
+    good.write_text(PROFILE_FILE)
     for text, fragment in [("base_length: 0.3\n", "needs a name"),
                            ("name: husky\n", "built-in profile's"),
                            ("name: r1\nlidar: {beams: -3}\n", "lidar.beams must be a positive number"),
                            ("name: r1\nlidar: {colour: red}\n", "unknown lidar key colour"),
                            ("name: r1\nbase_width: 0\n", "base_width must be a positive number"),
                            ("name: r1\nwheels: 6\n", "unknown config key robot.wheels"),
-                           ("name: R 1\n", "robot.name must be")]:
+                           ("name: R 1\n", "robot.name must be"),
+                           ("name: [a]\n", "robot.name must be a text"),
+                           ("name: 5\n", "robot.name must be a text")]:
         bad = tmp_path / "bad.yaml"
         bad.write_text(text)
         with pytest.raises(ConfigError, match=re.escape(fragment)):
@@ -120,6 +152,47 @@ def test_an_artefact_records_its_robot_and_refuses_another_in_one_line(jackal_ar
         check_robot(husky_meta, PROFILES["jackal"].robot, "h")
     old = {"robot": {"base_length": 0.99, "base_width": 0.67}}  # before profiles: named by its footprint
     assert recorded_robot(old)[0] == "husky"
+    # the same robot at another top speed, or with an arm it has not, is another robot
+    slow = {"robot": {**meta["robot"], "max_linear_speed": 0.5}}
+    with pytest.raises(ValueError, match=r"top linear speed of 0.5 m/s, the jackal here has 2 m/s; refused"):
+        check_robot(slow, PROFILES["jackal"].robot, "j")
+    with pytest.raises(ValueError, match=r"trained with an arm, the jackal here has none; refused"):
+        check_robot({"robot": {**meta["robot"], "arm": True}}, PROFILES["jackal"].robot, "j")
+
+
+def test_a_policy_reading_another_lidar_is_refused_in_one_line(jackal_artefact):
+    import json
+
+    meta = json.loads((jackal_artefact / "metadata.json").read_text())
+    jackal = PROFILES["jackal"].apply(EnvConfig())
+    check_observation(meta, jackal, "j")
+    with pytest.raises(ValueError, match=r"^j: reads 271 beams, the jackal's LiDAR here gives 541 beams; refused$"):
+        check_observation(meta, jackal.replace(lidar_beams=541), "j")
+    with pytest.raises(ValueError, match=r"^j: reads a LiDAR of 270 deg, the jackal's here covers 240 deg; refused$"):
+        check_observation(meta, jackal.replace(lidar_fov=math.radians(240)), "j")
+
+
+def test_a_checkpoint_records_its_robot_and_is_refused_for_another(tmp_path):
+    from curlnav.config import D4PGConfig
+    from curlnav.evaluation.barn import jackal_env_config, policy_loader
+    from curlnav.learner.artefact import load_policy
+    from curlnav.learner.d4pg import init_state, save_checkpoint
+
+    env = PROFILES["jackal"].apply(EnvConfig())
+    state = init_state(D4PGConfig(seed=3), ObservationLayout.from_env_config(env), "cpu")
+    path = save_checkpoint(state, tmp_path / "latest.safetensors", extra=sensor_metadata(env))
+    policy = load_policy(path)
+    assert recorded_robot(policy.metadata)[0] == "jackal" and policy.metadata["observation"]["layout"]["beams"] == 271
+    husky_eval = ExperimentConfig().eval_env
+    with pytest.raises(ValueError, match=r"trained for the jackal .* not the husky .*; refused"):
+        policy_loader(husky_eval, load_policy, resample=False)(str(path))
+    # the barn suite reads the full UST-10LX scan for it through the node's resampler, and it acts
+    barn_policy = policy_loader(jackal_env_config(husky_eval), load_policy)(str(path))
+    assert barn_policy(np.zeros(jackal_env_config(husky_eval).observation_size, np.float32)).shape == (3,)
+    # a checkpoint from before it recorded a robot: its observation still has to fit
+    bare = save_checkpoint(state, tmp_path / "old.safetensors")
+    with pytest.raises(ValueError, match=r"reads 271 beams, the husky's LiDAR here gives 241 beams; refused"):
+        policy_loader(husky_eval, load_policy, resample=False)(str(bare))
 
 
 @pytest.mark.slow

@@ -167,3 +167,19 @@ def test_eval_offers_the_real_suite_and_refuses_to_change_it(capsys):
     with pytest.raises(SystemExit):
         main(["eval", "--help"])
     assert "real: nine real buildings" in " ".join(capsys.readouterr().out.split())
+
+
+def test_nobody_trains_or_tunes_on_the_real_suites_maps(tmp_path):
+    """A real map as the training world, a curriculum stage or a validation target is refused."""
+    from curlnav.scheduler.curriculum import CurriculumError, load_curriculum
+    from curlnav.worlds.heldout import HeldOutSeedError, check_training_world
+
+    with pytest.raises(HeldOutSeedError, match="real:willow-garage is a map of the real suite"):
+        check_training_world("real:willow-garage")
+    for body in ("stages:\n  - name: S1\n    worlds: [\"real:yujin-rnd\"]\n",
+                 "stages:\n  - name: S1\n    worlds: [open-room]\nevaluate:\n  - {world: \"real:yujin-rnd\"}\n"):
+        path = tmp_path / "c.yaml"
+        path.write_text(body)
+        with pytest.raises(CurriculumError, match="real:yujin-rnd is a map of the real suite"):
+            load_curriculum(path)
+    assert main(["train", "--serial", "--world", "real:yujin-rnd", "--minutes", "1"]) == 2

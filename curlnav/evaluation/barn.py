@@ -121,17 +121,27 @@ class ResampledScanPolicy:
         return self.policy(np.concatenate([*out_r, *out_l, obs[(rf + lf) * n:]]))
 
 
-def policy_loader(env_config: EnvConfig, load: Callable[[str], object]) -> Callable[[str], object]:
-    """``load`` (a path -> policy) for the suite: a Jackal artefact with a coarser LiDAR than
-    ``env_config``'s is wrapped in ``ResampledScanPolicy``; any other robot is refused first."""
+def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
+                  resample: bool = True) -> Callable[[str], object]:
+    """``load`` (a path -> policy) checked against the robot of ``env_config``: an artefact folder's
+    metadata before it is loaded, then any policy's ``metadata`` (an artefact's, or a checkpoint's
+    ``CheckpointPolicy``): another robot, top speed, arm or observation is refused in one line
+    (``ValueError``). With ``resample`` (the barn suite), a policy of the same robot with a coarser
+    LiDAR than ``env_config``'s reads it through ``ResampledScanPolicy`` instead."""
+    from curlnav.sim.robots import check_observation
 
     def loader(spec: str):
         check_robot(spec, env_config.robot)
         policy = load(spec)
         metadata = getattr(policy, "metadata", None)
-        beams = (metadata or {}).get("observation", {}).get("layout", {}).get("beams")
-        if metadata is not None and beams != env_config.lidar_beams:
+        if not isinstance(metadata, dict):
+            return policy
+        if isinstance(metadata.get("robot"), dict):
+            check_artefact_robot(metadata, env_config.robot, spec)
+        beams = metadata.get("observation", {}).get("layout", {}).get("beams")
+        if resample and beams != env_config.lidar_beams:
             return ResampledScanPolicy(policy, env_config, metadata)
+        check_observation(metadata, env_config, spec)
         return policy
 
     return loader

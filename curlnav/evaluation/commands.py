@@ -33,7 +33,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     """Evaluate one or more agents (policies and the planners of ``curlnav.planners.PLANNERS``) side
     by side (``curlnav.evaluation.compare``)."""
     from curlnav.config import ExperimentConfig
-    from curlnav.evaluation.barn import check_robot
+    from curlnav.evaluation.barn import policy_loader
     from curlnav.evaluation.compare import (
         OVERALL,
         SUITES,
@@ -76,10 +76,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     for world in worlds:
         check_pairs_possible(world)
 
-    def load(spec: str):  # an artefact drives only the robot it was trained for
-        check_robot(spec, env_config.robot)
-        return _load_policy(spec)
-
+    load = policy_loader(env_config, _load_policy, resample=False)  # a policy drives only the robot it was made for
     agents = dict(make_agent(spec, env_config, load, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
@@ -171,15 +168,22 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
     from curlnav.evaluation.animation import drive_and_draw
     from curlnav.evaluation.protocol import evaluation_config
     from curlnav.policy import PolicyArtefact
-    from curlnav.sim.robots import PROFILES, check_robot, load_profile, recorded_robot
+    from curlnav.sim.robots import PROFILES, check_observation, check_robot, load_profile, recorded_robot
 
     policy = PolicyArtefact(args.artefact)
     if args.robot is None:  # the artefact's own robot, when it is a built-in profile
-        name = recorded_robot(policy.metadata)[0] if isinstance(policy.metadata.get("robot"), dict) else "husky"
-        args.robot = name if name in PROFILES else "husky"
+        try:  # an artefact that records no robot at all is from the Husky's days
+            name = recorded_robot(policy.metadata)[0] if "robot" in policy.metadata else "husky"
+        except ValueError as exc:
+            raise ValueError(f"{args.artefact}: {exc}; give the robot with --robot") from None
+        if name not in PROFILES:
+            raise ValueError(f"{args.artefact}: trained for the {name}, not a built-in robot: give its profile "
+                             f"file with --robot FILE.yaml")
+        args.robot = name
     profile = load_profile(args.robot)
-    check_robot(policy.metadata, profile.robot, args.artefact)
     env_config = profile.apply(evaluation_config())
+    check_robot(policy.metadata, profile.robot, args.artefact)
+    check_observation(policy.metadata, env_config, args.artefact)
     return drive_and_draw(policy, args.world, args.pair, args.seed, env_config, args.out,
                           f"policy-v{policy.version}", gif=args.gif, mcap=args.mcap,
                           recorder=_mcap_file if args.mcap else None)
@@ -230,7 +234,7 @@ def add_commands(sub) -> None:
                    help="with --suite barn: only BARN worlds A to B (0-299; default all)")
     p.add_argument("--robot", default=None, metavar="PROFILE",
                    help="the robot every agent drives: husky (default), jackal (the default and only choice of "
-                        "--suite barn) or a profile file (docs/robots.md); a policy artefact trained for another "
+                        "--suite barn) or a profile file (docs/guide/robots.md); a policy artefact trained for another "
                         "robot is refused")
     p.add_argument("--sensor-noise", default="none", metavar="PRESET",
                    help=f"imperfect senses for every agent: {', '.join(SENSOR_NOISE_PRESETS)} (default none: the "

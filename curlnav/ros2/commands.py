@@ -46,7 +46,7 @@ def add_ros2_commands(sub) -> None:
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", default="husky", metavar="PROFILE",
-                   help="the robot: husky (default), jackal or a profile file (docs/robots.md); a policy artefact "
+                   help="the robot: husky (default), jackal or a profile file (docs/guide/robots.md); a policy artefact "
                         "trained for another robot is refused")
     p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: ROS_DOMAIN_ID, else 0)")
     p.add_argument("--loopback", action="store_true", help="keep DDS on this machine (loopback, no multicast)")

@@ -55,7 +55,7 @@ def add_train_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=None, help="experiment seed (seed)")
     p.add_argument("--robot", default=None, metavar="PROFILE",
                    help="robot profile: husky (default), jackal or a profile file: the base, arm and LiDAR "
-                        "(robot; docs/robots.md)")
+                        "(robot; docs/guide/robots.md)")
 
 
 def option_overrides(args: argparse.Namespace) -> list[str]:

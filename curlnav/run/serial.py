@@ -61,6 +61,7 @@ from curlnav.run.record import (
     outcome_fields,
     strict_json,
 )
+from curlnav.sim.robots import sensor_metadata
 
 
 @dataclass(frozen=True)
@@ -325,7 +326,8 @@ class SerialTrainer:
         if self.curriculum is not None:
             self.counters["curriculum"] = self.curriculum.to_dict()
         self.counters["elapsed_s"] = time.monotonic() - start
-        save_checkpoint(self.state, self.ckpt_dir / "latest.safetensors", extra={"counters": self.counters})
+        save_checkpoint(self.state, self.ckpt_dir / "latest.safetensors",
+                        extra={"counters": self.counters, **sensor_metadata(self.experiment.env)})
         if self.run_cfg.save_replay:
             self.table.save(self.ckpt_dir / "replay.npz")
         worlds, extra = self.artefact_training

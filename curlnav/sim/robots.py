@@ -6,7 +6,7 @@ fields of ``EnvConfig`` from one profile (``RobotProfile.apply``); later ``env.*
 win. A policy artefact records its robot (``robot.name`` and footprint in ``metadata.json``) and
 ``check_robot`` refuses, in one line, to drive another.
 
-Built-in profiles (manufacturers' published figures; ``docs/robots.md``):
+Built-in profiles (manufacturers' published figures; ``docs/guide/robots.md``):
 
 - ``husky``: Clearpath Husky class, 0.99 x 0.67 x 0.31 m, 50 kg, 1.0 m/s, 1.0 rad/s, a 0.5 m
   pushing arm; a 241-beam, 240-degree LiDAR to 10 m (the paper's 3-D LiDAR cut to 2-D).
@@ -18,7 +18,7 @@ Built-in profiles (manufacturers' published figures; ``docs/robots.md``):
 A profile file (YAML) gives ``name``, any ``RobotConfig`` field (``base_length``, ``base_width``,
 ``base_height``, ``base_mass``, ``max_linear_speed``, ``max_angular_speed``, ``drive_force``,
 ``arm`` true/false, ``arm_reach`` ...; m, kg, m/s, rad/s, N) and ``lidar: {beams, fov_deg, range_m,
-height_m}``; fields left out keep the Husky's. See ``docs/robots.md`` for an example.
+height_m}``; fields left out keep the Husky's. See ``docs/guide/robots.md`` for an example.
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def _robot_from_dict(data: dict) -> RobotConfig:
         if key not in fields:
             raise ConfigError(f"unknown config key robot.{key}; known: {', '.join(sorted(fields))}")
         if key == "name":
-            values[key] = value if isinstance(value, str) else repr(value)
+            values[key] = value
         elif key == "arm":
             if not isinstance(value, bool):
                 raise ConfigError(f"robot.arm must be true or false, got {value!r}")
@@ -125,6 +125,8 @@ def profile_from_dict(data: Any) -> RobotProfile:
     data = dict(data)
     if "name" not in data:
         raise ConfigError("a robot profile needs a name")
+    if not isinstance(data["name"], str):
+        raise ConfigError(f"robot.name must be a text of 1-40 of a-z, 0-9, - and _, got {str(data['name'])[:40]!r}")
     if data["name"] in PROFILES:
         raise ConfigError(f"name {data['name']!r} is a built-in profile's; give your robot its own name")
     lidar = data.pop("lidar", None) or {}
@@ -181,6 +183,44 @@ def check_robot(meta: dict, robot: RobotConfig, what: str) -> None:
     if name != robot.name or not same_size:
         raise ValueError(f"{what}: trained for the {name} ({length:g} x {width:g} m), not the {robot.name} "
                          f"({robot.base_length:g} x {robot.base_width:g} m); refused")
+    recorded = meta["robot"]
+    for key, unit in (("max_linear_speed", "m/s"), ("max_angular_speed", "rad/s")):
+        value = recorded.get(key)
+        if isinstance(value, (int, float)) and abs(value - getattr(robot, key)) > 1e-6:
+            raise ValueError(f"{what}: trained for a top {key.split('_')[1]} speed of {value:g} {unit}, the "
+                             f"{robot.name} here has {getattr(robot, key):g} {unit}; refused")
+    if isinstance(recorded.get("arm"), bool) and recorded["arm"] != robot.arm:
+        has = "with" if recorded["arm"] else "without"
+        raise ValueError(f"{what}: trained {has} an arm, the {robot.name} here {'has' if robot.arm else 'has none'}; "
+                         f"refused")
+
+
+def sensor_metadata(env: EnvConfig) -> dict:
+    """What a training checkpoint records of its robot and LiDAR (an artefact's ``robot`` and
+    ``observation.lidar_fov_rad``), so that it is checked as an artefact is."""
+    return {"robot": robot_metadata(env), "lidar_fov_rad": env.lidar_fov}
+
+
+def check_observation(meta: dict, env: EnvConfig, what: str) -> None:
+    """Refuse (``ValueError``, one line) a policy whose observation (``meta``'s
+    ``observation.layout`` and ``lidar_fov_rad``) is not the one ``env``'s LiDAR gives: another beam
+    count, field of view, range or frame count."""
+    from curlnav.layout import ObservationLayout
+
+    observation = meta.get("observation") if isinstance(meta.get("observation"), dict) else {}
+    layout = observation.get("layout")
+    if not isinstance(layout, dict):
+        return  # the loader names a missing layout
+    mine = ObservationLayout.from_env_config(env).to_dict()
+    for key, unit in (("beams", " beams"), ("max_range", " m of range"), ("range_frames", " range frames"),
+                      ("label_frames", " label frames"), ("goal_frames", " goal frames")):
+        if key in layout and layout[key] != mine[key]:
+            raise ValueError(f"{what}: reads {layout[key]}{unit}, the {env.robot.name}'s LiDAR here gives "
+                             f"{mine[key]}{unit}; refused")
+    fov = observation.get("lidar_fov_rad")
+    if isinstance(fov, (int, float)) and abs(fov - env.lidar_fov) > 1e-6:
+        raise ValueError(f"{what}: reads a LiDAR of {math.degrees(fov):g} deg, the {env.robot.name}'s here covers "
+                         f"{math.degrees(env.lidar_fov):g} deg; refused")
 
 
 def robot_metadata(env: EnvConfig) -> dict:

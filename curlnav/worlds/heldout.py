@@ -17,7 +17,11 @@ MAX_SEED = 2 ** 32 - 1  # numpy's largest seed for one integer
 
 
 class HeldOutSeedError(ValueError):
-    """A training path asked for a held-out seed."""
+    """A training path asked for a held-out seed (or a real suite's map)."""
+
+
+#: the prefix of the real suite's worlds (``curlnav.worlds.real_maps``): held out as a whole
+REAL_PREFIX = "real:"
 
 
 def held_out_from(family: str) -> int:
@@ -48,10 +52,14 @@ def check_training_seed(family: str, seed: int) -> int:
 
 
 def check_training_world(spec) -> None:
-    """Refuse a world spec ``FAMILY:SEED`` whose seed is held out (``HeldOutSeedError``); any
-    other spec (a file, a built-in, a ``World``, a distribution's key) passes."""
+    """Refuse a world spec ``FAMILY:SEED`` whose seed is held out, or a real suite's map ``real:NAME``
+    (``HeldOutSeedError``); any other spec (a file, a built-in, a ``World``, a distribution's key)
+    passes."""
     if not isinstance(spec, str):
         return
+    if spec.startswith(REAL_PREFIX):
+        raise HeldOutSeedError(f"{spec[:60]} is a map of the real suite (curlnav eval --suite real), kept for "
+                               f"evaluation: nobody trains or tunes on it")
     family, sep, seed = spec.rpartition(":")
     if sep and family and seed.isdigit():
         check_training_seed(family, int(seed))

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 from scipy.sparse import csgraph
 
+from curlnav.worlds.heldout import REAL_PREFIX
 from curlnav.worlds.metrics import GridGraph
 from curlnav.worlds.pairs import PairSampler, cspace_free, pair_key
 from curlnav.worlds.scatter import scatter_balls
@@ -45,7 +46,7 @@ from curlnav.worlds.world import RandomPairs, StartGoal, World, WorldError, load
 
 DATA = Path(__file__).resolve().parent / "data" / "real"
 MANIFEST = DATA / "MANIFEST.sha256"
-SPEC_PREFIX = "real:"  # a world argument ``real:<name>`` is ``task(name)``
+SPEC_PREFIX = REAL_PREFIX  # a world argument ``real:<name>`` is ``task(name)``, never trained on (heldout)
 SEED = 2026  # draws every map's pairs and balls
 PAIRS = 6  # start/goal pairs per map (trials per map and agent)
 BALLS = 8  # balls per map, on the pairs' shortest paths
