@@ -9,13 +9,17 @@ For every map, from its repository at its commit (``git show COMMIT:PATH``, byte
 - ``<name>/<image>.pgm.xz``: the image, xz-compressed (decompressed: byte for byte);
 - ``<name>/<licence file>``: the licence text, or the package manifest that declares the licence,
   byte for byte (from ``licence_commit`` when set);
-- ``<name>/SOURCE.md``: repository, commit and date, paths, licence, why the map is real;
-- ``MANIFEST.sha256``: the sha256 of every original file (``<name>/<file>``, the image as the PGM).
+- ``<name>/SOURCE.md`` (``--update`` only): repository, commit and date, paths, licence, why the map is real;
+- ``MANIFEST.sha256`` (``--update`` only): the sha256 of every original file (``<name>/<file>``, the image as the PGM).
 
 Each map is loaded once written (``curlnav.worlds.real_maps.map_world``), and the suite's pairs and
 balls drawn (``task``), so a map that cannot hold the suite stops the script.
 
-Usage: ``scripts/vendor-real-maps.py [--mirrors DIR] [--out DIR]``. With ``--mirrors``, repository
+Every fetched file is checked against the committed ``MANIFEST.sha256`` before anything is written
+(a mismatch writes nothing); ``--update`` (a maintainer adding or moving a map) writes the manifest
+and every ``SOURCE.md`` anew instead.
+
+Usage: ``scripts/vendor-real-maps.py [--mirrors DIR] [--out DIR] [--update]``. With ``--mirrors``, repository
 ``owner/name`` is read from the git directory ``DIR/owner+name/repo`` (a bare snapshot or a work
 tree's ``.git``); without it, each repository is cloned from GitHub (``git clone --bare
 --filter=blob:none``, blobs fetched on demand) into a temporary folder.
@@ -83,8 +87,13 @@ def main() -> int:
     parser.add_argument("--mirrors", type=Path, default=None,
                         help="folder of git snapshots named owner+name/repo (default: clone from GitHub)")
     parser.add_argument("--out", type=Path, default=real_maps.DATA)
+    parser.add_argument("--update", action="store_true",
+                        help="a maintainer's: write MANIFEST.sha256 and every SOURCE.md anew from what was fetched "
+                             "(by default the downloads are checked against the committed manifest and nothing "
+                             "committed is touched)")
     args = parser.parse_args()
     today = datetime.date.today().isoformat()
+    expected = {} if args.update else real_maps.manifest()
     manifest = []
     with tempfile.TemporaryDirectory(prefix="vendor-real-maps-") as scratch:
         for m in MAPS.values():
@@ -95,20 +104,28 @@ def main() -> int:
             yaml_bytes = git(git_dir, "show", f"{m.commit}:{m.yaml}") if m.yaml else m.yaml_text.encode()
             licence = git(git_dir, "show", f"{m.licence_commit or m.commit}:{m.licence_file}")
             outputs = {m.yaml_name: yaml_bytes, Path(m.image).name: image, Path(m.licence_file).name: licence}
+            for file, data in outputs.items():
+                key = f"{m.name}/{file}"
+                if not args.update and hashlib.sha256(data).hexdigest() != expected.get(key):
+                    raise SystemExit(f"{key}: the fetched bytes do not match MANIFEST.sha256 (sha256 "
+                                     f"{hashlib.sha256(data).hexdigest()}, expected {expected.get(key)}); nothing written")
             (folder / m.yaml_name).write_bytes(yaml_bytes)
             (folder / (Path(m.image).name + ".xz")).write_bytes(lzma.compress(image, preset=9 | lzma.PRESET_EXTREME))
             (folder / Path(m.licence_file).name).write_bytes(licence)
             date = git(git_dir, "log", "-1", "--format=%cs", m.commit).decode().strip()
             licence_date = (git(git_dir, "log", "-1", "--format=%cs", m.licence_commit).decode().strip()
                             if m.licence_commit else date)
-            (folder / "SOURCE.md").write_text(source_md(m, date, licence_date, today))
+            if args.update:
+                (folder / "SOURCE.md").write_text(source_md(m, date, licence_date, today))
             manifest += [f"{hashlib.sha256(data).hexdigest()}  {m.name}/{file}" for file, data in outputs.items()]
             if args.out == real_maps.DATA:
                 world = real_maps.task(m.name)
                 print(f"{m.name}: {world.occupancy.shape[1]} x {world.occupancy.shape[0]} cells at "
                       f"{world.resolution:g} m, {len(world.pairs)} pairs, {len(world.balls)} balls")
-    (args.out / "MANIFEST.sha256").write_text("\n".join(manifest) + "\n")
-    print(f"wrote {len(MAPS)} maps and MANIFEST.sha256 in {args.out}")
+    if args.update:
+        (args.out / "MANIFEST.sha256").write_text("\n".join(manifest) + "\n")
+    print(f"wrote {len(MAPS)} maps in {args.out}" + (" and MANIFEST.sha256, SOURCE.md anew" if args.update else
+                                                       ", every file as MANIFEST.sha256 says"))
     return 0
 
 

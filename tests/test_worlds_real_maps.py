@@ -183,3 +183,12 @@ def test_nobody_trains_or_tunes_on_the_real_suites_maps(tmp_path):
         with pytest.raises(CurriculumError, match="real:yujin-rnd is a map of the real suite"):
             load_curriculum(path)
     assert main(["train", "--serial", "--world", "real:yujin-rnd", "--minutes", "1"]) == 2
+
+
+@vendored
+def test_a_downloaded_file_that_is_not_the_sources_is_refused_in_one_line(monkeypatch):
+    real = real_maps.manifest()
+    key = next(k for k in real if k.startswith("yujin-rnd/") and k.endswith(".pgm"))
+    monkeypatch.setattr(real_maps, "manifest", lambda: {**real, key: "0" * 64})
+    with pytest.raises(WorldError, match=r"real map yujin-rnd: .*\.pgm is not the source's .*vendor-real-maps.py"):
+        real_maps.map_world("yujin-rnd")

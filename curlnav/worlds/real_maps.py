@@ -28,6 +28,7 @@ room to turn; then ``BALLS`` balls (0.25 m, 0.5 kg) scattered on the pairs' shor
 
 from __future__ import annotations
 
+import hashlib
 import lzma
 import math
 import tempfile
@@ -150,13 +151,23 @@ def missing(name: str | None = None) -> list[Path]:
     return [m.folder / f for m in maps for f in m.files if not (m.folder / f).is_file()]
 
 
+def manifest() -> dict[str, str]:
+    """``<name>/<file>`` -> the sha256 of the original bytes (the committed ``MANIFEST.sha256``)."""
+    lines = MANIFEST.read_text().splitlines()
+    return {path: digest for digest, path in (line.split("  ", 1) for line in lines if line.strip())}
+
+
 def original_bytes(name: str, file: str) -> bytes:
-    """A vendored file's original bytes (``file`` as in the source: the image decompressed)."""
+    """A downloaded file's original bytes (``file`` as in the source: the image decompressed), checked
+    against the committed manifest (``WorldError``, one line, when they differ)."""
     m = check_name(name)
     packed = m.folder / (file + ".xz")
-    if packed.is_file():
-        return lzma.decompress(packed.read_bytes())
-    return (m.folder / file).read_bytes()
+    data = lzma.decompress(packed.read_bytes()) if packed.is_file() else (m.folder / file).read_bytes()
+    digest, expected = hashlib.sha256(data).hexdigest(), manifest().get(f"{name}/{file}")
+    if digest != expected:
+        raise WorldError(f"real map {name}: {file} is not the source's (sha256 {digest[:12]}..., MANIFEST.sha256 says "
+                         f"{str(expected)[:12]}...); scripts/vendor-real-maps.py downloads it again")
+    return data
 
 
 def map_world(name: str) -> World:
