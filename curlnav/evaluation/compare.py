@@ -406,7 +406,7 @@ REAL = Suite(
     "real",
     real_maps.specs(),
     trials=real_maps.PAIRS, ball_placements=1,
-    about=f"{len(real_maps.MAPS)} real buildings' SLAM maps, vendored whole (Willow Garage, Fraunhofer IPA's office, "
+    about=f"{len(real_maps.MAPS)} real buildings' SLAM maps, used whole (Willow Garage, Fraunhofer IPA's office, "
           "Yujin Robot's R&D office, six floors of two University of Tokyo buildings: a hall, offices, a lab, a corridor, a "
           "basement); 6 pairs 6-20 m apart and 8 balls on their shortest paths per map, fixed by seed; unknown cells "
           "are walls")
