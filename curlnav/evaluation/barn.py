@@ -126,8 +126,9 @@ def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
     """``load`` (a path -> policy) checked against the robot of ``env_config``: an artefact folder's
     metadata before it is loaded, then any policy's ``metadata`` (an artefact's, or a checkpoint's
     ``CheckpointPolicy``): another robot, top speed, arm or observation is refused in one line
-    (``ValueError``). With ``resample`` (the barn suite), a policy of the same robot with a coarser
-    LiDAR than ``env_config``'s reads it through ``ResampledScanPolicy`` instead."""
+    (``ValueError``). With ``resample`` (the barn suite), a policy that records this robot and reads a
+    coarser LiDAR than ``env_config``'s reads it through ``ResampledScanPolicy`` instead; one that
+    records no robot must read exactly this LiDAR."""
     from curlnav.sim.robots import check_observation
 
     def loader(spec: str):
@@ -139,8 +140,8 @@ def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
         if isinstance(metadata.get("robot"), dict):
             check_artefact_robot(metadata, env_config.robot, spec)
         beams = metadata.get("observation", {}).get("layout", {}).get("beams")
-        if resample and beams != env_config.lidar_beams:
-            return ResampledScanPolicy(policy, env_config, metadata)
+        if resample and beams != env_config.lidar_beams and isinstance(metadata.get("robot"), dict):
+            return ResampledScanPolicy(policy, env_config, metadata)  # this robot's policy, its own LiDAR
         check_observation(metadata, env_config, spec)
         return policy
 

@@ -191,7 +191,7 @@ def check_robot(meta: dict, robot: RobotConfig, what: str) -> None:
                              f"{robot.name} here has {getattr(robot, key):g} {unit}; refused")
     if isinstance(recorded.get("arm"), bool) and recorded["arm"] != robot.arm:
         has = "with" if recorded["arm"] else "without"
-        raise ValueError(f"{what}: trained {has} an arm, the {robot.name} here {'has' if robot.arm else 'has none'}; "
+        raise ValueError(f"{what}: trained {has} an arm, the {robot.name} here {'has one' if robot.arm else 'has none'}; "
                          f"refused")
 
 
