@@ -112,7 +112,6 @@ def _eval_barn(args: argparse.Namespace) -> int:
     from curlnav.config import ExperimentConfig
     from curlnav.evaluation.barn import (
         BarnTrial,
-        check_robot,
         jackal_env_config,
         policy_loader,
         reference_line,
@@ -120,7 +119,7 @@ def _eval_barn(args: argparse.Namespace) -> int:
         write_csv,
     )
     from curlnav.evaluation.compare import Comparison
-    from curlnav.planners import GLOBAL_PLAN_SUFFIX, canonical, make_agent
+    from curlnav.planners import make_agent
     from curlnav.worlds import barn
 
     if args.robot not in (None, "jackal"):
@@ -133,10 +132,7 @@ def _eval_barn(args: argparse.Namespace) -> int:
     numbers = barn.parse_range(args.worlds) if args.worlds else list(range(barn.COUNT))
     sensor_noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set or ())
     env_config = jackal_env_config(ExperimentConfig().eval_env.replace(sensor_noise=sensor_noise))
-    for spec in args.agents:
-        if canonical(spec) is None:
-            check_robot(spec.removesuffix(GLOBAL_PLAN_SUFFIX))
-    load = policy_loader(env_config, _load_policy)
+    load = policy_loader(env_config, _load_policy)  # checks each artefact's robot before it loads it
     agents = dict(make_agent(spec, env_config, load, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
