@@ -152,10 +152,10 @@ def test_an_artefact_records_its_robot_and_refuses_another_in_one_line(jackal_ar
         check_robot(husky_meta, PROFILES["jackal"].robot, "h")
     old = {"robot": {"base_length": 0.99, "base_width": 0.67}}  # before profiles: named by its footprint
     assert recorded_robot(old)[0] == "husky"
-    # the same robot at another top speed, or with an arm it has not, is another robot
-    slow = {"robot": {**meta["robot"], "max_linear_speed": 0.5}}
-    with pytest.raises(ValueError, match=r"top linear speed of 0.5 m/s, the jackal here has 2 m/s; refused"):
-        check_robot(slow, PROFILES["jackal"].robot, "j")
+    # a top speed above the robot's, or an arm it has not, is another robot
+    fast = {"robot": {**meta["robot"], "max_linear_speed": 3.0}}
+    with pytest.raises(ValueError, match=r"top linear speed of 3 m/s, the jackal here has only 2 m/s; refused"):
+        check_robot(fast, PROFILES["jackal"].robot, "j")
     with pytest.raises(ValueError, match=r"trained with an arm, the jackal here has none; refused"):
         check_robot({"robot": {**meta["robot"], "arm": True}}, PROFILES["jackal"].robot, "j")
 
@@ -220,3 +220,42 @@ def test_a_jackal_policy_drives_a_jackal_episode_through_eval(jackal_artefact):
     assert result.returncode == 0, result.stderr[-1500:]
     assert "robot jackal: 0.508 x 0.43 m" in result.stdout
 
+
+
+def test_a_policy_trained_slower_drives_the_faster_robot_at_its_own_top_speed(tmp_path):
+    """A Jackal policy trained to command at most 1 m/s (``configs/barn-jackal.yaml``) drives the
+    2 m/s Jackal at up to 1 m/s, in the simulator and on the ROS 2 node; measured on the base."""
+    from curlnav.config import D4PGConfig
+    from curlnav.evaluation.barn import policy_loader
+    from curlnav.learner.artefact import export_policy, load_policy
+    from curlnav.learner.d4pg import init_state
+    from curlnav.ros2.commands import _agent
+    from curlnav.sim.robots import SpeedLimitedPolicy, command_scale, replace_robot
+
+    jackal = PROFILES["jackal"].apply(EnvConfig())
+    slow_env = replace_robot(jackal, max_linear_speed=1.0)
+    state = init_state(D4PGConfig(seed=3), ObservationLayout.from_env_config(slow_env), "cpu")
+    path = export_policy(state, tmp_path / "slow", slow_env, worlds=["barn-course:0"])
+    policy = load_policy(str(path))
+    assert command_scale(policy.metadata, jackal.robot) == pytest.approx((0.5, 1.0))
+    check_robot(policy.metadata, jackal.robot, "slow")  # slower than the robot: accepted
+
+    env_config = jackal.replace(end_on_base_collision=False, max_episode_steps=50)
+    loaded = policy_loader(env_config, load_policy, resample=False)(str(path))
+    assert isinstance(loaded, SpeedLimitedPolicy)
+    flat_out = SpeedLimitedPolicy(lambda obs: np.array([1.0, 0.0, 0.0], np.float32),
+                                  command_scale(policy.metadata, jackal.robot))
+    env = NamoEnv("open-room", env_config)
+    try:
+        obs, _ = env.reset(seed=0, options={"pair": 0})
+        x0, y0, _, _ = env.scene.robot_pose()
+        steps = 10
+        for _ in range(steps):
+            obs, *_ = env.step(flat_out(obs))
+        x1, y1, _, _ = env.scene.robot_pose()
+    finally:
+        env.close()
+    speed = math.hypot(x1 - x0, y1 - y0) / (steps * env_config.control_period)
+    assert 0.8 <= speed <= 1.05, f"the base moved at {speed:.2f} m/s; the policy was trained for at most 1 m/s"
+    _, layout = _agent(str(path), "jackal")
+    assert layout.max_linear_speed == 1.0  # the node commands v * 1 m/s

@@ -125,11 +125,12 @@ def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
                   resample: bool = True) -> Callable[[str], object]:
     """``load`` (a path -> policy) checked against the robot of ``env_config``: an artefact folder's
     metadata before it is loaded, then any policy's ``metadata`` (an artefact's, or a checkpoint's
-    ``CheckpointPolicy``): another robot, top speed, arm or observation is refused in one line
-    (``ValueError``). With ``resample`` (the barn suite), a policy that records this robot and reads a
-    coarser LiDAR than ``env_config``'s reads it through ``ResampledScanPolicy`` instead; one that
-    records no robot must read exactly this LiDAR."""
-    from curlnav.sim.robots import check_observation
+    ``CheckpointPolicy``): another robot, a higher top speed, an arm or another observation is
+    refused in one line (``ValueError``); a policy trained at lower top speeds drives at them
+    (``curlnav.sim.robots.SpeedLimitedPolicy``). With ``resample`` (the barn suite), a policy that
+    records this robot and reads a coarser LiDAR than ``env_config``'s reads it through
+    ``ResampledScanPolicy`` instead; one that records no robot must read exactly this LiDAR."""
+    from curlnav.sim.robots import check_observation, speed_limited
 
     def loader(spec: str):
         check_robot(spec, env_config.robot)
@@ -139,6 +140,7 @@ def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
             return policy
         if isinstance(metadata.get("robot"), dict):
             check_artefact_robot(metadata, env_config.robot, spec)
+            policy = speed_limited(policy, env_config.robot)  # trained slower: it commands its own top speed
         beams = metadata.get("observation", {}).get("layout", {}).get("beams")
         if resample and beams != env_config.lidar_beams and isinstance(metadata.get("robot"), dict):
             return ResampledScanPolicy(policy, env_config, metadata)  # this robot's policy, its own LiDAR

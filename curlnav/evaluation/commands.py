@@ -164,7 +164,7 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
     from curlnav.evaluation.animation import drive_and_draw
     from curlnav.evaluation.protocol import evaluation_config
     from curlnav.policy import PolicyArtefact
-    from curlnav.sim.robots import PROFILES, check_observation, check_robot, load_profile, recorded_robot
+    from curlnav.sim.robots import PROFILES, check_observation, check_robot, load_profile, recorded_robot, speed_limited
 
     policy = PolicyArtefact(args.artefact)
     if args.robot is None:  # the artefact's own robot, when it is a built-in profile
@@ -180,7 +180,7 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
     env_config = profile.apply(evaluation_config())
     check_robot(policy.metadata, profile.robot, args.artefact)
     check_observation(policy.metadata, env_config, args.artefact)
-    return drive_and_draw(policy, args.world, args.pair, args.seed, env_config, args.out,
+    return drive_and_draw(speed_limited(policy, profile.robot), args.world, args.pair, args.seed, env_config, args.out,
                           f"policy-v{policy.version}", gif=args.gif, mcap=args.mcap,
                           recorder=_mcap_file if args.mcap else None)
 

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .config import ConfigError, EnvConfig, RobotConfig
 
 #: an artefact's recorded footprint within this of the robot's drives it (m)
@@ -173,7 +175,10 @@ def recorded_robot(meta: dict) -> tuple[str, float, float]:
 
 def check_robot(meta: dict, robot: RobotConfig, what: str) -> None:
     """Refuse (``ValueError``, one line) an artefact's metadata ``meta`` that records another robot
-    than ``robot``: another name, or a footprint more than ``FOOTPRINT_TOLERANCE`` off."""
+    than ``robot``: another name, a footprint more than ``FOOTPRINT_TOLERANCE`` off, an arm it has
+    not (or lacks), or a top speed above the robot's. A policy trained at a *lower* top speed drives
+    it at that speed (``command_scale``, ``SpeedLimitedPolicy``): a Jackal policy trained to command
+    at most 1 m/s drives the 2 m/s Jackal at up to 1 m/s."""
     try:
         name, length, width = recorded_robot(meta)
     except ValueError as exc:
@@ -186,13 +191,59 @@ def check_robot(meta: dict, robot: RobotConfig, what: str) -> None:
     recorded = meta["robot"]
     for key, unit in (("max_linear_speed", "m/s"), ("max_angular_speed", "rad/s")):
         value = recorded.get(key)
-        if isinstance(value, (int, float)) and abs(value - getattr(robot, key)) > 1e-6:
+        if isinstance(value, (int, float)) and value > getattr(robot, key) + 1e-6:
             raise ValueError(f"{what}: trained for a top {key.split('_')[1]} speed of {value:g} {unit}, the "
-                             f"{robot.name} here has {getattr(robot, key):g} {unit}; refused")
+                             f"{robot.name} here has only {getattr(robot, key):g} {unit}; refused")
     if isinstance(recorded.get("arm"), bool) and recorded["arm"] != robot.arm:
         has = "with" if recorded["arm"] else "without"
         raise ValueError(f"{what}: trained {has} an arm, the {robot.name} here {'has one' if robot.arm else 'has none'}; "
                          f"refused")
+
+
+def command_scale(meta: dict, robot: RobotConfig) -> tuple[float, float]:
+    """``(linear, angular)``: what the policy of metadata ``meta`` commands at action 1, as a
+    fraction of ``robot``'s top speeds (1.0 where ``meta`` records no speed). ``check_robot`` first:
+    a fraction above 1 is refused there."""
+    recorded = meta.get("robot") if isinstance(meta.get("robot"), dict) else {}
+    out = []
+    for key in ("max_linear_speed", "max_angular_speed"):
+        value = recorded.get(key)
+        valid = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+        out.append(min(1.0, value / getattr(robot, key)) if valid else 1.0)
+    return out[0], out[1]
+
+
+class SpeedLimitedPolicy:
+    """A policy trained at lower top speeds than the robot it drives (``command_scale``): its
+    action's linear and angular parts are scaled down so that it commands, in m/s and rad/s, what
+    it learned to (``action[2]``, the arm, is left alone). ``metadata`` is the wrapped policy's."""
+
+    def __init__(self, policy: Any, scale: tuple[float, float]) -> None:
+        if not all(0 < s <= 1 for s in scale):
+            raise ValueError(f"command scales must be in (0, 1], got {scale}")
+        self.policy = policy
+        self.scale = np.array([scale[0], scale[1], 1.0], dtype=np.float32)
+        self.metadata = getattr(policy, "metadata", None)
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        action = np.asarray(self.policy(observation), dtype=np.float32)
+        return action * self.scale[:len(action)]
+
+    @property
+    def version(self) -> Any:
+        return getattr(self.policy, "version", None)
+
+    @property
+    def observation_size(self) -> Any:
+        return getattr(self.policy, "observation_size", None)
+
+
+def speed_limited(policy: Any, robot: RobotConfig) -> Any:
+    """``policy`` wrapped in ``SpeedLimitedPolicy`` when its ``metadata`` records lower top speeds
+    than ``robot``'s; itself otherwise."""
+    meta = getattr(policy, "metadata", None)
+    scale = command_scale(meta, robot) if isinstance(meta, dict) else (1.0, 1.0)
+    return policy if scale == (1.0, 1.0) else SpeedLimitedPolicy(policy, scale)
 
 
 def sensor_metadata(env: EnvConfig) -> dict:
