@@ -459,6 +459,42 @@ def test_the_node_builds_the_observation_the_simulator_builds():
         env.close()
 
 
+def test_the_simulated_robot_publishes_what_it_senses_and_the_node_rebuilds_the_noisy_observation():
+    """``ros2 sim --sensor-noise``: /scan carries the noisy ranges and the segmenter's wrong labels,
+    /odom the drifting odometry; fed those messages, the node builds the observation the policy saw
+    in training under the same noise (latency 0 here: the node's goal is the newest odometry)."""
+    from curlnav.policy import PolicyArtefact
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+    from curlnav.ros2.sim import SimRobot
+    from curlnav.sim import EnvConfig
+    from curlnav.sim.config import SensorNoiseConfig
+
+    policy = PolicyArtefact(POLICY)
+    noise = SensorNoiseConfig.from_preset("harsh", latency_steps=0, label_error=0.3)
+    robot = SimRobot("open-room", "diagonal", seed=3, config=EnvConfig(sensor_noise=noise))
+    seen = []
+    node = PolicyNode(lambda obs: seen.append(obs) or policy(obs), ScanLayout.of(policy.metadata))
+    wrong_labels, drift = 0, 0.0
+    try:
+        pair = robot.env.pair
+        node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=pair.gx, y=pair.gy))))
+        for step in range(15):
+            scan, odom = robot.scan_message(float(step)), robot.odom_message(float(step))
+            wrong_labels += int(np.sum(np.asarray(scan["intensities"]) != robot.env.last_labels))
+            x, y = odom["pose"]["pose"]["position"]["x"], odom["pose"]["pose"]["position"]["y"]
+            drift = max(drift, math.hypot(x - robot.pose[0], y - robot.pose[1]))
+            node.on_scan(scan_of(scan["ranges"], scan["intensities"]), now=float(step))
+            q = odom["pose"]["pose"]["orientation"]
+            node.on_odom(odom_of(x, y, 2 * math.atan2(q["z"], q["w"])), now=float(step))
+            command = node.act(float(step))
+            np.testing.assert_allclose(seen[-1], robot._obs, atol=2e-5, err_msg=f"step {step}")
+            robot.step(command.linear, command.angular, command.arm)
+    finally:
+        robot.close()
+    assert wrong_labels > 0, "/scan published the true labels, not the sensed ones"
+    assert drift > 1e-4, "/odom published the true pose, not the drifting odometry"
+
+
 def test_other_beam_layouts_are_resampled_and_malformed_scans_refused():
     from curlnav.ros2.node import NodeConfig, PolicyNode, ScanLayout, ScanRefused, resample_scan
 

@@ -39,7 +39,12 @@ def add_ros2_commands(sub) -> None:
                                         "/arm_cmd in; real time")
     p.add_argument("world", help="built-in name, world YAML or FAMILY:SEED")
     p.add_argument("--pair", default=None, help="start/goal pair (index or name; default: drawn with --seed)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the pair draw and the ball places")
+    p.add_argument("--seed", type=int, default=0, help="seed of the pair draw, the ball places and the sensor noise")
+    p.add_argument("--sensor-noise", default="none", metavar="PRESET",
+                   help="publish imperfect senses: none (default), realistic or harsh; /scan carries the noisy ranges "
+                        "and labels, /odom and /tf the drifting odometry (docs/guide/environment.md)")
+    p.add_argument("--sensor-set", action="append", metavar="FIELD=VALUE",
+                   help="override one magnitude of the --sensor-noise preset; repeat for several")
     _common(p)
     p.set_defaults(func=_cmd_sim)
 
@@ -133,9 +138,12 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
     topics = remap(SIM_TOPICS, args.remap)
     from curlnav.sim import EnvConfig
+    from curlnav.sim.config import SensorNoiseConfig
     from curlnav.sim.robots import load_profile
 
-    robot = SimRobot(args.world, args.pair, seed=args.seed, config=load_profile(args.robot).apply(EnvConfig()))
+    noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set or ())
+    config = load_profile(args.robot).apply(EnvConfig(sensor_noise=noise))
+    robot = SimRobot(args.world, args.pair, seed=args.seed, config=config)
     try:
         bus, domain = _bus(args)
         x, y, yaw = robot.pose

@@ -3,6 +3,11 @@
 and the latched ``/map`` out; ``/cmd_vel`` and ``/arm_cmd`` in; stepped in real time, one
 control period (0.2 s) per step.
 
+With sensor noise (``EnvConfig.sensor_noise``, ``curlnav ros2 sim --sensor-noise``) the robot
+publishes what it senses, as the policy saw it in training: ``/scan`` the noisy ranges *and*
+labels of the observation's newest frame (latency included), ``/odom`` and ``/tf`` the drifting
+wheel-odometry estimate, not the true pose.
+
 ``SimRobot`` is the core (a ``NamoEnv`` that never ends its episode, ROS 2 messages as dicts
 out); ``run_sim`` wires it to DDS and the wall clock.
 """
@@ -32,6 +37,7 @@ class SimRobot:
         self.env = NamoEnv(world, self.config)
         self._obs, self.info = self.env.reset(seed=seed, options={"pair": pair} if pair is not None else None)
         self.pose = self.info["pose"]
+        self.odom_pose = self.odometry()
         self.twist = (0.0, 0.0)  # m/s along the heading, rad/s
         self.command_arm = 0.0
 
@@ -44,6 +50,12 @@ class SimRobot:
         observation, _, _, _, self.info = self.env.step(action)
         self.observe(observation)
 
+    def odometry(self) -> tuple[float, float, float]:
+        """The robot's own pose estimate ``(x, y, yaw)`` (m, rad): wheel odometry that drifts
+        under sensor noise, the true pose without."""
+        sensors = self.env.sensors
+        return tuple(sensors.odometry.pose) if sensors is not None else self.pose
+
     @classmethod
     def over(cls, env: NamoEnv, observation: np.ndarray) -> SimRobot:
         """The message builders over an environment stepped by someone else (an episode being
@@ -51,12 +63,15 @@ class SimRobot:
         robot = cls.__new__(cls)
         robot.env, robot.config, robot._obs = env, env.config, observation
         robot.pose, robot.twist, robot.command_arm = tuple(env.scene.robot_pose()[:3]), (0.0, 0.0), 0.0
+        robot.odom_pose = robot.odometry()
         return robot
 
     def observe(self, observation: np.ndarray) -> None:
-        """Take the environment's state after a step: pose, twist (from the pose change) and scan."""
-        x0, y0, yaw0 = self.pose
-        x, y, yaw = self.pose = tuple(self.env.scene.robot_pose()[:3])
+        """Take the environment's state after a step: true pose, odometry, twist (from the
+        odometry's change, as wheel encoders give it) and scan."""
+        x0, y0, yaw0 = self.odom_pose
+        self.pose = tuple(self.env.scene.robot_pose()[:3])
+        x, y, yaw = self.odom_pose = self.odometry()
         dt = self.config.control_period
         along = (x - x0) * math.cos(yaw0) + (y - y0) * math.sin(yaw0)
         self.twist = (along / dt, math.atan2(math.sin(yaw - yaw0), math.cos(yaw - yaw0)) / dt)
@@ -67,6 +82,13 @@ class SimRobot:
         cfg = self.config
         return self._obs[(cfg.range_frames - 1) * cfg.lidar_beams:cfg.range_frames * cfg.lidar_beams]
 
+    def labels(self) -> np.ndarray:
+        """(beams,) the newest scan's movable labels (1 movable, 0 not), as sensed: the
+        segmenter's errors included under sensor noise."""
+        cfg = self.config
+        start = (cfg.range_frames + cfg.label_frames - 1) * cfg.lidar_beams
+        return self._obs[start:start + cfg.lidar_beams]
+
     # -- messages (dicts of the ROS 2 fields) ---------------------------------------------------------
     def scan_message(self, t_s: float, frame: str = "base_link") -> dict:
         cfg = self.config
@@ -75,16 +97,16 @@ class SimRobot:
                 "angle_increment": cfg.lidar_fov / (cfg.lidar_beams - 1), "time_increment": 0.0,
                 "scan_time": cfg.control_period, "range_min": 0.0, "range_max": cfg.lidar_max_range,
                 "ranges": self.ranges().astype(np.float32).tolist(),
-                "intensities": np.asarray(self.env.last_labels, dtype=np.float32).tolist()}
+                "intensities": self.labels().astype(np.float32).tolist()}
 
     def odom_message(self, t_s: float) -> dict:
-        x, y, yaw = self.pose
+        x, y, yaw = self.odom_pose
         return {"header": {"stamp": stamp(t_s), "frame_id": "odom"}, "child_frame_id": "base_link",
                 "pose": {"pose": {"position": {"x": x, "y": y}, "orientation": quaternion(yaw)}},
                 "twist": {"twist": {"linear": {"x": self.twist[0]}, "angular": {"z": self.twist[1]}}}}
 
     def tf_message(self, t_s: float) -> dict:
-        x, y, yaw = self.pose
+        x, y, yaw = self.odom_pose
         return {"transforms": [{"header": {"stamp": stamp(t_s), "frame_id": "odom"}, "child_frame_id": "base_link",
                                 "transform": {"translation": {"x": x, "y": y}, "rotation": quaternion(yaw)}}]}
 
