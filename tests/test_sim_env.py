@@ -117,6 +117,24 @@ def test_reaching_the_goal_terminates_with_plus_200(make_env):
     assert reward == pytest.approx(200.0 + 0.2 + 0.1)
 
 
+def test_the_progress_reward_pays_the_distance_gained_so_a_loop_earns_nothing(make_env):
+    """``reward.progress`` (BARN recipe): k per metre the goal came closer, k per metre it went
+    away; over a drive out and back its sum is k times the net change of the true distance."""
+    from curlnav.sim.config import RewardConfig
+
+    env = make_env(room_world(pairs=[StartGoal("far", 2.0, 5.0, 0.0, 8.0, 5.0)]), reward=RewardConfig(progress=2.0))
+    _, info = env.reset(seed=0)
+    start = info["distance_to_goal"]
+    terms = []
+    for action in [[1.0, 0.0, 0.0]] * 4 + [[0.0, 1.0, 0.0]] * 16 + [[1.0, 0.0, 0.0]] * 4:  # out, turn round, back
+        _, _, _, _, info = env.step(action)
+        terms.append(info["reward_terms"]["progress"])
+    assert max(terms) > 0.2 and min(terms) < -0.2  # paid going, charged coming back
+    assert sum(terms) == pytest.approx(2.0 * (start - info["distance_to_goal"]), abs=1e-6)
+    assert abs(start - info["distance_to_goal"]) < 1.0  # back near the start: little net pay
+    assert make_env(room_world(), reward=RewardConfig()).config.reward.progress == 0.0  # the paper's reward by default
+
+
 def test_episode_is_truncated_at_the_step_limit(make_env):
     env = make_env(room_world(), max_episode_steps=5)
     env.reset(seed=0)

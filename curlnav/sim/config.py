@@ -71,7 +71,8 @@ class RobotConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Equation (1) of the paper. ``R = r_hg + r_rg + r_mv + r_bc + r_ec``.
+    """Equation (1) of the paper. ``R = r_hg + r_rg + r_mv + r_bc + r_ec`` (plus ``progress``, ours,
+    0 by default).
 
     "Heading toward the goal" is not defined in the paper. ``heading_rule``:
     ``"progress"`` (default): the distance to the goal shrank by more than ``progress_epsilon``
@@ -89,8 +90,16 @@ class RewardConfig:
     heading_rule: str = "progress"
     progress_epsilon: float = 1e-3  # m
     heading_cone: float = math.radians(30.0)
+    #: not in the paper: reward per metre the distance to the goal shrank this step (negative when
+    #: it grew), so a circle or a back-and-forth earns nothing net, unlike ``heading_toward`` /
+    #: ``heading_away`` (which pay the steps toward and charge the steps away alike, whatever their
+    #: length). 0 (the default) leaves the paper's reward; left out of the config hash while 0
+    progress: float = field(default=0.0, metadata={"hash": "omit-default"})
 
     def validate(self) -> None:
+        if isinstance(self.progress, bool) or not isinstance(self.progress, (int, float)) or not math.isfinite(
+                self.progress) or self.progress < 0:
+            raise ConfigError(f"reward.progress must be a number >= 0 (reward per metre), got {self.progress!r}")
         if self.heading_rule not in ("progress", "bearing"):
             raise ConfigError(f"reward.heading_rule must be 'progress' or 'bearing', got {self.heading_rule!r}")
         _positive(self, ["moving_threshold", "heading_cone"])

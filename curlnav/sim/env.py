@@ -239,6 +239,7 @@ class NamoEnv(gym.Env):
             "moving": reward_cfg.moving if moved else reward_cfg.not_moving,
             "base_collision": reward_cfg.base_collision if contacts.base_static else 0.0,
             "end_effector_collision": reward_cfg.end_effector_collision if contacts.end_effector_static else 0.0,
+            "progress": reward_cfg.progress * (self._distance - distance),
         }
         self._base_collisions += int(contacts.base_static)
         self._base_collision_events += int(contacts.base_static and not self._base_in_contact)
