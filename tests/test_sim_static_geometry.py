@@ -286,3 +286,34 @@ def test_movable_beams_agree_with_pybullet_after_objects_were_pushed(spec):
         env.close()
     assert movable_beams > 100, "the drives should have seen movable objects"
     assert mismatched <= 0.005 * compared, f"{mismatched} of {compared} beams disagree with PyBullet's ray test"
+
+
+def test_building_world_after_world_keeps_no_memory_behind():
+    """An actor draws a new world every few episodes for hours: each build's wall meshes must not
+    leave memory behind (PyBullet 3.2.7 keeps the vertex lists it is given; ``_MeshArguments``).
+    Python allocations over 12 ``barn-course`` scenes built and closed one after another."""
+    import gc
+    import tracemalloc
+
+    from curlnav.worlds.barn_course import barn_course
+
+    env = NamoEnv(barn_course(0), CFG)
+    try:
+        for seed in range(1, 4):  # warm-up: the reused lists reach their size
+            env.set_world(barn_course(seed))
+            env.reset(seed=seed)
+        gc.collect()
+        tracemalloc.start()
+        before = tracemalloc.get_traced_memory()[0]
+        meshes = 0
+        for seed in range(4, 16):
+            env.set_world(barn_course(seed))
+            env.reset(seed=seed)
+            meshes += env.scene.static_mesh_count
+        gc.collect()
+        grown = tracemalloc.get_traced_memory()[0] - before
+        tracemalloc.stop()
+    finally:
+        env.close()
+    assert meshes >= 12
+    assert grown < 1.5e6, f"12 worlds left {grown / 1e6:.1f} MB behind ({meshes} wall meshes built)"

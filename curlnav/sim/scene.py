@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,6 +45,49 @@ GROUP_ALL = GROUP_QUERY | GROUP_STATIC | GROUP_MOVABLE | GROUP_ROBOT | GROUP_DOO
 RAY_MASK = GROUP_STATIC | GROUP_MOVABLE | GROUP_DOOR  # what a PyBullet ray test should see (not the robot)
 STATIC_TILE_CELLS = 256  # cells per side of one wall mesh (fewer bodies: less broad-phase work per step)
 MAX_SEGMENTS_PER_MESH = 8192  # 32k vertices; PyBullet refused one mesh of about 193k
+
+
+class _MeshArguments:
+    """The lists handed to ``createCollisionShape(GEOM_MESH, vertices=..., indices=...)``, kept for
+    the life of the process and refilled for each mesh.
+
+    PyBullet 3.2.7 never releases the vertex and index sequences it is given (two references to
+    the outer list and to every vertex row are left behind per call), so fresh lists leak every
+    wall mesh whole: measured 2 MB per 2000-segment mesh, about 2.3 MB per ``barn-course`` world
+    built, and actors that draw a new world every few episodes grew to 10 GB in an hour. The
+    leaked references here land on these lists and rows, which live on anyway; the floats in the
+    rows are replaced for each mesh and freed (``tests/test_sim_scene.py`` measures the memory)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.vertices: list[list[float]] = []
+        self.indices: list[int] = []
+        self.rows: list[list[float]] = []
+
+    def shape(self, pb, vertices: np.ndarray, indices: np.ndarray, client: int) -> int:
+        with self.lock:
+            values = vertices.tolist()
+            while len(self.rows) < len(values):
+                self.rows.append([0.0, 0.0, 0.0])
+            for row, value in zip(self.rows, values):
+                row[:] = value
+            self.vertices[:] = self.rows[:len(values)]
+            self.indices[:] = indices.tolist()
+            try:
+                return pb.createCollisionShape(pb.GEOM_MESH, vertices=self.vertices, indices=self.indices,
+                                               flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=client)
+            finally:
+                self.vertices.clear()
+                self.indices.clear()
+
+
+_MESH_ARGUMENTS = _MeshArguments()
+
+
+def _mesh_shape(pb, vertices: np.ndarray, indices: np.ndarray, client: int) -> int:
+    """A concave triangle-mesh collision shape (``vertices`` (V, 3) m, ``indices`` (3T,)) in
+    ``client``, without PyBullet's leak of its arguments (``_MeshArguments``)."""
+    return _MESH_ARGUMENTS.shape(pb, vertices, indices, client)
 RAY_BATCH = 8192  # rays per rayTestBatch call when checking the walls
 
 
@@ -233,8 +277,7 @@ class Scene:
             first = np.arange(len(seg)) * 4
             indices = np.stack([first, first + 1, first + 2, first, first + 2, first + 3], axis=1).ravel()
             try:
-                shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(),
-                                                flags=pb.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
+                shape = _mesh_shape(pb, vertices, indices, c)
             except pb.error as exc:
                 raise StaticGeometryError(f"world {world.name!r}: PyBullet refused a wall mesh of {len(vertices)} "
                                           f"vertices ({exc}); lower MAX_SEGMENTS_PER_MESH") from None
