@@ -190,10 +190,17 @@ def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D
     state.critic_opt.step()
 
     critic.requires_grad_(False)  # the actor's gradient flows through the critic, not into it
+    penalty = cfg.actor_saturation_penalty
     with amp:
-        q_logits = run_critic(batch.obs, run_actor(batch.obs))
+        if penalty > 0:  # eager: the pre-tanh output is needed too
+            pre = actor.preactivation(batch.obs)
+            q_logits = run_critic(batch.obs, actor.squash(pre))
+        else:
+            q_logits = run_critic(batch.obs, run_actor(batch.obs))
     q = critic.mean(q_logits.float())
     actor_loss = -q.mean()
+    if penalty > 0:
+        actor_loss = actor_loss + penalty * pre.float().pow(2).mean()
     state.actor_opt.zero_grad(set_to_none=True)
     actor_loss.backward()
     actor_norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip_norm)
@@ -204,7 +211,7 @@ def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D
     if state.steps % cfg.target_update_period == 0:
         state.target_actor.load_state_dict(actor.state_dict())
         state.target_critic.load_state_dict(critic.state_dict())
-    metrics = {"losses/critic": critic_loss.detach(), "losses/actor": actor_loss.detach(), "values/q_mean": -actor_loss.detach(),
+    metrics = {"losses/critic": critic_loss.detach(), "losses/actor": actor_loss.detach(), "values/q_mean": q.mean().detach(),
                "grads/critic_norm": critic_norm.detach(), "grads/actor_norm": actor_norm.detach()}
     if not sync:
         return state, metrics, item_loss.detach()

@@ -97,8 +97,15 @@ class Actor(nn.Module):
         self.register_buffer("high", torch.tensor(ACTION_HIGH, dtype=torch.float32))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        squashed = torch.tanh(self.head(self.encoder(obs)))
-        return self.low + (squashed + 1.0) * 0.5 * (self.high - self.low)
+        return self.squash(self.preactivation(obs))
+
+    def preactivation(self, obs: torch.Tensor) -> torch.Tensor:
+        """The head's output before tanh (unbounded; the action is ``squash`` of it)."""
+        return self.head(self.encoder(obs))
+
+    def squash(self, preactivation: torch.Tensor) -> torch.Tensor:
+        """tanh, scaled to ``[ACTION_LOW, ACTION_HIGH]``."""
+        return self.low + (torch.tanh(preactivation) + 1.0) * 0.5 * (self.high - self.low)
 
 
 class DistributionalCritic(nn.Module):

@@ -77,6 +77,33 @@ def test_critic_loss_falls_on_a_fixed_batch():
     assert state.steps == 200
 
 
+@pytest.mark.slow  # more than 5 s
+def test_an_actor_pinned_at_its_bounds_is_pulled_back_only_with_the_saturation_penalty():
+    """An actor whose outputs sit on tanh's flat ends (linear speed pinned at 0: the stalled BARN
+    policy of run 4) gets no gradient from the critic; ``actor_saturation_penalty`` brings its
+    pre-tanh outputs back to where the critic can move them."""
+    torch.set_num_threads(2)
+    batch = random_batch(32)
+
+    def pinned_after_updates(penalty: float) -> float:
+        state = init_state(D4PGConfig(seed=4, actor_lr=1e-3, critic_lr=1e-3, actor_saturation_penalty=penalty),
+                           LAYOUT, "cpu")
+        with torch.no_grad():
+            state.actor.head[-1].bias[:] = -12.0  # every action at its low bound
+        for _ in range(60):
+            _, metrics, _ = sgd_step(state, batch)
+        with torch.no_grad():
+            return float(state.actor.preactivation(batch.obs).abs().mean()), metrics
+
+    pinned, _ = pinned_after_updates(0.0)
+    released, metrics = pinned_after_updates(0.01)
+    assert pinned > 10.0, f"without the penalty the pre-tanh outputs moved to {pinned:.1f}"
+    assert released < pinned - 2.0, f"with the penalty they stayed at {released:.1f} (without: {pinned:.1f})"
+    assert metrics["values/q_mean"] != pytest.approx(-metrics["losses/actor"])  # q_mean is the critic's, not the loss
+    with pytest.raises(ValueError, match="actor_saturation_penalty"):
+        D4PGConfig(actor_saturation_penalty=-1.0)
+
+
 def test_target_networks_are_hard_copies_every_period():
     state = init_state(D4PGConfig(target_update_period=3, actor_lr=1e-2, critic_lr=1e-2), LAYOUT, "cpu")
     batch = random_batch(8)
@@ -159,7 +186,8 @@ def test_only_the_network_fields_change_the_networks_so_a_fine_tune_never_adopts
         return shapes, state.critic.support.tolist()
 
     training = {"n_step": 2, "discount": 0.9, "batch_size": 3, "actor_lr": 1e-3, "critic_lr": 1e-3,
-                "target_update_period": 7, "grad_clip_norm": 1.0, "seed": 5, "preset": "paper"}
+                "target_update_period": 7, "grad_clip_norm": 1.0, "seed": 5, "preset": "paper",
+                "actor_saturation_penalty": 0.01}
     shaping = {"encoder": {"encoder": "conv"}, "pool": {"pool": 8},
                "conv_filters": {"encoder": "conv", "conv_filters": 8}, "hidden": {"hidden": (64,)},
                "atoms": {"atoms": 11}, "v_min": {"v_min": -10.0}, "v_max": {"v_max": 100.0}}
