@@ -462,7 +462,8 @@ def test_the_node_builds_the_observation_the_simulator_builds():
 def test_the_simulated_robot_publishes_what_it_senses_and_the_node_rebuilds_the_noisy_observation():
     """``ros2 sim --sensor-noise``: /scan carries the noisy ranges and the segmenter's wrong labels,
     /odom the drifting odometry; fed those messages, the node builds the observation the policy saw
-    in training under the same noise (latency 0 here: the node's goal is the newest odometry)."""
+    in training under the same noise (the realistic preset's latency included: /scan and /odom are
+    both one control period old)."""
     from curlnav.policy import PolicyArtefact
     from curlnav.ros2.node import PolicyNode, ScanLayout
     from curlnav.ros2.sim import SimRobot
@@ -470,7 +471,8 @@ def test_the_simulated_robot_publishes_what_it_senses_and_the_node_rebuilds_the_
     from curlnav.sim.config import SensorNoiseConfig
 
     policy = PolicyArtefact(POLICY)
-    noise = SensorNoiseConfig.from_preset("harsh", latency_steps=0, label_error=0.3)
+    noise = SensorNoiseConfig.from_preset("realistic", label_error=0.3)
+    assert noise.latency_steps == 1
     robot = SimRobot("open-room", "diagonal", seed=3, config=EnvConfig(sensor_noise=noise))
     seen = []
     node = PolicyNode(lambda obs: seen.append(obs) or policy(obs), ScanLayout.of(policy.metadata))

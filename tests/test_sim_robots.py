@@ -225,8 +225,8 @@ def test_a_jackal_policy_drives_a_jackal_episode_through_eval(jackal_artefact):
 def test_a_policy_trained_slower_drives_the_faster_robot_at_its_own_top_speed(tmp_path):
     """A Jackal policy trained to command at most 1 m/s (``configs/barn-jackal.yaml``) drives the
     2 m/s Jackal at up to 1 m/s, in the simulator and on the ROS 2 node; measured on the base."""
-    from curlnav.config import D4PGConfig
-    from curlnav.evaluation.barn import policy_loader
+    from curlnav.config import D4PGConfig, ExperimentConfig
+    from curlnav.evaluation.barn import ResampledScanPolicy, jackal_env_config, policy_loader
     from curlnav.learner.artefact import export_policy, load_policy
     from curlnav.learner.d4pg import init_state
     from curlnav.ros2.commands import _agent
@@ -243,6 +243,14 @@ def test_a_policy_trained_slower_drives_the_faster_robot_at_its_own_top_speed(tm
     env_config = jackal.replace(end_on_base_collision=False, max_episode_steps=50)
     loaded = policy_loader(env_config, load_policy, resample=False)(str(path))
     assert isinstance(loaded, SpeedLimitedPolicy)
+    obs = np.random.default_rng(0).uniform(0.5, 5.0, policy.observation_size).astype(np.float32)
+    assert loaded(obs)[0] == pytest.approx(0.5 * policy(obs)[0]) and loaded(obs)[1] == pytest.approx(policy(obs)[1])
+    barn_loaded = policy_loader(jackal_env_config(ExperimentConfig().eval_env), load_policy)(str(path))
+    assert isinstance(barn_loaded, ResampledScanPolicy) and isinstance(barn_loaded.policy, SpeedLimitedPolicy)
+    faster = replace_robot(slow_env, max_angular_speed=3.0)
+    with pytest.raises(ValueError, match="top angular speed of 3 rad/s, the jackal here has only 1.57 rad/s; refused"):
+        check_robot({"robot": {**policy.metadata["robot"], "max_angular_speed": faster.robot.max_angular_speed}},
+                    jackal.robot, "fast")
     flat_out = SpeedLimitedPolicy(lambda obs: np.array([1.0, 0.0, 0.0], np.float32),
                                   command_scale(policy.metadata, jackal.robot))
     env = NamoEnv("open-room", env_config)

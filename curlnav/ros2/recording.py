@@ -69,7 +69,7 @@ class EpisodeMcap:
 
     def _markers(self, t: float) -> list[dict]:
         env = self.env
-        header = {"stamp": stamp(t), "frame_id": "odom"}
+        header = {"stamp": stamp(t), "frame_id": "map"}  # true positions: map (odom drifts under sensor noise)
 
         def marker(ns: str, i: int, kind: int, x: float, y: float, yaw: float, scale, rgba, **more) -> dict:
             return {"header": header, "ns": ns, "id": i, "type": kind, "action": 0,

@@ -5,8 +5,8 @@ control period (0.2 s) per step.
 
 With sensor noise (``EnvConfig.sensor_noise``, ``curlnav ros2 sim --sensor-noise``) the robot
 publishes what it senses, as the policy saw it in training: ``/scan`` the noisy ranges *and*
-labels of the observation's newest frame (latency included), ``/odom`` and ``/tf`` the drifting
-wheel-odometry estimate, not the true pose.
+labels of the observation's newest frame, ``/odom`` and ``/tf`` the drifting wheel-odometry
+estimate of that same frame (both ``latency_steps`` control periods old), not the true pose.
 
 ``SimRobot`` is the core (a ``NamoEnv`` that never ends its episode, ROS 2 messages as dicts
 out); ``run_sim`` wires it to DDS and the wall clock.
@@ -52,9 +52,10 @@ class SimRobot:
 
     def odometry(self) -> tuple[float, float, float]:
         """The robot's own pose estimate ``(x, y, yaw)`` (m, rad): wheel odometry that drifts
-        under sensor noise, the true pose without."""
+        under sensor noise (as old as the scan, ``latency_steps`` control periods), the true
+        pose without."""
         sensors = self.env.sensors
-        return tuple(sensors.odometry.pose) if sensors is not None else self.pose
+        return tuple(sensors.seen_pose) if sensors is not None else self.pose
 
     @classmethod
     def over(cls, env: NamoEnv, observation: np.ndarray) -> SimRobot:
@@ -126,7 +127,8 @@ class SimRobot:
 
 
 def tf_static_message(t_s: float) -> dict:
-    """``map`` -> ``odom``: the identity (the simulator's odometry is the true pose)."""
+    """``map`` -> ``odom``: the identity (odometry starts at the true start pose; without sensor
+    noise it stays the true pose)."""
     return {"transforms": [{"header": {"stamp": stamp(t_s), "frame_id": "map"}, "child_frame_id": "odom",
                             "transform": {"rotation": quaternion(0.0)}}]}
 

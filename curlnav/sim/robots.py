@@ -227,7 +227,7 @@ class SpeedLimitedPolicy:
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         action = np.asarray(self.policy(observation), dtype=np.float32)
-        return action * self.scale[:len(action)]
+        return action * self.scale[:action.shape[-1]]  # one action (3,) or a batch (B, 3)
 
     @property
     def version(self) -> Any:

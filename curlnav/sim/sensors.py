@@ -166,6 +166,8 @@ class SensorModel:
         self.moves_differently = noise.wheel_slip > 0 or noise.actuation_lag > 0 or (
             noise.max_linear_accel > 0 or noise.max_angular_accel > 0)
         self._delayed: deque[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]] = deque()
+        #: the odometry pose of the frame ``observe`` gave last (``latency_steps`` old, as its scan)
+        self.seen_pose: tuple[float, float, float] = tuple(pose)
 
     @staticmethod
     def for_episode(cfg: EnvConfig, episode_rng: np.random.Generator,
@@ -188,4 +190,6 @@ class SensorModel:
         if not self._delayed:
             self._delayed.extend([frame] * self.noise.latency_steps)
         self._delayed.append(frame)
-        return self._delayed.popleft()
+        seen = self._delayed.popleft()
+        self.seen_pose = seen[2]
+        return seen
