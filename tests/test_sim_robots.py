@@ -223,7 +223,7 @@ def test_a_jackal_policy_drives_a_jackal_episode_through_eval(jackal_artefact):
 
 
 def test_a_policy_trained_slower_drives_the_faster_robot_at_its_own_top_speed(tmp_path):
-    """A Jackal policy trained to command at most 1 m/s (``configs/barn-jackal.yaml``) drives the
+    """A Jackal policy trained to command at most 1 m/s (``configs/barn-jackal-1mps.yaml``) drives the
     2 m/s Jackal at up to 1 m/s, in the simulator and on the ROS 2 node; measured on the base."""
     from curlnav.config import D4PGConfig, ExperimentConfig
     from curlnav.evaluation.barn import ResampledScanPolicy, jackal_env_config, policy_loader
