@@ -138,11 +138,12 @@ def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
         metadata = getattr(policy, "metadata", None)
         if not isinstance(metadata, dict):
             return policy
-        if isinstance(metadata.get("robot"), dict):
+        records_robot = isinstance(metadata.get("robot"), dict)
+        if records_robot:
             check_artefact_robot(metadata, env_config.robot, spec)
             policy = speed_limited(policy, env_config.robot)  # trained slower: it commands its own top speed
         beams = metadata.get("observation", {}).get("layout", {}).get("beams")
-        if resample and beams != env_config.lidar_beams and isinstance(metadata.get("robot"), dict):
+        if resample and beams != env_config.lidar_beams and records_robot:
             return ResampledScanPolicy(policy, env_config, metadata)  # this robot's policy, its own LiDAR
         check_observation(metadata, env_config, spec)
         return policy

@@ -45,6 +45,7 @@ GROUP_ALL = GROUP_QUERY | GROUP_STATIC | GROUP_MOVABLE | GROUP_ROBOT | GROUP_DOO
 RAY_MASK = GROUP_STATIC | GROUP_MOVABLE | GROUP_DOOR  # what a PyBullet ray test should see (not the robot)
 STATIC_TILE_CELLS = 256  # cells per side of one wall mesh (fewer bodies: less broad-phase work per step)
 MAX_SEGMENTS_PER_MESH = 8192  # 32k vertices; PyBullet refused one mesh of about 193k
+RAY_BATCH = 8192  # rays per rayTestBatch call when checking the walls
 
 
 class _MeshArguments:
@@ -56,7 +57,8 @@ class _MeshArguments:
     wall mesh whole: measured 2 MB per 2000-segment mesh, about 2.3 MB per ``barn-course`` world
     built, and actors that draw a new world every few episodes grew to 10 GB in an hour. The
     leaked references here land on these lists and rows, which live on anyway; the floats in the
-    rows are replaced for each mesh and freed (``tests/test_sim_scene.py`` measures the memory)."""
+    rows are replaced for each mesh and freed (``tests/test_sim_static_geometry.py`` measures
+    the memory)."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
@@ -65,6 +67,8 @@ class _MeshArguments:
         self.rows: list[list[float]] = []
 
     def shape(self, pb, vertices: np.ndarray, indices: np.ndarray, client: int) -> int:
+        """A concave triangle-mesh collision shape (``vertices`` (V, 3) m, ``indices`` (3T,)) in
+        ``client``."""
         with self.lock:
             values = vertices.tolist()
             while len(self.rows) < len(values):
@@ -82,13 +86,6 @@ class _MeshArguments:
 
 
 _MESH_ARGUMENTS = _MeshArguments()
-
-
-def _mesh_shape(pb, vertices: np.ndarray, indices: np.ndarray, client: int) -> int:
-    """A concave triangle-mesh collision shape (``vertices`` (V, 3) m, ``indices`` (3T,)) in
-    ``client``, without PyBullet's leak of its arguments (``_MeshArguments``)."""
-    return _MESH_ARGUMENTS.shape(pb, vertices, indices, client)
-RAY_BATCH = 8192  # rays per rayTestBatch call when checking the walls
 
 
 class StaticGeometryError(RuntimeError):
@@ -277,7 +274,7 @@ class Scene:
             first = np.arange(len(seg)) * 4
             indices = np.stack([first, first + 1, first + 2, first, first + 2, first + 3], axis=1).ravel()
             try:
-                shape = _mesh_shape(pb, vertices, indices, c)
+                shape = _MESH_ARGUMENTS.shape(pb, vertices, indices, c)
             except pb.error as exc:
                 raise StaticGeometryError(f"world {world.name!r}: PyBullet refused a wall mesh of {len(vertices)} "
                                           f"vertices ({exc}); lower MAX_SEGMENTS_PER_MESH") from None
