@@ -42,7 +42,9 @@ def main() -> int:
               for seed in range(lo, hi + 1) for fill in fills]
     env_config = jackal_env_config(ExperimentConfig().eval_env)
     load = policy_loader(env_config, load_policy)
-    agents = {spec: load(spec) for spec in args.policies}
+    from curlnav.planners import make_agent
+
+    agents = {spec: make_agent(spec, env_config, load)[1] for spec in args.policies}
     episodes = Comparison(agents, worlds, lambda world: list(world.pairs), env_config).run(1)
     best = None
     for spec in args.policies:

@@ -59,6 +59,10 @@ def register(planner: Planner) -> Planner:
 ALIASES = {"planner": "oracle"}
 #: appended to a policy argument, puts the policy behind the oracle's A* path (``GlobalPlanAgent``)
 GLOBAL_PLAN_SUFFIX = "+global-plan"
+#: appended to a policy argument, puts the policy behind the safety shield (``curlnav.planners.shield``)
+SHIELD_SUFFIX = "+shield"
+#: appended to a policy argument, puts the policy behind a plan on a map of its own scans (``curlnav.planners.scan_map``)
+SCAN_PLAN_SUFFIX = "+scan-plan"
 
 for _planner in (
     Planner("tare-l", "curlnav.planners.local:TareLocalPlanner", "map-less, after TARE's local planner", True),
@@ -92,15 +96,30 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     if canonical(spec) is not None:
         agent = make_planner(spec, env_config)
         return agent.label, agent
+    label = spec
+    shield = spec.endswith(SHIELD_SUFFIX)
+    if shield:
+        spec = spec[:-len(SHIELD_SUFFIX)]
+    scan_plan = spec.endswith(SCAN_PLAN_SUFFIX)
+    if scan_plan:
+        spec = spec[:-len(SCAN_PLAN_SUFFIX)]
     if spec.endswith(GLOBAL_PLAN_SUFFIX):
         spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
-    policy = load_policy(spec)
-    if global_plan:
+    agent = load_policy(spec)
+    if scan_plan:
+        from curlnav.planners.scan_map import ScanMapPlanAgent
+
+        agent = ScanMapPlanAgent(agent, env_config, label=spec)
+    elif global_plan:
         from curlnav.planners.global_plan import GlobalPlanAgent
 
-        agent = GlobalPlanAgent(policy, env_config, label=spec)
-        return agent.label, agent
-    return spec, policy
+        agent = GlobalPlanAgent(agent, env_config, label=spec)
+        label = agent.label + (SHIELD_SUFFIX if shield else "")
+    if shield:
+        from curlnav.planners.shield import ShieldedPolicy
+
+        agent = ShieldedPolicy(agent, env_config, label=label)
+    return label, agent
 
 
 def _planner_list(map_less_only: bool) -> str:

@@ -1,0 +1,267 @@
+"""A map built from the robot's own scans, and a policy behind a plan on it (map-less: no prior map).
+
+The BARN Challenge's baseline is ``move_base``: a global planner on a costmap that the robot fills
+from its LiDAR as it drives (unknown space free), and DWA following that plan. A reactive policy
+alone turns back and forth in front of a field too dense to see through, or drives into a pocket
+that closes; a plan on what has been seen so far takes it round. ``ScanMapPlanAgent`` gives a
+policy that plan, with nothing a robot lacks: the scans, their labels, the goal of the
+observation and odometry.
+
+- ``ScanMap``: an occupancy grid in the odometry frame, sized at the first step to hold the robot,
+  the goal and ``padding_m`` round them. Each static return (label 0, short of the maximum range)
+  adds ``hit`` to its cell's score; each cell a beam passes through on its way (up to
+  ``clear_range_m``) loses ``miss``; scores stay in ``[score_min, score_max]``; a cell is occupied
+  above ``occupied``. Movable returns (label 1) clear but mark nothing: a NAMO policy pushes them.
+  A scan that arrives ``latency_steps`` late is laid down from the odometry pose of then.
+- ``ScanMapPlan``: A* (``curlnav.planners.oracle.astar``, unknown cells free) on the grid with
+  every cell nearer than the robot's half-width plus ``margin_m`` to an occupied one blocked (no
+  path: 0.8 of the half-width, as a gap the coarse grid narrows may still let the base through)
+  and a cost rising toward the walls within ``inflation_m``, planned again every ``replan_steps``
+  steps from where the robot is; the waypoint is ``distance_m`` ahead along the path, pulled back
+  until the straight line to it crosses no blocked cell. Without a path the last one stands; before
+  the first, the waypoint is the goal itself. With ``goal_distance`` the policy is shown the
+  waypoint's direction at the goal's distance: a policy trained on far goals slows near one.
+- ``ScanMapPlanAgent``: the policy's goal block rewritten to describe the waypoint
+  (``GlobalPlanAgent.observation``), as behind the oracle's plan.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from curlnav.layout import ObservationLayout
+from curlnav.planners.global_plan import GlobalPlanAgent
+from curlnav.planners.local import goal_in_robot_frame, odometry
+from curlnav.planners.oracle import astar
+from curlnav.sim import EnvConfig, StartGoal, World
+
+#: appended to a policy argument (``curlnav eval POLICY+scan-plan``), puts it behind ``ScanMapPlanAgent``
+SCAN_PLAN_SUFFIX = "+scan-plan"
+
+
+@dataclass(frozen=True)
+class ScanMapConfig:
+    """The scan map's and its plan's settings (m, steps, scores)."""
+
+    resolution_m: float = 0.1  # cell side (coarsened so that the grid stays within max_cells a side)
+    max_cells: int = 600  # cells along the longer side of the grid at most
+    padding_m: float = 6.0  # room round the robot and the goal
+    hit: float = 1.0  # score added by a static return in a cell
+    miss: float = 0.3  # score taken by a beam passing through a cell
+    score_min: float = -2.0
+    score_max: float = 5.0
+    occupied: float = 0.5  # a cell above this score is occupied
+    clear_range_m: float = 4.0  # beams clear the cells they pass up to this range
+    margin_m: float = 0.05  # added to the half-width: cells nearer an occupied one are blocked for the plan
+    inflation_m: float = 0.6  # from an occupied cell, within which a step costs more
+    inflation_weight: float = 3.0  # extra cost per unit of step length at the blocked boundary
+    distance_m: float = 2.0  # the waypoint lies this far ahead along the path
+    goal_distance: bool = True  # the policy sees the waypoint's direction at the goal's distance
+    replan_steps: int = 1  # plan again every this many control steps
+
+    def __post_init__(self) -> None:
+        for name in ("resolution_m", "padding_m", "hit", "miss", "clear_range_m", "inflation_m", "distance_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"scan map: {name} must be a positive number, got {value!r}")
+        if not (isinstance(self.max_cells, int) and 16 <= self.max_cells <= 4000):
+            raise ValueError(f"scan map: max_cells must be a whole number 16-4000, got {self.max_cells!r}")
+        if not (isinstance(self.replan_steps, int) and self.replan_steps >= 1):
+            raise ValueError(f"scan map: replan_steps must be a whole number of at least 1, got {self.replan_steps!r}")
+        if not self.score_min < self.occupied < self.score_max:
+            raise ValueError("scan map: score_min < occupied < score_max is needed")
+
+
+class ScanMap:
+    """An occupancy grid in the odometry frame, filled from scans (module docstring). Cell
+    ``(iy, ix)`` covers ``origin + (ix, iy) * resolution`` to one cell further (m)."""
+
+    def __init__(self, centre: tuple[float, float], span_m: float, config: ScanMapConfig,
+                 beam_angles: np.ndarray, max_range: float) -> None:
+        self.config = config
+        self.resolution = max(config.resolution_m, span_m / config.max_cells)
+        self.cells = int(math.ceil(span_m / self.resolution))
+        self.origin = np.array([centre[0] - self.cells * self.resolution / 2,
+                                centre[1] - self.cells * self.resolution / 2])
+        self.score = np.zeros((self.cells, self.cells), dtype=np.float32)
+        self.beam_angles = np.asarray(beam_angles, dtype=np.float64)
+        self.max_range = float(max_range)
+        steps = int(math.ceil(config.clear_range_m / (0.5 * self.resolution)))
+        self._distances = (np.arange(steps) + 0.5) * (config.clear_range_m / steps)  # m along each beam
+
+    def cell_index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(iy, ix, inside)`` of map-frame points ``(n, 2)`` (m)."""
+        ij = np.floor((points - self.origin) / self.resolution).astype(np.int64)
+        inside = (ij >= 0).all(axis=1) & (ij < self.cells).all(axis=1)
+        return ij[:, 1], ij[:, 0], inside
+
+    def centre_of(self, iy: int, ix: int) -> tuple[float, float]:
+        return (float(self.origin[0] + (ix + 0.5) * self.resolution), float(self.origin[1] + (iy + 0.5) * self.resolution))
+
+    def add_scan(self, ranges: np.ndarray, labels: np.ndarray, pose: tuple[float, float, float]) -> None:
+        """Lay one scan (ranges m, labels 0 static / 1 movable) down from ``pose`` (x, y, yaw; m, rad)."""
+        cfg = self.config
+        x, y, yaw = pose
+        r = np.asarray(ranges, dtype=np.float64)
+        angles = self.beam_angles + yaw
+        direction = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        returned = r < self.max_range - 1e-3
+        # clearing: cells passed on the way to the return (not the return's own cell)
+        reach = np.minimum(np.where(returned, r - self.resolution, cfg.clear_range_m), cfg.clear_range_m)
+        along = np.broadcast_to(self._distances[None, :], (len(r), len(self._distances)))
+        along = np.where(along <= reach[:, None], along, np.nan)
+        pts = np.stack([x + along * direction[:, 0:1], y + along * direction[:, 1:2]], axis=-1).reshape(-1, 2)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        iy, ix, inside = self.cell_index(pts)
+        flat = np.unique(iy[inside] * self.cells + ix[inside])
+        self.score.ravel()[flat] -= cfg.miss
+        # marking: static returns
+        hits = returned & (np.asarray(labels) < 0.5)
+        if hits.any():
+            pts = np.stack([x + r[hits] * direction[hits, 0], y + r[hits] * direction[hits, 1]], axis=1)
+            iy, ix, inside = self.cell_index(pts)
+            flat = np.unique(iy[inside] * self.cells + ix[inside])
+            self.score.ravel()[flat] += cfg.hit
+        np.clip(self.score, cfg.score_min, cfg.score_max, out=self.score)
+
+    @property
+    def occupied(self) -> np.ndarray:
+        return self.score > self.config.occupied
+
+
+class ScanMapPlan:
+    """A* on a ``ScanMap`` to a fixed goal (odometry frame), and the waypoint ahead on it."""
+
+    def __init__(self, scan_map: ScanMap, goal: tuple[float, float], half_width: float) -> None:
+        self.map = scan_map
+        self.goal = (float(goal[0]), float(goal[1]))
+        self.half_width = half_width
+        self.path: np.ndarray | None = None  # (n, 2) m, odometry frame, the goal last
+        self._blocked: np.ndarray | None = None
+
+    def replan(self, x: float, y: float) -> None:
+        """Plan again from ``(x, y)`` on the map as it is now."""
+        m, cfg = self.map, self.map.config
+        occupied = m.occupied
+        if occupied.any():
+            clearance = ndimage.distance_transform_edt(~occupied) * m.resolution - 0.5 * m.resolution
+        else:
+            clearance = np.full(occupied.shape, np.inf)
+        start = self._free_cell(x, y)
+        goal = self._free_cell(*self.goal)
+        for lethal in (self.half_width + cfg.margin_m, 0.8 * self.half_width):  # then squeezed: a gap the map makes too narrow
+            blocked = clearance <= lethal
+            span = max(cfg.inflation_m - lethal, 1e-6)
+            cost = cfg.inflation_weight * np.clip((cfg.inflation_m - clearance) / span, 0.0, 1.0) ** 2
+            search = blocked.copy()
+            search[start] = False  # the robot's own cell is where it is, however near a wall
+            cells = astar(search, start, goal, cost)
+            if cells is not None:
+                break
+        if cells is None:
+            return  # no way through so far as the map knows: the last path stands (none: the goal itself)
+        self._blocked = blocked
+        points = np.array([m.centre_of(int(r), int(c)) for r, c in cells], dtype=np.float64)
+        self.path = np.vstack([[x, y], points[1:], [self.goal]]) if len(points) > 1 else np.array([[x, y], self.goal])
+
+    def _free_cell(self, x: float, y: float) -> tuple[int, int]:
+        iy, ix, _ = self.map.cell_index(np.array([[x, y]]))
+        n = self.map.cells
+        return int(min(max(iy[0], 0), n - 1)), int(min(max(ix[0], 0), n - 1))
+
+    def _line_free(self, a: np.ndarray, b: np.ndarray) -> bool:
+        n = max(2, int(math.ceil(np.hypot(*(b - a)) / (0.5 * self.map.resolution))) + 1)
+        pts = a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
+        iy, ix, inside = self.map.cell_index(pts)
+        return bool(inside.all()) and not self._blocked[iy, ix][1:].any()
+
+    def waypoint(self, x: float, y: float) -> tuple[float, float]:
+        """The point ``distance_m`` ahead along the path from ``(x, y)``, pulled back to a line of
+        sight; the goal when there is no path."""
+        if self.path is None:
+            return self.goal
+        along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(self.path, axis=0).T))])
+        j = min(int(np.searchsorted(along, self.map.config.distance_m)), len(self.path) - 1)
+        here = np.array([x, y])
+        while j > 1 and not self._line_free(here, self.path[j]):
+            j -= 1
+        return float(self.path[j][0]), float(self.path[j][1])
+
+
+class _StretchedPlan:
+    """A plan whose waypoint is moved along its direction from the robot to the goal's distance."""
+
+    def __init__(self, plan: ScanMapPlan) -> None:
+        self.plan = plan
+
+    def waypoint(self, x: float, y: float) -> tuple[float, float]:
+        wx, wy = self.plan.waypoint(x, y)
+        near = math.hypot(wx - x, wy - y)
+        far = math.hypot(self.plan.goal[0] - x, self.plan.goal[1] - y)
+        if near < 1e-6 or far <= near:
+            return wx, wy
+        k = far / near
+        return x + k * (wx - x), y + k * (wy - y)
+
+
+class ScanMapPlanAgent(GlobalPlanAgent):
+    """A policy behind a plan on the map of its own scans (module docstring):
+    ``act(observation, info) -> action``; ``info["odometry"]`` (else ``info["pose"]``) is the only
+    pose it uses."""
+
+    def __init__(self, policy, env_config: EnvConfig | None = None, config: ScanMapConfig | None = None,
+                 label: str = "policy") -> None:
+        super().__init__(policy, env_config, label=label)
+        self.label = f"{label} + scan-map plan"
+        self.map_config = config or ScanMapConfig()
+        self.layout = ObservationLayout.from_env_config(self.env_config)
+        self.beam_angles = np.linspace(-self.env_config.lidar_fov / 2, self.env_config.lidar_fov / 2,
+                                       self.env_config.lidar_beams)
+        latency = getattr(getattr(self.env_config, "sensor_noise", None), "latency_steps", 0) or 0
+        self._poses: deque[tuple[float, float, float]] = deque(maxlen=int(latency) + 1)
+        self.map: ScanMap | None = None
+        self._steps = 0
+
+    def reset(self, world: World | None, pair: StartGoal | None) -> None:
+        """Start an episode: an empty map, made at the first step (the world and pair are not used)."""
+        self.plan = None
+        self.map = None
+        self._goals = None
+        self._poses.clear()
+        self._steps = 0
+        inner = getattr(self.policy, "reset", None)
+        if callable(inner):
+            inner(world, pair)
+
+    def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        pose = odometry(info)
+        self._poses.append(pose)
+        seen_from = self._poses[0]
+        ranges, labels, goal_frame = self.layout.newest_frame(np.asarray(observation))
+        if self.plan is None:
+            gx, gy = goal_in_robot_frame(goal_frame)
+            c, s = math.cos(seen_from[2]), math.sin(seen_from[2])
+            goal = (seen_from[0] + c * gx - s * gy, seen_from[1] + s * gx + c * gy)
+            cfg = self.map_config
+            span = 2 * cfg.padding_m + max(abs(goal[0] - pose[0]), abs(goal[1] - pose[1]))
+            centre = ((goal[0] + pose[0]) / 2, (goal[1] + pose[1]) / 2)
+            self.map = ScanMap(centre, span, cfg, self.beam_angles, self.env_config.lidar_max_range)
+            self.plan = ScanMapPlan(self.map, goal, self.env_config.robot.base_width / 2)
+        self.map.add_scan(ranges, labels, seen_from)
+        if self._steps % self.map_config.replan_steps == 0:
+            self.plan.replan(pose[0], pose[1])
+        self._steps += 1
+        planned = self.plan
+        if self.map_config.goal_distance:
+            self.plan = _StretchedPlan(planned)
+        try:
+            inner = self.observation(observation, pose)
+        finally:
+            self.plan = planned
+        act = getattr(self.policy, "act", None)
+        return self.policy(inner) if act is None else act(inner, info)

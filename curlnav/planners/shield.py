@@ -1,0 +1,208 @@
+"""A safety shield: a policy's command checked against the scan before the base executes it.
+
+A learned policy drives well and, now and then, grazes an obstacle: on the BARN Challenge's worlds
+most of ``policies/barn-jackal``'s failures are contacts of the rectangular base with a cylinder
+while it turns in a tight gap, and the challenge ends a trial at the first one. Real stacks put a
+last check between the planner and the wheels (Nav2's collision monitor, move_base's footprint
+check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action`` policy:
+
+- each control step the policy proposes ``[v, w, L]`` (fractions of the robot's limits);
+- the static obstacle points it is checked against are the scan's, through the same short memory
+  of marked and cleared cells as the map-less planners' (``curlnav.planners.scan_filter``), so
+  the space behind the robot, outside the LiDAR's field of view, is remembered for a second;
+- the command is simulated as an arc of constant ``(v, w)`` for ``horizon_s`` (the command is
+  held one control period; the rest is the room needed to stop or turn away next step) and the
+  footprint (the base's rectangle) is checked at every ``step_s`` along it;
+- a command whose footprint keeps at least ``margin_m`` from every point (or, already nearer
+  than that, does not come nearer) passes unchanged. Otherwise the admissible command nearest to
+  the policy's (``v`` and ``w`` fractions, ``w`` weighted by ``turn_weight``) out of a grid of
+  ``v_samples`` x ``w_samples`` replaces it, and when none is admissible the one that keeps the
+  most clearance does. The arm value is passed through;
+- a policy that keeps asking for a blocked command is stuck behind it (it cannot back out: its
+  speed is 0..1 of the top speed, forward). After ``stuck_steps`` replacements in a row that
+  barely move the base, the shield drives ``recovery_steps`` steps itself, each the admissible
+  command that ends with the most room round the base, as ``move_base`` runs its recovery
+  behaviours, and hands back.
+
+The shield uses what the policy's own robot has: the observation (scan, labels, goal) and
+odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). Movable
+points (label 1) are not obstacles to it: the NAMO policies push them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from curlnav.planners.local import ScanAgent
+from curlnav.planners.scan_filter import ScanFilterConfig
+from curlnav.sim import EnvConfig, StartGoal, World
+
+#: appended to a policy argument (``curlnav eval POLICY+shield``), puts it behind ``ShieldedPolicy``
+SHIELD_SUFFIX = "+shield"
+
+
+@dataclass(frozen=True)
+class ShieldConfig:
+    """The shield's settings (s, m, counts)."""
+
+    horizon_s: float = 0.6  # how far ahead each command's arc is checked
+    step_s: float = 0.05  # footprint checks along it, this far apart in time
+    margin_m: float = 0.05  # a command is admissible when its footprint keeps this far from every point
+    v_samples: int = 9  # linear speed fractions 0..1 of the replacement grid
+    w_samples: int = 17  # turn rate fractions -1..1 of the replacement grid
+    turn_weight: float = 0.5  # how much a change of turn rate counts against a change of speed
+    ignore_beyond_m: float = 3.0  # points further than this cannot be reached within horizon_s
+    stuck_steps: int = 5  # this many replaced commands in a row that barely move the base ...
+    recovery_steps: int = 5  # ... and the shield drives this many steps itself, to the most room
+    stuck_speed: float = 0.1  # "barely moves": a replacement's speed below this fraction
+
+    def __post_init__(self) -> None:
+        for name in ("horizon_s", "step_s", "margin_m", "turn_weight", "ignore_beyond_m"):
+            value = getattr(self, name)
+            zero_ok = name in ("margin_m", "turn_weight")
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value >= 0 and (value > 0 or zero_ok)):
+                kind = "non-negative" if zero_ok else "positive"
+                raise ValueError(f"shield: {name} must be a {kind} number, got {value!r}")
+        for name in ("v_samples", "w_samples"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and 2 <= value <= 101):
+                raise ValueError(f"shield: {name} must be a whole number 2-101, got {value!r}")
+        for name in ("stuck_steps", "recovery_steps"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 1000):
+                raise ValueError(f"shield: {name} must be a whole number 0-1000 (0: no recovery), got {value!r}")
+        if not (isinstance(self.stuck_speed, (int, float)) and 0 <= self.stuck_speed <= 1):
+            raise ValueError(f"shield: stuck_speed must be a fraction 0-1, got {self.stuck_speed!r}")
+        if self.step_s > self.horizon_s:
+            raise ValueError(f"shield: step_s ({self.step_s}) must not exceed horizon_s ({self.horizon_s})")
+
+    @classmethod
+    def from_dict(cls, values: dict) -> ShieldConfig:
+        """From a JSON/YAML mapping (an artefact's ``deploy.shield``); unknown keys are refused by name."""
+        if not isinstance(values, dict):
+            raise ValueError(f"shield settings must be a mapping, got {type(values).__name__}")
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"shield: unknown setting(s) {', '.join(map(str, unknown))}; known: {', '.join(sorted(known))}")
+        return cls(**values)
+
+
+def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times: np.ndarray,
+                        half_length: float, half_width: float) -> np.ndarray:
+    """For each command ``(v[i], w[i])`` (m/s, rad/s) driven from the origin of the robot frame as a
+    constant arc: the least distance (m) from the base's rectangle (``half_length`` x
+    ``half_width``, m, centred on the base) to any of ``points`` ``(n, 2)`` (m, robot frame) at the
+    ``times`` (s) along it; 0 where a point lies inside the rectangle, ``inf`` without points."""
+    v = np.asarray(v, dtype=np.float64)
+    w = np.asarray(w, dtype=np.float64)
+    if len(points) == 0:
+        return np.full(v.shape, np.inf)
+    th = w[:, None] * times[None, :]  # (N, T)
+    straight = np.abs(w) < 1e-6
+    safe_w = np.where(straight, 1.0, w)[:, None]
+    x = np.where(straight[:, None], v[:, None] * times[None, :], v[:, None] * np.sin(th) / safe_w)
+    y = np.where(straight[:, None], 0.0, v[:, None] * (1.0 - np.cos(th)) / safe_w)
+    c, s = np.cos(th)[..., None], np.sin(th)[..., None]
+    px = points[None, None, :, 0] - x[..., None]
+    py = points[None, None, :, 1] - y[..., None]
+    qx, qy = c * px + s * py, -s * px + c * py  # (N, T, n) in each pose's frame
+    gap = np.hypot(np.maximum(np.abs(qx) - half_length, 0.0), np.maximum(np.abs(qy) - half_width, 0.0))
+    return gap.min(axis=(1, 2))
+
+
+class ShieldedPolicy(ScanAgent):
+    """``policy`` (``obs -> [v, w, L]``, or an ``EpisodeAgent`` such as a policy behind a global
+    plan) behind the safety shield (module docstring):
+    ``act(observation, info) -> [v, w, L]``. ``interventions`` counts the commands replaced in
+    the current episode, ``steps`` the commands checked."""
+
+    def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
+                 config: ShieldConfig | None = None, label: str | None = None,
+                 scan_filter: ScanFilterConfig | None = ScanFilterConfig()) -> None:
+        super().__init__(env_config, scan_filter)
+        self.policy = policy
+        self.config = config or ShieldConfig()
+        self.label = label or f"{getattr(policy, 'label', 'policy')}{SHIELD_SUFFIX}"
+        self.metadata = getattr(policy, "metadata", None)
+        cfg = self.config
+        self._times = np.arange(1, int(math.ceil(cfg.horizon_s / cfg.step_s - 1e-9)) + 1) * cfg.step_s
+        vs = np.linspace(0.0, 1.0, cfg.v_samples)
+        ws = np.linspace(-1.0, 1.0, cfg.w_samples)
+        v, w = np.meshgrid(vs, ws)
+        self._grid = np.stack([v.ravel(), w.ravel()], axis=1)  # (N, 2) fractions
+        self.interventions = 0
+        self.recoveries = 0
+        self.steps = 0
+        self._stuck = 0  # replaced commands in a row that barely moved the base
+        self._recovering = 0  # steps of recovery left
+
+    def reset(self, world: World | None, pair: StartGoal | None) -> None:
+        super().reset(world, pair)
+        inner = getattr(self.policy, "reset", None)
+        if callable(inner):
+            inner(world, pair)
+        self.interventions = 0
+        self.recoveries = 0
+        self.steps = 0
+        self._stuck = 0
+        self._recovering = 0
+
+    def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        points, _, _ = self.sense(observation, info)
+        inner = getattr(self.policy, "act", None)
+        proposed = self.policy(observation) if inner is None else inner(observation, info)
+        proposed = np.asarray(proposed, dtype=np.float32).reshape(-1)
+        self.steps += 1
+        return self.check(proposed, points)
+
+    def check(self, proposed: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``proposed`` ``[v, w, L]`` (fractions) if its arc is admissible against ``points``
+        ``(n, 2)`` (m, robot frame), else its replacement (module docstring)."""
+        cfg = self.config
+        robot = self.env_config.robot
+        d = np.hypot(points[:, 0], points[:, 1]) if len(points) else np.zeros(0)
+        near = points[d < cfg.ignore_beyond_m] if len(points) else points
+        now = float(footprint_clearance(near, np.zeros(1), np.zeros(1), np.zeros(1), self.half_length,
+                                        self.half_width)[0])
+        need = min(cfg.margin_m, now)  # already nearer than the margin: do not come nearer
+        v0, w0 = float(np.clip(proposed[0], 0.0, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
+        mine = footprint_clearance(near, np.array([v0 * robot.max_linear_speed]),
+                                   np.array([w0 * robot.max_angular_speed]), self._times,
+                                   self.half_length, self.half_width)[0]
+        if mine >= need and not self._recovering:
+            self._stuck = 0
+            return proposed
+        self.interventions += 1
+        grid = self._grid
+        vs, ws = grid[:, 0] * robot.max_linear_speed, grid[:, 1] * robot.max_angular_speed
+        clearance = footprint_clearance(near, vs, ws, self._times, self.half_length, self.half_width)
+        admissible = clearance >= need
+        if self._recovering or not admissible.any():
+            # recovery (or nothing admissible): the command that ends with the most room round the base
+            room = footprint_clearance(near, vs, ws, self._times[-1:], self.half_length, self.half_width)
+            best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
+                else int(np.argmax(clearance))
+            self._recovering = max(self._recovering - 1, 0)
+        else:
+            cost = (grid[:, 0] - v0) ** 2 + cfg.turn_weight * (grid[:, 1] - w0) ** 2
+            best = int(np.argmin(np.where(admissible, cost, np.inf)))
+            self._stuck = self._stuck + 1 if grid[best, 0] < cfg.stuck_speed else 0
+            if cfg.stuck_steps and self._stuck >= cfg.stuck_steps:
+                self._stuck = 0
+                self._recovering = cfg.recovery_steps
+                self.recoveries += 1
+        out = proposed.copy()
+        out[0], out[1] = grid[best]
+        return out
+
+
+def shielded(policy, env_config: EnvConfig, config: ShieldConfig | None = None,
+             label: str | None = None) -> ShieldedPolicy:
+    """``policy`` behind a ``ShieldedPolicy`` for an environment of ``env_config``."""
+    return ShieldedPolicy(policy, env_config, config, label)

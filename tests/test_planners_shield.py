@@ -1,0 +1,133 @@
+"""What a policy gets from the deploy-time helpers of ``curlnav.planners``: the safety shield
+(``+shield``) keeps the base off walls whatever the policy asks, and the plan on a map of its own
+scans (``+scan-plan``) takes a goal-seeking policy round a trap it cannot see round."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from curlnav.evaluation.protocol import evaluate, evaluation_config
+from curlnav.planners import make_agent
+from curlnav.planners.local import goal_in_robot_frame
+from curlnav.planners.scan_map import ScanMapConfig, ScanMapPlanAgent
+from curlnav.planners.shield import ShieldConfig, ShieldedPolicy, footprint_clearance
+from curlnav.sim import NamoEnv
+from curlnav.worlds.pairs import clearance_map
+from tests.test_planners_local import u_trap_world
+
+
+class GoalSeeker:
+    """A policy with no sense of obstacles: full speed at the goal of its observation, turning
+    toward it (``[v, w, 0]``, fractions)."""
+
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        gx, gy = goal_in_robot_frame(observation[-3:])
+        bearing = math.atan2(gy, gx)
+        return np.array([1.0 if abs(bearing) < 0.5 else 0.2, float(np.clip(2.0 * bearing, -1, 1)), 0.0], np.float32)
+
+
+def rectangle_distance_by_sampling(point, pose, half_length, half_width, n=4000) -> float:
+    """Independent truth: the distance from ``point`` to a rectangle at ``pose`` (x, y, yaw),
+    from points sampled densely over its outline (0 inside)."""
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    px, py = point[0] - x, point[1] - y
+    qx, qy = c * px + s * py, -s * px + c * py
+    if abs(qx) <= half_length and abs(qy) <= half_width:
+        return 0.0
+    t = np.linspace(-1, 1, n)
+    outline = np.concatenate([np.stack([t * half_length, np.full(n, half_width)], 1),
+                              np.stack([t * half_length, np.full(n, -half_width)], 1),
+                              np.stack([np.full(n, half_length), t * half_width], 1),
+                              np.stack([np.full(n, -half_length), t * half_width], 1)])
+    return float(np.hypot(outline[:, 0] - qx, outline[:, 1] - qy).min())
+
+
+def test_the_footprint_clearance_along_an_arc_matches_a_sampled_rectangle():
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-2.0, 2.0, size=(60, 2))
+    v, w = np.array([0.0, 1.0, 0.8, 0.5]), np.array([1.2, 0.0, -1.0, 2.0])  # m/s, rad/s
+    times = np.array([0.1, 0.3, 0.6])
+    got = footprint_clearance(points, v, w, times, 0.254, 0.215)
+    for i in range(len(v)):
+        truth = math.inf
+        for t in times:
+            th = w[i] * t
+            x = v[i] * t if abs(w[i]) < 1e-9 else v[i] * math.sin(th) / w[i]
+            y = 0.0 if abs(w[i]) < 1e-9 else v[i] * (1 - math.cos(th)) / w[i]
+            truth = min(truth, min(rectangle_distance_by_sampling(p, (x, y, th), 0.254, 0.215) for p in points))
+        assert got[i] == pytest.approx(truth, abs=2e-3)
+
+
+def test_a_command_with_room_passes_the_shield_unchanged_and_one_into_a_wall_is_replaced():
+    cfg = evaluation_config()
+    shield = ShieldedPolicy(GoalSeeker(cfg), cfg)
+    wall = np.stack([np.full(41, 0.9), np.linspace(-1, 1, 41)], axis=1)  # 0.9 m ahead, across
+    free = np.array([0.3, 0.1, 0.7], np.float32)  # slow: 0.18 m in 0.6 s, stops short of the wall
+    assert np.array_equal(shield.check(free, wall), free)
+    into = np.array([1.0, 0.0, 0.7], np.float32)  # 0.6 m in 0.6 s at 1 m/s: into the wall
+    out = shield.check(into, wall)
+    assert out[2] == pytest.approx(0.7)  # the arm is the policy's
+    clearance = footprint_clearance(wall, np.array([out[0] * cfg.robot.max_linear_speed]),
+                                    np.array([out[1] * cfg.robot.max_angular_speed]), shield._times,
+                                    shield.half_length, shield.half_width)[0]
+    assert clearance >= shield.config.margin_m
+    assert shield.interventions == 1
+
+
+@pytest.mark.parametrize("bad", [{"horizon_s": 0}, {"margin_m": -0.1}, {"v_samples": 1}, {"stuck_steps": -1},
+                                 {"step_s": 2.0}, {"no_such": 1}])
+def test_bad_shield_settings_are_refused_by_name(bad):
+    with pytest.raises(ValueError, match="shield"):
+        ShieldConfig.from_dict(bad)
+
+
+def test_behind_the_shield_a_goal_seeker_never_touches_the_wall_it_would_ram():
+    """A policy blind to walls drives at a goal behind the bottom of a U: alone it rams the wall;
+    shielded, the base never touches it over the whole episode."""
+    cfg = evaluation_config()
+    world = u_trap_world()
+    alone = evaluate(GoalSeeker(cfg), world, list(world.pairs), cfg)
+    assert alone.collisions_per_episode > 0
+    shield = ShieldedPolicy(GoalSeeker(cfg), cfg)
+    shielded = evaluate(shield, world, list(world.pairs), cfg)
+    assert shielded.collisions_per_episode == 0
+    assert shield.interventions > 0
+
+
+def test_a_plan_on_its_own_scans_takes_a_goal_seeker_round_a_trap_and_the_map_matches_the_walls():
+    """Behind ``ScanMapPlanAgent`` (no map given: only scans, goal and odometry), a goal seeker gets
+    round a U it cannot see round, without touching it; every cell the scans marked lies at a wall."""
+    cfg = evaluation_config()
+    world = u_trap_world()
+    agent = ShieldedPolicy(ScanMapPlanAgent(GoalSeeker(cfg), cfg), cfg)
+    env = NamoEnv(world, cfg)
+    try:
+        result = evaluate(agent, world, list(world.pairs), cfg, env=env)
+    finally:
+        env.close()
+    assert result.success_rate == 1.0 and result.collisions_per_episode == 0
+    scan_map = agent.policy.map
+    iy, ix = np.nonzero(scan_map.occupied)
+    centres = np.array([scan_map.centre_of(a, b) for a, b in zip(iy, ix)])
+    truth = clearance_map(world)  # m to the nearest wall, per world cell
+    u, v = world.grid_from_map(centres[:, 0], centres[:, 1])
+    rows = np.clip(np.floor(v / world.resolution).astype(int), 0, truth.shape[0] - 1)
+    cols = np.clip(np.floor(u / world.resolution).astype(int), 0, truth.shape[1] - 1)
+    assert len(centres) > 100
+    assert (truth[rows, cols] <= scan_map.resolution + world.resolution).mean() > 0.98
+
+
+def test_eval_suffixes_stack_the_plan_and_the_shield_on_a_policy():
+    cfg = evaluation_config()
+    label, agent = make_agent("my-policy+scan-plan+shield", cfg, lambda spec: GoalSeeker(cfg))
+    assert label == "my-policy+scan-plan+shield"
+    assert isinstance(agent, ShieldedPolicy) and isinstance(agent.policy, ScanMapPlanAgent)
+    with pytest.raises(ValueError, match="scan map"):
+        ScanMapConfig(resolution_m=0)
