@@ -629,3 +629,27 @@ def test_eval_writes_every_episode_of_every_agent_as_mcap_with_ros2_schemas(tmp_
         # the start, then one scan per control step of the episode; one command per step
         assert counts["/scan"] == steps + 1 and counts["/cmd_vel"] == steps, (name, counts, steps)
         assert counts["/map"] == counts["/tf_static"] == 1
+
+
+def test_ros2_run_shield_slows_a_command_into_a_wall_and_passes_one_with_room():
+    """``curlnav ros2 run POLICY --shield``: a policy that always asks for full speed ahead is passed
+    unchanged in the open and held off a wall 0.8 m ahead of the Husky's centre (0.3 m from its bumper)."""
+    from curlnav.planners.shield import ShieldedPolicy
+    from curlnav.ros2.commands import deployed
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+
+    layout = ScanLayout()
+    ahead = deployed(lambda obs: np.array([1.0, 0.0, 0.0]), layout, "husky", shield=True)
+    assert isinstance(ahead, ShieldedPolicy)
+    node = PolicyNode(ahead, layout)
+    node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=8.0, y=0.0))))
+    node.on_odom(odom_of(0.0, 0.0, 0.0), 0.0)
+    node.on_scan(scan_of([6.0] * 241, [0.0] * 241), 0.0)
+    assert node.act(0.0).linear == pytest.approx(1.0)  # room: the policy's own command
+    angles = np.linspace(-math.radians(120), math.radians(120), 241)
+    wall = np.where(np.abs(angles) < math.radians(60), 0.8 / np.cos(angles), 6.0)
+    node.on_odom(odom_of(0.0, 0.0, 0.0), 0.1)
+    node.on_scan(scan_of(wall, [0.0] * 241), 0.1)
+    command = node.act(0.1)
+    assert command.linear < 0.5  # 0.3 m to the wall: no 0.6 m of full speed
+    assert ahead.interventions == 1

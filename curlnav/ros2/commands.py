@@ -19,6 +19,11 @@ def add_ros2_commands(sub) -> None:
                                         "/cmd_vel, /arm_cmd, /goal_state out")
     p.add_argument("agent", metavar="AGENT", help=agents_help(map_less_only=True))
     p.add_argument("--global-plan", action="store_true", help="follow /plan (nav_msgs/Path) waypoint by waypoint")
+    p.add_argument("--scan-plan", action="store_true",
+                   help="follow an A* plan on a map of the node's own scans (curlnav.planners.scan_map; no /plan needed)")
+    p.add_argument("--shield", action="store_true",
+                   help="check each command's arc against the scan before it goes out (curlnav.planners.shield): "
+                        "one into an obstacle is replaced by the nearest safe one")
     p.add_argument("--rate-hz", type=float, default=None, help="control rate (default: the policy's, 5 Hz)")
     p.add_argument("--silence-s", type=float, default=0.5,
                    help="stop when /scan or /odom is older than this, or no /cmd_vel went out for this long (s)")
@@ -112,11 +117,43 @@ def _agent(name: str, robot: str = "husky"):
     return policy, layout
 
 
+def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shield: bool = False):
+    """``agent`` (a policy or a map-less planner, as ``_agent`` gives it) behind a plan on its own scans
+    (``scan_plan``) and the safety shield (``shield``), both built for what the node feeds it: the
+    scan, frames and command scale of ``layout`` on robot profile ``robot``."""
+    if not (scan_plan or shield):
+        return agent
+    import dataclasses
+
+    from curlnav.config import ExperimentConfig
+    from curlnav.sim.robots import load_profile
+
+    profile = load_profile(robot)
+    env = profile.apply(ExperimentConfig().eval_env)
+    env = env.replace(lidar_beams=layout.beams, lidar_fov=layout.fov_rad, lidar_max_range=layout.max_range_m,
+                      range_frames=layout.range_frames, label_frames=layout.label_frames,
+                      goal_frames=layout.goal_frames, control_period=layout.control_period_s,
+                      robot=dataclasses.replace(env.robot, max_linear_speed=layout.max_linear_speed,
+                                                max_angular_speed=layout.max_angular_speed))
+    if scan_plan:
+        from curlnav.planners.scan_map import ScanMapPlanAgent
+
+        agent = ScanMapPlanAgent(agent, env)
+    if shield:
+        from curlnav.planners.shield import ShieldedPolicy
+
+        agent = ShieldedPolicy(agent, env)
+    return agent
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from .node import NodeConfig, PolicyNode, run_node
     from .topics import NODE_MAX_SAMPLE_BYTES, NODE_TOPICS, remap
 
+    if args.scan_plan and args.global_plan:
+        raise ValueError("--scan-plan and --global-plan both set the policy's waypoints; choose one")
     policy, layout = _agent(args.agent, args.robot)
+    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,
