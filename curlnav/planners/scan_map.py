@@ -17,7 +17,7 @@ observation and odometry.
   every cell nearer than the robot's half-width plus ``margin_m`` to an occupied one blocked (no
   path: 0.8 of the half-width, as a gap the coarse grid narrows may still let the base through)
   and a cost rising toward the walls within ``inflation_m``, planned again every ``replan_steps``
-  steps from where the robot is; the waypoint is ``distance_m`` ahead along the path, pulled back
+  steps from where the robot is, and at once when the map blocks the path's next ``distance_m``; the waypoint is ``distance_m`` ahead along the path, pulled back
   until the straight line to it crosses no blocked cell. Without a path the last one stands; before
   the first, the waypoint is the goal itself. With ``goal_distance`` the policy is shown the
   waypoint's direction at the goal's distance: a policy trained on far goals slows near one.
@@ -62,7 +62,7 @@ class ScanMapConfig:
     inflation_weight: float = 3.0  # extra cost per unit of step length at the blocked boundary
     distance_m: float = 2.0  # the waypoint lies this far ahead along the path
     goal_distance: bool = True  # the policy sees the waypoint's direction at the goal's distance
-    replan_steps: int = 1  # plan again every this many control steps
+    replan_steps: int = 5  # plan again every this many control steps, and whenever the path ahead is blocked
 
     def __post_init__(self) -> None:
         for name in ("resolution_m", "padding_m", "hit", "miss", "clear_range_m", "inflation_m", "distance_m"):
@@ -169,6 +169,28 @@ class ScanMapPlan:
         points = np.array([m.centre_of(int(r), int(c)) for r, c in cells], dtype=np.float64)
         self.path = np.vstack([[x, y], points[1:], [self.goal]]) if len(points) > 1 else np.array([[x, y], self.goal])
 
+    def blocked_ahead(self, x: float, y: float) -> bool:
+        """Whether the path's next ``distance_m`` from the point nearest ``(x, y)`` now crosses a cell
+        the map blocks (walls seen since it was planned)."""
+        if self.path is None:
+            return False
+        m, cfg = self.map, self.map.config
+        occupied = m.occupied
+        k = int(np.argmin(np.hypot(self.path[:, 0] - x, self.path[:, 1] - y)))
+        along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(self.path[k:], axis=0).T))])
+        ahead = self.path[k:][along <= cfg.distance_m]
+        if not occupied.any() or len(ahead) < 2:
+            return False
+        iy, ix, inside = m.cell_index(ahead[1:])
+        lethal = self.half_width + cfg.margin_m
+        r = int(math.ceil(lethal / m.resolution))
+        for a, b in zip(iy[inside], ix[inside]):
+            y0, x0 = max(a - r, 0), max(b - r, 0)
+            wy, wx = np.nonzero(occupied[y0:a + r + 1, x0:b + r + 1])
+            if len(wy) and (np.hypot(wy + y0 - a, wx + x0 - b) * m.resolution - 0.5 * m.resolution <= lethal).any():
+                return True
+        return False
+
     def _free_cell(self, x: float, y: float) -> tuple[int, int]:
         iy, ix, _ = self.map.cell_index(np.array([[x, y]]))
         n = self.map.cells
@@ -253,7 +275,7 @@ class ScanMapPlanAgent(GlobalPlanAgent):
             self.map = ScanMap(centre, span, cfg, self.beam_angles, self.env_config.lidar_max_range)
             self.plan = ScanMapPlan(self.map, goal, self.env_config.robot.base_width / 2)
         self.map.add_scan(ranges, labels, seen_from)
-        if self._steps % self.map_config.replan_steps == 0:
+        if self._steps % self.map_config.replan_steps == 0 or self.plan.blocked_ahead(pose[0], pose[1]):
             self.plan.replan(pose[0], pose[1])
         self._steps += 1
         planned = self.plan
