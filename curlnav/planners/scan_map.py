@@ -17,8 +17,9 @@ observation and odometry.
   every cell nearer than the robot's half-width plus ``margin_m`` to an occupied one blocked (no
   path: 0.8 of the half-width, as a gap the coarse grid narrows may still let the base through)
   and a cost rising toward the walls within ``inflation_m``, planned again every ``replan_steps``
-  steps from where the robot is, and at once when the map blocks the path's next ``distance_m``; the waypoint is ``distance_m`` ahead along the path, pulled back
-  until the straight line to it crosses no blocked cell. Without a path the last one stands; before
+  steps from where the robot is, and at once when the map blocks the path's next ``distance_m``;
+  the waypoint is ``distance_m`` ahead along the path, pulled back until the straight line to it
+  crosses no blocked cell. Without a path the last one stands; before
   the first, the waypoint is the goal itself. With ``goal_distance`` the policy is shown the
   waypoint's direction at the goal's distance: a policy trained on far goals slows near one.
 - ``ScanMapPlanAgent``: the policy's goal block rewritten to describe the waypoint
