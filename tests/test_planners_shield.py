@@ -131,3 +131,34 @@ def test_eval_suffixes_stack_the_plan_and_the_shield_on_a_policy():
     assert isinstance(agent, ShieldedPolicy) and isinstance(agent.policy, ScanMapPlanAgent)
     with pytest.raises(ValueError, match="scan map"):
         ScanMapConfig(resolution_m=0)
+
+
+def test_suffixes_in_another_order_or_two_plans_are_refused_in_one_line():
+    cfg = evaluation_config()
+    for spec in ("p+shield+scan-plan", "p+global-plan+scan-plan", "p+scan-plan+global-plan", "p+shield+shield"):
+        with pytest.raises(ValueError, match="suffixes stack|choose one"):
+            make_agent(spec, cfg, lambda s: GoalSeeker(cfg))
+    with pytest.raises(ValueError, match="choose one"):
+        make_agent("p+scan-plan", cfg, lambda s: GoalSeeker(cfg), global_plan=True)
+
+
+def test_the_scan_plan_waypoint_stays_ahead_of_the_robot_as_it_drives_along_the_path():
+    """Between plans the waypoint advances with the robot: about ``distance_m`` ahead along the
+    path from the nearest path point, never one already passed."""
+    cfg = ScanMapConfig()
+    from curlnav.planners.scan_map import ScanMap, ScanMapPlan
+
+    scan_map = ScanMap((5.0, 0.0), 20.0, cfg, np.linspace(-2, 2, 5), 10.0)
+    plan = ScanMapPlan(scan_map, (10.0, 0.0), 0.215)
+    plan.replan(0.0, 0.0)  # an empty map: straight to the goal
+    for x in (0.0, 2.0, 4.0, 6.0):
+        wx, wy = plan.waypoint(x, 0.0)
+        assert wx - x == pytest.approx(cfg.distance_m, abs=scan_map.resolution + 1e-9) and abs(wy) < 0.11
+    assert plan.waypoint(9.5, 0.0) == pytest.approx((10.0, 0.0))
+
+
+def test_a_nan_command_is_stopped_by_the_shield():
+    cfg = evaluation_config()
+    shield = ShieldedPolicy(GoalSeeker(cfg), cfg)
+    out = shield.check(np.array([math.nan, 0.0, 0.0], np.float32), np.zeros((0, 2)))
+    assert np.array_equal(out, np.zeros(3, np.float32))

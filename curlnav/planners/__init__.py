@@ -1,8 +1,10 @@
 """Planners that drive the robot without learning, and the registry that names them.
 
 Modules: ``oracle`` (A* on the true map and pose, ``StaticMapPlanner``, and the ``GridPlanner``
-behind it), ``global_plan`` (a policy behind an A* path: ``GlobalPlan``, ``GlobalPlanAgent``) and
-``local`` (the map-less ``tare-l`` and ``dwa``, on the same scan as a policy).
+behind it), ``global_plan`` (a policy behind an A* path: ``GlobalPlan``, ``GlobalPlanAgent``),
+``local`` (the map-less ``tare-l`` and ``dwa``, on the same scan as a policy), and what a robot's
+stack puts round any policy: ``scan_map`` (a plan on a map of its own scans, ``+scan-plan``) and
+``shield`` (each command checked against the scan, ``+shield``).
 
 ``PLANNERS`` names every planner an agent argument may name (``curlnav eval``, ``curlnav
 experiment``; the map-less ones also ``curlnav ros2 run``): a ``Planner`` with its class as an
@@ -21,8 +23,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import import_module
 
-__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "agents_help", "canonical", "global_plan",
-           "local", "make_agent", "make_planner", "oracle", "register"]
+__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "agents_help",
+           "canonical", "global_plan", "local", "make_agent", "make_planner", "oracle", "register", "scan_map", "shield"]
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,10 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     """``(label, agent)``: a name in ``PLANNERS`` (or ``ALIASES``) is that planner; anything else is
     a policy ``load_policy`` loads (its label: the path as given). A policy named with the suffix
     ``+global-plan``, or any policy when ``global_plan`` is set, follows waypoints on the oracle's
-    A* path (``GlobalPlanAgent``; label ``PATH + global plan``)."""
+    A* path (``GlobalPlanAgent``; label ``PATH + global plan``); with ``+scan-plan``, waypoints on
+    an A* path on a map of its own scans (``curlnav.planners.scan_map``; not with a global plan);
+    with ``+shield`` last, every command goes through the safety shield
+    (``curlnav.planners.shield``). Suffixes stack in that order: ``PATH+scan-plan+shield``."""
     if canonical(spec) is not None:
         agent = make_planner(spec, env_config)
         return agent.label, agent
@@ -105,6 +110,12 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         spec = spec[:-len(SCAN_PLAN_SUFFIX)]
     if spec.endswith(GLOBAL_PLAN_SUFFIX):
         spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
+    for suffix in (SHIELD_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX):
+        if suffix in spec:
+            raise ValueError(f"{label}: suffixes stack in the order POLICY[+global-plan|+scan-plan][+shield], "
+                             f"each once")
+    if scan_plan and global_plan:
+        raise ValueError(f"{label}: +scan-plan and a global plan both set the policy's waypoints; choose one")
     agent = load_policy(spec)
     if scan_plan:
         from curlnav.planners.scan_map import ScanMapPlanAgent
@@ -114,7 +125,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         from curlnav.planners.global_plan import GlobalPlanAgent
 
         agent = GlobalPlanAgent(agent, env_config, label=spec)
-        label = agent.label + (SHIELD_SUFFIX if shield else "")
+        label = label if shield else agent.label  # shielded: the argument as given
     if shield:
         from curlnav.planners.shield import ShieldedPolicy
 
@@ -143,11 +154,12 @@ def agents_help(map_less_only: bool = False) -> str:
                 + _planner_list(True))
     else:
         text = ("policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
-                "a global plan), or a classical planner: " + _planner_list(False))
+                "a global plan, or +scan-plan behind a plan on its own scans, then +shield to check each command "
+                "against the scan), or a classical planner: " + _planner_list(False))
     return text.replace("%", "%%")  # argparse formats help with %
 
 
 def __getattr__(name: str):
-    if name in ("global_plan", "local", "oracle"):
+    if name in ("global_plan", "local", "oracle", "scan_map", "shield"):
         return import_module(f".{name}", __name__)
     raise AttributeError(f"module 'curlnav.planners' has no attribute {name!r}")

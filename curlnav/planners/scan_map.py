@@ -9,15 +9,17 @@ observation and odometry.
 
 - ``ScanMap``: an occupancy grid in the odometry frame, sized at the first step to hold the robot,
   the goal and ``padding_m`` round them. Each static return (label 0, short of the maximum range)
-  adds ``hit`` to its cell's score; each cell a beam passes through on its way (up to
-  ``clear_range_m``) loses ``miss``; scores stay in ``[score_min, score_max]``; a cell is occupied
-  above ``occupied``. Movable returns (label 1) clear but mark nothing: a NAMO policy pushes them.
-  A scan that arrives ``latency_steps`` late is laid down from the odometry pose of then.
+  adds ``hit`` to its cell's score; each cell a beam passes through on its way to a return (up to
+  ``clear_range_m``; a beam that returned nothing clears nothing) loses ``miss``; scores stay in
+  ``[score_min, score_max]``; a cell is occupied above ``occupied`` (hit in two scans). Movable
+  returns (label 1) clear but mark nothing: a NAMO policy pushes them. A scan that arrives
+  ``latency_steps`` late is laid down from the odometry pose of then.
 - ``ScanMapPlan``: A* (``curlnav.planners.oracle.astar``, unknown cells free) on the grid with
   every cell nearer than the robot's half-width plus ``margin_m`` to an occupied one blocked (no
   path: 0.8 of the half-width, as a gap the coarse grid narrows may still let the base through)
   and a cost rising toward the walls within ``inflation_m``, planned again every ``replan_steps``
-  steps from where the robot is, and at once when the map blocks the path's next ``distance_m``;
+  steps from where the robot is, and sooner (2 steps after the last plan at the earliest) when a wall
+  seen since comes nearer the path's next ``distance_m`` than it was planned with;
   the waypoint is ``distance_m`` ahead along the path, pulled back until the straight line to it
   crosses no blocked cell. Without a path the last one stands; before
   the first, the waypoint is the goal itself. With ``goal_distance`` the policy is shown the
@@ -41,9 +43,6 @@ from curlnav.planners.local import goal_in_robot_frame, odometry
 from curlnav.planners.oracle import astar
 from curlnav.sim import EnvConfig, StartGoal, World
 
-#: appended to a policy argument (``curlnav eval POLICY+scan-plan``), puts it behind ``ScanMapPlanAgent``
-SCAN_PLAN_SUFFIX = "+scan-plan"
-
 
 @dataclass(frozen=True)
 class ScanMapConfig:
@@ -56,7 +55,7 @@ class ScanMapConfig:
     miss: float = 0.3  # score taken by a beam passing through a cell
     score_min: float = -2.0
     score_max: float = 5.0
-    occupied: float = 0.5  # a cell above this score is occupied
+    occupied: float = 1.5  # a cell above this score is occupied: hit in two scans (a spurious return is not)
     clear_range_m: float = 4.0  # beams clear the cells they pass up to this range
     margin_m: float = 0.05  # added to the half-width: cells nearer an occupied one are blocked for the plan
     inflation_m: float = 0.6  # from an occupied cell, within which a step costs more
@@ -112,8 +111,9 @@ class ScanMap:
         angles = self.beam_angles + yaw
         direction = np.stack([np.cos(angles), np.sin(angles)], axis=1)
         returned = r < self.max_range - 1e-3
-        # clearing: cells passed on the way to the return (not the return's own cell)
-        reach = np.minimum(np.where(returned, r - self.resolution, cfg.clear_range_m), cfg.clear_range_m)
+        # clearing: cells passed on the way to a return (not the return's own cell); a beam that returned
+        # nothing clears nothing (a dropout must not open a wall, as in curlnav.planners.scan_filter)
+        reach = np.where(returned, np.minimum(r - self.resolution, cfg.clear_range_m), -1.0)
         along = np.broadcast_to(self._distances[None, :], (len(r), len(self._distances)))
         along = np.where(along <= reach[:, None], along, np.nan)
         pts = np.stack([x + along * direction[:, 0:1], y + along * direction[:, 1:2]], axis=-1).reshape(-1, 2)
@@ -144,6 +144,8 @@ class ScanMapPlan:
         self.half_width = half_width
         self.path: np.ndarray | None = None  # (n, 2) m, odometry frame, the goal last
         self._blocked: np.ndarray | None = None
+        self._lethal = half_width  # m, the clearance the current path was planned with
+        self._along = np.zeros(0)  # m along the path at each point
 
     def replan(self, x: float, y: float) -> None:
         """Plan again from ``(x, y)`` on the map as it is now."""
@@ -161,29 +163,30 @@ class ScanMapPlan:
             cost = cfg.inflation_weight * np.clip((cfg.inflation_m - clearance) / span, 0.0, 1.0) ** 2
             search = blocked.copy()
             search[start] = False  # the robot's own cell is where it is, however near a wall
+            search[goal] = False  # a goal beside a wall is still the goal
             cells = astar(search, start, goal, cost)
             if cells is not None:
                 break
         if cells is None:
             return  # no way through so far as the map knows: the last path stands (none: the goal itself)
-        self._blocked = blocked
+        self._blocked, self._lethal = blocked, lethal
         points = np.array([m.centre_of(int(r), int(c)) for r, c in cells], dtype=np.float64)
         self.path = np.vstack([[x, y], points[1:], [self.goal]]) if len(points) > 1 else np.array([[x, y], self.goal])
+        self._along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(self.path, axis=0).T))])
 
     def blocked_ahead(self, x: float, y: float) -> bool:
-        """Whether the path's next ``distance_m`` from the point nearest ``(x, y)`` now crosses a cell
-        the map blocks (walls seen since it was planned)."""
+        """Whether the path's next ``distance_m`` from the point nearest ``(x, y)`` now passes nearer
+        to an occupied cell than the clearance it was planned with (walls seen since)."""
         if self.path is None:
             return False
         m, cfg = self.map, self.map.config
         occupied = m.occupied
-        k = int(np.argmin(np.hypot(self.path[:, 0] - x, self.path[:, 1] - y)))
-        along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(self.path[k:], axis=0).T))])
-        ahead = self.path[k:][along <= cfg.distance_m]
+        k = self._nearest(x, y)
+        ahead = self.path[k:][self._along[k:] <= self._along[k] + cfg.distance_m]
         if not occupied.any() or len(ahead) < 2:
             return False
         iy, ix, inside = m.cell_index(ahead[1:])
-        lethal = self.half_width + cfg.margin_m
+        lethal = self._lethal  # as the path was planned: a squeezed path is not blocked by its own squeeze
         r = int(math.ceil(lethal / m.resolution))
         for a, b in zip(iy[inside], ix[inside]):
             y0, x0 = max(a - r, 0), max(b - r, 0)
@@ -208,12 +211,16 @@ class ScanMapPlan:
         sight; the goal when there is no path."""
         if self.path is None:
             return self.goal
-        along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(self.path, axis=0).T))])
-        j = min(int(np.searchsorted(along, self.map.config.distance_m)), len(self.path) - 1)
+        k = self._nearest(x, y)
+        j = min(int(np.searchsorted(self._along, self._along[k] + self.map.config.distance_m)), len(self.path) - 1)
         here = np.array([x, y])
-        while j > 1 and not self._line_free(here, self.path[j]):
+        while j > k + 1 and not self._line_free(here, self.path[j]):
             j -= 1
         return float(self.path[j][0]), float(self.path[j][1])
+
+    def _nearest(self, x: float, y: float) -> int:
+        """The index of the path point nearest ``(x, y)``."""
+        return int(np.argmin(np.hypot(self.path[:, 0] - x, self.path[:, 1] - y)))
 
 
 class _StretchedPlan:
@@ -249,6 +256,7 @@ class ScanMapPlanAgent(GlobalPlanAgent):
         self._poses: deque[tuple[float, float, float]] = deque(maxlen=int(latency) + 1)
         self.map: ScanMap | None = None
         self._steps = 0
+        self._planned_at = -1
 
     def reset(self, world: World | None, pair: StartGoal | None) -> None:
         """Start an episode: an empty map, made at the first step (the world and pair are not used)."""
@@ -257,6 +265,7 @@ class ScanMapPlanAgent(GlobalPlanAgent):
         self._goals = None
         self._poses.clear()
         self._steps = 0
+        self._planned_at = -1  # the step of the last plan (-1: none yet)
         inner = getattr(self.policy, "reset", None)
         if callable(inner):
             inner(world, pair)
@@ -276,8 +285,10 @@ class ScanMapPlanAgent(GlobalPlanAgent):
             self.map = ScanMap(centre, span, cfg, self.beam_angles, self.env_config.lidar_max_range)
             self.plan = ScanMapPlan(self.map, goal, self.env_config.robot.base_width / 2)
         self.map.add_scan(ranges, labels, seen_from)
-        if self._steps % self.map_config.replan_steps == 0 or self.plan.blocked_ahead(pose[0], pose[1]):
+        due = self._steps - self._planned_at >= self.map_config.replan_steps
+        if self._planned_at < 0 or due or (self._steps - self._planned_at >= 2 and self.plan.blocked_ahead(pose[0], pose[1])):
             self.plan.replan(pose[0], pose[1])
+            self._planned_at = self._steps
         self._steps += 1
         planned = self.plan
         if self.map_config.goal_distance:

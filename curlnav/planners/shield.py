@@ -37,12 +37,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from curlnav.planners import SHIELD_SUFFIX
 from curlnav.planners.local import ScanAgent
 from curlnav.planners.scan_filter import ScanFilterConfig
 from curlnav.sim import EnvConfig, StartGoal, World
-
-#: appended to a policy argument (``curlnav eval POLICY+shield``), puts it behind ``ShieldedPolicy``
-SHIELD_SUFFIX = "+shield"
 
 
 @dataclass(frozen=True)
@@ -83,7 +81,7 @@ class ShieldConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> ShieldConfig:
-        """From a JSON/YAML mapping (an artefact's ``deploy.shield``); unknown keys are refused by name."""
+        """From a JSON/YAML mapping; unknown keys are refused by name."""
         if not isinstance(values, dict):
             raise ValueError(f"shield settings must be a mapping, got {type(values).__name__}")
         known = set(cls.__dataclass_fields__)
@@ -167,10 +165,18 @@ class ShieldedPolicy(ScanAgent):
         cfg = self.config
         robot = self.env_config.robot
         d = np.hypot(points[:, 0], points[:, 1]) if len(points) else np.zeros(0)
-        near = points[d < cfg.ignore_beyond_m] if len(points) else points
+        reach = robot.max_linear_speed * cfg.horizon_s + math.hypot(self.half_length, self.half_width) + cfg.margin_m
+        inside = (np.abs(points[:, 0]) <= self.half_length) & (np.abs(points[:, 1]) <= self.half_width) \
+            if len(points) else np.zeros(0, dtype=bool)  # a return inside the base is no obstacle (as dwa's)
+        near = points[(d < min(cfg.ignore_beyond_m, reach)) & ~inside] if len(points) else points
         now = float(footprint_clearance(near, np.zeros(1), np.zeros(1), np.zeros(1), self.half_length,
                                         self.half_width)[0])
         need = min(cfg.margin_m, now)  # already nearer than the margin: do not come nearer
+        if not np.isfinite(proposed[:2]).all():
+            self.interventions += 1
+            out = proposed.copy()
+            out[:] = 0.0
+            return out  # a broken command: stop (the environment or the node refuses it anyway)
         v0, w0 = float(np.clip(proposed[0], 0.0, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
         mine = footprint_clearance(near, np.array([v0 * robot.max_linear_speed]),
                                    np.array([w0 * robot.max_angular_speed]), self._times,
@@ -184,7 +190,8 @@ class ShieldedPolicy(ScanAgent):
         clearance = footprint_clearance(near, vs, ws, self._times, self.half_length, self.half_width)
         admissible = clearance >= need
         if self._recovering or not admissible.any():
-            # recovery (or nothing admissible): the command that ends with the most room round the base
+            # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
+            # clearance of now): the command that ends with the most room round the base
             room = footprint_clearance(near, vs, ws, self._times[-1:], self.half_length, self.half_width)
             best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
                 else int(np.argmax(clearance))
@@ -193,7 +200,7 @@ class ShieldedPolicy(ScanAgent):
             cost = (grid[:, 0] - v0) ** 2 + cfg.turn_weight * (grid[:, 1] - w0) ** 2
             best = int(np.argmin(np.where(admissible, cost, np.inf)))
             self._stuck = self._stuck + 1 if grid[best, 0] < cfg.stuck_speed else 0
-            if cfg.stuck_steps and self._stuck >= cfg.stuck_steps:
+            if cfg.stuck_steps and cfg.recovery_steps and self._stuck >= cfg.stuck_steps:
                 self._stuck = 0
                 self._recovering = cfg.recovery_steps
                 self.recoveries += 1
