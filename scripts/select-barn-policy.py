@@ -8,6 +8,9 @@ node's resampler, success within 1 m, 100 s, any collision ends the trial), and 
 the success, collision and timeout rates and the mean time of the successes; the last line names
 the policy with the most successes (ties: the shorter mean time).
 
+A policy argument takes ``curlnav eval``'s suffixes: ``POLICY+shield`` checks it behind the safety
+shield (``curlnav.planners.shield``).
+
 Usage: ``scripts/select-barn-policy.py POLICY... [--fills 0.15,0.2,0.25] [--seeds 90-99]``
 """
 

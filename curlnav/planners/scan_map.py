@@ -63,6 +63,8 @@ class ScanMapConfig:
     distance_m: float = 2.0  # the waypoint lies this far ahead along the path
     goal_distance: bool = True  # the policy sees the waypoint's direction at the goal's distance
     replan_steps: int = 5  # plan again every this many control steps, and whenever the path ahead is blocked
+    engage_after_steps: int = 0  # 0: waypoints from the start; else once the goal came no nearer for this many steps
+    progress_m: float = 0.5  # "nearer": by this much (m) than the best so far
 
     def __post_init__(self) -> None:
         for name in ("resolution_m", "padding_m", "hit", "miss", "clear_range_m", "inflation_m", "distance_m"):
@@ -71,6 +73,9 @@ class ScanMapConfig:
                 raise ValueError(f"scan map: {name} must be a positive number, got {value!r}")
         if not (isinstance(self.max_cells, int) and 16 <= self.max_cells <= 4000):
             raise ValueError(f"scan map: max_cells must be a whole number 16-4000, got {self.max_cells!r}")
+        if not (isinstance(self.engage_after_steps, int) and self.engage_after_steps >= 0):
+            raise ValueError(f"scan map: engage_after_steps must be a whole number of at least 0, "
+                             f"got {self.engage_after_steps!r}")
         if not (isinstance(self.replan_steps, int) and self.replan_steps >= 1):
             raise ValueError(f"scan map: replan_steps must be a whole number of at least 1, got {self.replan_steps!r}")
         if not self.score_min < self.occupied < self.score_max:
@@ -257,6 +262,8 @@ class ScanMapPlanAgent(GlobalPlanAgent):
         self.map: ScanMap | None = None
         self._steps = 0
         self._planned_at = -1
+        self._best = (math.inf, 0)  # (least distance to the goal so far (m), the step it was reached)
+        self.engaged_at: int | None = None  # the step the waypoints took over (None: not yet)
 
     def reset(self, world: World | None, pair: StartGoal | None) -> None:
         """Start an episode: an empty map, made at the first step (the world and pair are not used)."""
@@ -266,6 +273,8 @@ class ScanMapPlanAgent(GlobalPlanAgent):
         self._poses.clear()
         self._steps = 0
         self._planned_at = -1  # the step of the last plan (-1: none yet)
+        self._best = (math.inf, 0)
+        self.engaged_at = None
         inner = getattr(self.policy, "reset", None)
         if callable(inner):
             inner(world, pair)
@@ -279,12 +288,22 @@ class ScanMapPlanAgent(GlobalPlanAgent):
             gx, gy = goal_in_robot_frame(goal_frame)
             c, s = math.cos(seen_from[2]), math.sin(seen_from[2])
             goal = (seen_from[0] + c * gx - s * gy, seen_from[1] + s * gx + c * gy)
-            cfg = self.map_config
-            span = 2 * cfg.padding_m + max(abs(goal[0] - pose[0]), abs(goal[1] - pose[1]))
+            span = 2 * self.map_config.padding_m + max(abs(goal[0] - pose[0]), abs(goal[1] - pose[1]))
             centre = ((goal[0] + pose[0]) / 2, (goal[1] + pose[1]) / 2)
-            self.map = ScanMap(centre, span, cfg, self.beam_angles, self.env_config.lidar_max_range)
+            self.map = ScanMap(centre, span, self.map_config, self.beam_angles, self.env_config.lidar_max_range)
             self.plan = ScanMapPlan(self.map, goal, self.env_config.robot.base_width / 2)
         self.map.add_scan(ranges, labels, seen_from)
+        cfg = self.map_config
+        if self.engaged_at is None:
+            to_go = math.hypot(self.plan.goal[0] - pose[0], self.plan.goal[1] - pose[1])
+            if to_go < self._best[0] - cfg.progress_m:
+                self._best = (to_go, self._steps)
+            if self._steps - self._best[1] >= cfg.engage_after_steps:
+                self.engaged_at = self._steps
+            else:
+                self._steps += 1
+                act = getattr(self.policy, "act", None)
+                return self.policy(observation) if act is None else act(observation, info)
         due = self._steps - self._planned_at >= self.map_config.replan_steps
         if self._planned_at < 0 or due or (self._steps - self._planned_at >= 2 and self.plan.blocked_ahead(pose[0], pose[1])):
             self.plan.replan(pose[0], pose[1])
