@@ -162,3 +162,26 @@ def test_a_nan_command_is_stopped_by_the_shield():
     shield = ShieldedPolicy(GoalSeeker(cfg), cfg)
     out = shield.check(np.array([math.nan, 0.0, 0.0], np.float32), np.zeros((0, 2)))
     assert np.array_equal(out, np.zeros(3, np.float32))
+
+
+def test_a_scan_plan_that_waits_for_progress_takes_over_only_once_the_goal_comes_no_nearer():
+    """``engage_after_steps``: the policy sees its own goal while it gets nearer; once it has not
+    got 0.5 m nearer for that many steps, the plan's waypoints take over."""
+    cfg = evaluation_config()
+    seen = []
+    still = lambda obs: seen.append(obs.copy()) or np.zeros(3, np.float32)  # noqa: E731  (never moves)
+    agent = ScanMapPlanAgent(still, cfg, ScanMapConfig(engage_after_steps=4))
+    env = NamoEnv("open-room", cfg)
+    try:
+        obs, info = env.reset(seed=0)
+        agent.reset(env.world, env.pair)
+        given = []
+        for _ in range(6):
+            given.append(obs.copy())
+            agent.act(obs, info)
+            obs, _, _, _, info = env.step(np.zeros(3))
+    finally:
+        env.close()
+    assert agent.engaged_at == 4
+    assert all(np.array_equal(seen[k], given[k]) for k in range(4))  # until then: the observation as it came
+    assert agent.plan is not None and agent.plan.path is not None
