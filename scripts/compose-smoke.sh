@@ -134,7 +134,14 @@ export CURLNAV_BUS=$bus_tmp/bus CURLNAV_MAIN_ADDRESS=127.0.0.1  # the stack's se
 CURLNAV_CURRICULA=$PWD/scheduler/curricula docker stack deploy -c docker-stack.yml curlnav
 wait_for "swarm: 2 live actors with episodes (actor-0 and actor-1: task slots 1 and 2), learner version >= 1" 420 \
   'sorted(actors) == ["actor-0", "actor-1"] and all(a.get("episodes", 0) > 0 for a in actors.values()) and (status["learner"]["version"] or 0) >= 1'
-docker service logs curlnav_router 2>&1 | grep -m1 "mutual TLS" || { echo "the main router did not start with TLS"; exit 1; }
+# grep -c reads the logs whole (grep -m1 would close the pipe early: `docker service logs` then dies of
+# SIGPIPE and, under pipefail, the check failed with the line found); polled, as swarm hands logs over late
+tls_deadline=$((SECONDS + 60))
+until [ "$(docker service logs curlnav_router 2>&1 | grep -c "mutual TLS" || true)" -gt 0 ]; do
+  if [ "$SECONDS" -ge "$tls_deadline" ]; then echo "the main router did not start with TLS"; exit 1; fi
+  sleep 2
+done
+echo "the main router started with mutual TLS"
 step "docker stack rm, then its volumes (stack rm keeps them)"
 remove_stack curlnav
 left=$(docker volume ls -q | grep -E '^curlnav_(learner|replay|scheduler)$' || true)
