@@ -185,3 +185,22 @@ def test_a_scan_plan_that_waits_for_progress_takes_over_only_once_the_goal_comes
     assert agent.engaged_at == 4
     assert all(np.array_equal(seen[k], given[k]) for k in range(4))  # until then: the observation as it came
     assert agent.plan is not None and agent.plan.path is not None
+
+
+def test_astar_reaches_exactly_the_4_connected_free_region_the_scan_plan_checks_first():
+    """The scan plan skips A* when the goal lies outside the start's 4-connected free region
+    (``ndimage.label``); that is only right if A* finds a path exactly when both share a region."""
+    from scipy import ndimage
+
+    from curlnav.planners.oracle import astar
+
+    rng = np.random.default_rng(3)
+    found = {True: 0, False: 0}
+    for _ in range(60):
+        blocked = rng.random((30, 30)) < 0.37
+        blocked[0, 0] = blocked[-1, -1] = False
+        region, _ = ndimage.label(~blocked)
+        same = bool(region[0, 0] == region[-1, -1])
+        assert (astar(blocked, (0, 0), (29, 29)) is not None) == same
+        found[same] += 1
+    assert found[True] >= 10 and found[False] >= 10  # both cases met
