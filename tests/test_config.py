@@ -200,3 +200,22 @@ def test_curlnav_and_proto_plus_install_and_import_side_by_side():
 def test_curlnav_keeps_at_most_twelve_modules_at_its_top_level():
     top = sorted(p.name for p in (ROOT / "curlnav").glob("*.py"))
     assert len(top) <= 12, top
+
+
+def test_every_shipped_experiment_config_loads_with_the_curriculum_and_robot_it_names():
+    """``configs/*.yaml`` are the documented recipes (barn-jackal, namo-robust and its ablation arm):
+    each must load, name a curriculum file that exists, and keep its robot and senses."""
+    from pathlib import Path
+
+    from curlnav.config import load_config
+
+    root = Path(__file__).resolve().parents[1]
+    paths = sorted((root / "configs").glob("*.yaml"))
+    assert len(paths) >= 4
+    for path in paths:
+        config = load_config(path)
+        assert (root / config.curriculum.file).is_file(), path.name
+    senses_only = load_config(root / "configs" / "namo-robust-senses-only.yaml")
+    robust = load_config(root / "configs" / "namo-robust.yaml")
+    assert senses_only.env.sensor_noise == robust.env.sensor_noise  # the ablation changes the worlds only
+    assert senses_only.curriculum.file != robust.curriculum.file
