@@ -191,7 +191,10 @@ class ScanMapPlan:
         m, cfg = self.map, self.map.config
         occupied = m.occupied
         k = self._nearest(x, y)
-        ahead = self.path[k:][self._along[k:] <= self._along[k] + cfg.distance_m]
+        within = self._along[k:] <= self._along[k] + cfg.distance_m
+        ahead = self.path[k:][within]
+        if within[-1]:
+            ahead = ahead[:-1]  # the goal itself may lie beside a wall (it is planned to regardless)
         if not occupied.any() or len(ahead) < 2:
             return False
         iy, ix, inside = m.cell_index(ahead[1:])
