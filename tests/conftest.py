@@ -31,6 +31,31 @@ from curlnav.layout import ObservationLayout
 ROOT = Path(__file__).resolve().parent.parent
 
 
+# -- small worlds ----------------------------------------------------------------------------------
+def walled_room(width: float, height: float, res: float = 0.1) -> np.ndarray:
+    """An occupancy grid (m, ``res`` m cells) of an empty room walled two cells thick."""
+    grid = np.zeros((int(round(height / res)), int(round(width / res))), dtype=bool)
+    grid[:2], grid[-2:], grid[:, :2], grid[:, -2:] = True, True, True, True
+    return grid
+
+
+def fill(grid: np.ndarray, x0: float, y0: float, x1: float, y1: float, res: float = 0.1) -> None:
+    """Block the rectangle ``[x0, x1) x [y0, y1)`` (m) of ``grid``."""
+    grid[int(round(y0 / res)):int(round(y1 / res)), int(round(x0 / res)):int(round(x1 / res))] = True
+
+
+def u_trap_world():
+    """A 16 m x 10 m room; between start and goal a U of walls 4 m deep opens toward the start."""
+    from curlnav.sim import StartGoal, World
+
+    grid = walled_room(16.0, 10.0)
+    fill(grid, 9.0, 2.0, 9.3, 8.0)  # the U's bottom, across the line from start to goal
+    fill(grid, 5.0, 2.0, 9.3, 2.3)  # its arms, reaching back toward the start
+    fill(grid, 5.0, 7.7, 9.3, 8.0)
+    pair = StartGoal("through-the-u", 2.5, 5.0, 0.0, 13.0, 5.0)
+    return World(name="u-trap", occupancy=grid, resolution=0.1, pairs=(pair,))
+
+
 # -- waiting ---------------------------------------------------------------------------------------
 def wait_for(what: str, check, timeout: float = 120.0, procs=(), every: float = 0.5):
     """Poll ``check()`` every ``every`` s until it returns a truthy value (returned). An OSError

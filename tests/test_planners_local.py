@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import u_trap_world, walled_room
 
 from curlnav.evaluation.protocol import evaluate, evaluation_config, held_out_pairs
 from curlnav.planners.global_plan import GlobalPlanAgent
@@ -19,16 +20,6 @@ from curlnav.sim import NamoEnv, StartGoal, World
 from curlnav.worlds.pairs import clearance_map
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def walled_room(width: float, height: float, res: float = 0.1) -> np.ndarray:
-    grid = np.zeros((int(round(height / res)), int(round(width / res))), dtype=bool)
-    grid[:2], grid[-2:], grid[:, :2], grid[:, -2:] = True, True, True, True
-    return grid
-
-
-def fill(grid: np.ndarray, x0: float, y0: float, x1: float, y1: float, res: float = 0.1) -> None:
-    grid[int(round(y0 / res)):int(round(y1 / res)), int(round(x0 / res)):int(round(x1 / res))] = True
 
 
 @pytest.mark.parametrize("make", [TareLocalPlanner, DynamicWindowPlanner], ids=["tare-l", "dwa"])
@@ -54,16 +45,6 @@ def test_the_map_less_planners_act_the_same_when_the_static_map_is_emptied(make)
         assert info["steps"] >= 20  # it did drive
     finally:
         env.close()
-
-
-def u_trap_world() -> World:
-    """A 16 m x 10 m room; between start and goal a U of walls 4 m deep opens toward the start."""
-    grid = walled_room(16.0, 10.0)
-    fill(grid, 9.0, 2.0, 9.3, 8.0)  # the U's bottom, across the line from start to goal
-    fill(grid, 5.0, 2.0, 9.3, 2.3)  # its arms, reaching back toward the start
-    fill(grid, 5.0, 7.7, 9.3, 8.0)
-    pair = StartGoal("through-the-u", 2.5, 5.0, 0.0, 13.0, 5.0)
-    return World(name="u-trap", occupancy=grid, resolution=0.1, pairs=(pair,))
 
 
 def test_a_u_shaped_trap_defeats_the_map_less_planners_and_the_oracle_gets_round_it():

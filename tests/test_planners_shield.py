@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import u_trap_world
 
 from curlnav.evaluation.protocol import evaluate, evaluation_config
 from curlnav.planners import make_agent
@@ -16,7 +17,6 @@ from curlnav.planners.scan_map import ScanMapConfig, ScanMapPlanAgent
 from curlnav.planners.shield import ShieldConfig, ShieldedPolicy, footprint_clearance
 from curlnav.sim import NamoEnv
 from curlnav.worlds.pairs import clearance_map
-from tests.test_planners_local import u_trap_world
 
 
 class GoalSeeker:

@@ -25,7 +25,9 @@ observation and odometry.
   the first, the waypoint is the goal itself. With ``goal_distance`` the policy is shown the
   waypoint's direction at the goal's distance: a policy trained on far goals slows near one.
 - ``ScanMapPlanAgent``: the policy's goal block rewritten to describe the waypoint
-  (``GlobalPlanAgent.observation``), as behind the oracle's plan.
+  (``GlobalPlanAgent.observation``), as behind the oracle's plan. With ``engage_after_steps`` (0 by
+  default; set in Python, ``ScanMapConfig``) the policy keeps its own goal until it has come no
+  nearer to it, by ``progress_m``, for that many steps, and the waypoints take over from then on.
 """
 
 from __future__ import annotations

@@ -127,7 +127,6 @@ class ShieldedPolicy(ScanAgent):
         self.policy = policy
         self.config = config or ShieldConfig()
         self.label = label or f"{getattr(policy, 'label', 'policy')}{SHIELD_SUFFIX}"
-        self.metadata = getattr(policy, "metadata", None)
         cfg = self.config
         self._times = np.arange(1, int(math.ceil(cfg.horizon_s / cfg.step_s - 1e-9)) + 1) * cfg.step_s
         vs = np.linspace(0.0, 1.0, cfg.v_samples)
@@ -176,7 +175,7 @@ class ShieldedPolicy(ScanAgent):
             self.interventions += 1
             out = proposed.copy()
             out[:] = 0.0
-            return out  # a broken command: stop (the environment or the node refuses it anyway)
+            return out  # a broken command: stop (counted as an intervention)
         v0, w0 = float(np.clip(proposed[0], 0.0, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
         mine = footprint_clearance(near, np.array([v0 * robot.max_linear_speed]),
                                    np.array([w0 * robot.max_angular_speed]), self._times,
@@ -208,8 +207,3 @@ class ShieldedPolicy(ScanAgent):
         out[0], out[1] = grid[best]
         return out
 
-
-def shielded(policy, env_config: EnvConfig, config: ShieldConfig | None = None,
-             label: str | None = None) -> ShieldedPolicy:
-    """``policy`` behind a ``ShieldedPolicy`` for an environment of ``env_config``."""
-    return ShieldedPolicy(policy, env_config, config, label)
