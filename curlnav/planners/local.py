@@ -75,6 +75,29 @@ def wrap(angle: float | np.ndarray) -> float | np.ndarray:
     return (np.asarray(angle) + math.pi) % (2 * math.pi) - math.pi
 
 
+def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times: np.ndarray,
+                        half_length: float, half_width: float) -> np.ndarray:
+    """For each command ``(v[i], w[i])`` (m/s, rad/s) driven from the origin of the robot frame as a
+    constant arc: the least distance (m) from the base's rectangle (``half_length`` x
+    ``half_width``, m, centred on the base) to any of ``points`` ``(n, 2)`` (m, robot frame) at the
+    ``times`` (s) along it; 0 where a point lies inside the rectangle, ``inf`` without points."""
+    v = np.asarray(v, dtype=np.float64)
+    w = np.asarray(w, dtype=np.float64)
+    if len(points) == 0:
+        return np.full(v.shape, np.inf)
+    th = w[:, None] * times[None, :]  # (N, T)
+    straight = np.abs(w) < 1e-6
+    safe_w = np.where(straight, 1.0, w)[:, None]
+    x = np.where(straight[:, None], v[:, None] * times[None, :], v[:, None] * np.sin(th) / safe_w)
+    y = np.where(straight[:, None], 0.0, v[:, None] * (1.0 - np.cos(th)) / safe_w)
+    c, s = np.cos(th)[..., None], np.sin(th)[..., None]
+    px = points[None, None, :, 0] - x[..., None]
+    py = points[None, None, :, 1] - y[..., None]
+    qx, qy = c * px + s * py, -s * px + c * py  # (N, T, n) in each pose's frame
+    gap = np.hypot(np.maximum(np.abs(qx) - half_length, 0.0), np.maximum(np.abs(qy) - half_width, 0.0))
+    return gap.min(axis=(1, 2))
+
+
 class ScanAgent:
     """What both map-less planners share: the beams, the footprint and the static points they
     plan against. ``act(observation, info) -> [v, w, L]`` (fractions of the robot's limits).
@@ -456,16 +479,7 @@ class DynamicWindowPlanner(ScanAgent):
         d = np.hypot(points[:, 0], points[:, 1])
         inside_now = (np.abs(points[:, 0]) <= self.half_length) & (np.abs(points[:, 1]) <= self.half_width)
         used = points[(d < cfg.ignore_beyond_m) & ~inside_now]
-        if len(used):
-            c, s = np.cos(th)[..., None], np.sin(th)[..., None]
-            px = used[None, None, :, 0] - x[..., None]
-            py = used[None, None, :, 1] - y[..., None]
-            qx, qy = c * px + s * py, -s * px + c * py  # (N, T, n) in each simulated pose's frame
-            gap = np.hypot(np.maximum(np.abs(qx) - self.half_length, 0.0),
-                           np.maximum(np.abs(qy) - self.half_width, 0.0))
-            clearance = gap.min(axis=(1, 2))
-        else:
-            clearance = np.full(v.shape, np.inf)
+        clearance = footprint_clearance(used, v, w, t, self.half_length, self.half_width)
         admissible = clearance > cfg.margin_m
         # the goal's bearing from the trajectory's end pose
         ex, ey, eth = x[:, -1], y[:, -1], th[:, -1]

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from curlnav.planners import SHIELD_SUFFIX
-from curlnav.planners.local import ScanAgent
+from curlnav.planners.local import ScanAgent, footprint_clearance
 from curlnav.planners.scan_filter import ScanFilterConfig
 from curlnav.sim import EnvConfig, StartGoal, World
 
@@ -89,29 +89,6 @@ class ShieldConfig:
         if unknown:
             raise ValueError(f"shield: unknown setting(s) {', '.join(map(str, unknown))}; known: {', '.join(sorted(known))}")
         return cls(**values)
-
-
-def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times: np.ndarray,
-                        half_length: float, half_width: float) -> np.ndarray:
-    """For each command ``(v[i], w[i])`` (m/s, rad/s) driven from the origin of the robot frame as a
-    constant arc: the least distance (m) from the base's rectangle (``half_length`` x
-    ``half_width``, m, centred on the base) to any of ``points`` ``(n, 2)`` (m, robot frame) at the
-    ``times`` (s) along it; 0 where a point lies inside the rectangle, ``inf`` without points."""
-    v = np.asarray(v, dtype=np.float64)
-    w = np.asarray(w, dtype=np.float64)
-    if len(points) == 0:
-        return np.full(v.shape, np.inf)
-    th = w[:, None] * times[None, :]  # (N, T)
-    straight = np.abs(w) < 1e-6
-    safe_w = np.where(straight, 1.0, w)[:, None]
-    x = np.where(straight[:, None], v[:, None] * times[None, :], v[:, None] * np.sin(th) / safe_w)
-    y = np.where(straight[:, None], 0.0, v[:, None] * (1.0 - np.cos(th)) / safe_w)
-    c, s = np.cos(th)[..., None], np.sin(th)[..., None]
-    px = points[None, None, :, 0] - x[..., None]
-    py = points[None, None, :, 1] - y[..., None]
-    qx, qy = c * px + s * py, -s * px + c * py  # (N, T, n) in each pose's frame
-    gap = np.hypot(np.maximum(np.abs(qx) - half_length, 0.0), np.maximum(np.abs(qy) - half_width, 0.0))
-    return gap.min(axis=(1, 2))
 
 
 class ShieldedPolicy(ScanAgent):
