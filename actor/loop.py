@@ -32,14 +32,16 @@ class EpisodeEnd:
         return bool(self.info["is_success"])
 
 
-def next_world_options(env: NamoEnv, draws: WorldDraws, options: dict | None) -> dict | None:
+def next_world_options(env: NamoEnv, draws: WorldDraws, options: dict | None,
+                       scene_cache: int | None = None) -> dict | None:
     """``options`` with a world distribution's key replaced by the world ``draws`` draws for this
-    episode (``WorldDraws``: never a held-out seed); ``env`` keeps the scenes of the draws' pool
-    built. Other options are returned as they are."""
+    episode (``WorldDraws``: never a held-out seed); ``env`` keeps the scenes of the last
+    ``scene_cache`` worlds built (default: as many as the draws keep worlds). Other options are
+    returned as they are."""
     if options and options.get("world") is not None:
         world = draws.resolve(options["world"])
         if world is not options["world"]:
-            env.scene_cache = max(env.scene_cache, draws.cache)
+            env.scene_cache = max(env.scene_cache, draws.cache if scene_cache is None else scene_cache)
             return {**options, "world": world}
     return options
 

@@ -68,13 +68,17 @@ class VectorEpisodeLoop:
     """K environments stepped together with one batched policy call per step."""
 
     def __init__(self, envs: list[NamoEnv], policy: Callable[[np.ndarray], np.ndarray], writer: VectorNStepWriter,
-                 worlds: WorldDraws | None = None) -> None:
+                 worlds: WorldDraws | None = None, scenes: int | None = None) -> None:
+        """``scenes``: PyBullet scenes kept built across world switches, all K environments
+        together (``actor.scenes_per_process``; each keeps ``scenes // K``, at least 1); None: each
+        keeps as many as ``worlds`` keeps worlds."""
         if len(envs) != len(writer):
             raise ValueError(f"{len(envs)} environments but {len(writer)} writer streams")
         self.envs = envs
         self.policy = policy  # (K, observation) -> (K, 3): BehaviourPolicy.batch
         self.writer = writer
         self.worlds = worlds if worlds is not None else WorldDraws()  # one set of draws (and pools) for all K
+        self.scene_cache = None if scenes is None else max(1, scenes // len(envs))  # per environment
         self.obs: list[np.ndarray | None] = [None] * len(envs)
         self.returns = [0.0] * len(envs)
         self.drawn: list[tuple | None] = [None] * len(envs)  # (key, seed) of each environment's drawn world
@@ -97,7 +101,7 @@ class VectorEpisodeLoop:
     def begin(self, k: int, seed: int, options: dict | None = None) -> np.ndarray:
         """Reset environment ``k`` (``options``: world and pair; a distribution's key draws a world)."""
         env = self.envs[k]
-        options = next_world_options(env, self.worlds, options)
+        options = next_world_options(env, self.worlds, options, self.scene_cache)
         self.drawn[k] = self.worlds.take_last()  # None unless a distribution drew this episode's world
         obs, _ = env.reset(seed=seed, options=options)
         self.writer[k].first(obs)

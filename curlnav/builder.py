@@ -90,7 +90,7 @@ class D4PGBuilder:
             raise ValueError(f"an actor steps at least one environment, got {envs}")
         writer = VectorNStepWriter(self.layout, envs, self.config.d4pg.n_step, self.config.d4pg.discount)
         return VectorEpisodeLoop([self.make_env() for _ in range(envs)], policy.batch, writer,
-                                 self.make_world_draws(actor_index))
+                                 self.make_world_draws(actor_index), scenes=self.config.actor.scenes_per_process)
 
     def make_behaviour_policy(self, actor_index: int = 0, actor_count: int = 1, stream: int = 0) -> BehaviourPolicy:
         """The policy actor ``actor_index`` of ``actor_count`` runs: random actions for its share

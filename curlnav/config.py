@@ -193,8 +193,16 @@ class ActorConfig:
     #: best ratio to the bare environment on one core (`curlnav bench actor`)
     envs_per_process: int = 8
     inference: str = "onnx"  # the policy network on ONNX Runtime (onnx) or PyTorch (torch); `curlnav bench actor`
+    #: PyBullet scenes one actor process keeps built across world switches, all its environments
+    #: together (each environment keeps ``scenes_per_process // envs_per_process``, at least 1).
+    #: A scene is 20-30 MB of memory on a NAMO or SLAM-like floor (measured, docs/lab/notebook.md):
+    #: 32 keep an actor near 1-1.5 GB; unbounded (16 per environment) one grew to 9 GB.
+    scenes_per_process: int = 32
 
     def __post_init__(self) -> None:
+        _require(isinstance(self.scenes_per_process, int) and not isinstance(self.scenes_per_process, bool)
+                 and 1 <= self.scenes_per_process <= 1024,
+                 f"actor.scenes_per_process must be a whole number in 1..1024, got {self.scenes_per_process!r}")
         _require(self.inference in INFERENCE_BACKENDS,
                  f"actor.inference must be one of {', '.join(INFERENCE_BACKENDS)}, got {self.inference!r}")
         _require(isinstance(self.envs_per_process, int) and not isinstance(self.envs_per_process, bool)

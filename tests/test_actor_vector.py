@@ -161,3 +161,30 @@ def test_eight_environments_with_five_step_returns_lose_no_transition_and_keep_t
     for i in range(200):
         e, ep, t = (int(x) for x in sample.action[i])
         assert np.allclose(sample.obs[i], expected_stack(list(range(t + 1)), 100 * e + ep), atol=1e-2)
+
+
+def test_an_actor_process_keeps_no_more_scenes_built_than_its_budget():
+    """Each kept scene is its own PyBullet client (20-30 MB on a NAMO floor): an actor of K
+    environments drawing fresh worlds every episode holds at most ``scenes`` of them, not K x the
+    draws' 16 (one actor grew to 9 GB that way)."""
+    from curlnav.worlds.distribution import WorldDraws
+
+    cfg = EnvConfig(max_episode_steps=2, end_on_base_collision=False)
+    layout = ObservationLayout.from_env_config(cfg)
+    k, budget = 3, 6
+    draws = WorldDraws(seed=0)
+    loop = VectorEpisodeLoop([NamoEnv("open-room", cfg) for _ in range(k)],
+                             lambda obs: np.tile(np.float32([0.0, 0.0, 0.0]), (len(obs), 1)),
+                             VectorNStepWriter(layout, k, n_step=1, discount=0.9), draws, scenes=budget)
+    built = lambda env: len(env._scenes) + (env._scene is not None)  # noqa: E731
+    try:
+        for episode in range(12):
+            for e in loop.waiting():
+                loop.begin(e, seed=episode, options={"world": "t-maze:0-29"})  # a fresh world each episode
+            loop.step()
+            loop.step()
+        assert draws.generated >= 10, "the draws gave fresh worlds"
+        assert sum(built(env) for env in loop.envs) <= budget
+        assert all(built(env) == budget // k for env in loop.envs), "each environment keeps its share"
+    finally:
+        loop.close()
