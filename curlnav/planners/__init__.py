@@ -3,8 +3,9 @@
 Modules: ``oracle`` (A* on the true map and pose, ``StaticMapPlanner``, and the ``GridPlanner``
 behind it), ``global_plan`` (a policy behind an A* path: ``GlobalPlan``, ``GlobalPlanAgent``),
 ``local`` (the map-less ``tare-l`` and ``dwa``, on the same scan as a policy), and what a robot's
-stack puts round any policy: ``scan_map`` (a plan on a map of its own scans, ``+scan-plan``) and
-``shield`` (each command checked against the scan, ``+shield``).
+stack puts round any policy: ``scan_map`` (a plan on a map of its own scans, ``+scan-plan``),
+``rescue`` (that plan followed by ``dwa`` while the policy stalls, ``+rescue``) and ``shield`` (each
+command checked against the scan, ``+shield``).
 
 ``PLANNERS`` names every planner an agent argument may name (``curlnav eval``, ``curlnav
 experiment``; the map-less ones also ``curlnav ros2 run``): a ``Planner`` with its class as an
@@ -23,8 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import import_module
 
-__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "agents_help",
-           "canonical", "global_plan", "local", "make_agent", "make_planner", "oracle", "register", "scan_map", "shield"]
+__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "agents_help",
+           "canonical", "global_plan", "local", "make_agent", "make_planner", "oracle", "register", "rescue", "scan_map", "shield"]
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,8 @@ GLOBAL_PLAN_SUFFIX = "+global-plan"
 SHIELD_SUFFIX = "+shield"
 #: appended to a policy argument, puts the policy behind a plan on a map of its own scans (``curlnav.planners.scan_map``)
 SCAN_PLAN_SUFFIX = "+scan-plan"
+#: appended to a policy argument, lets ``dwa+scan-plan`` drive while the policy stalls (``curlnav.planners.rescue``)
+RESCUE_SUFFIX = "+rescue"
 
 for _planner in (
     Planner("tare-l", "curlnav.planners.local:TareLocalPlanner", "map-less, after TARE's local planner", True),
@@ -96,23 +99,34 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     ``+global-plan``, or any policy when ``global_plan`` is set, follows waypoints on the oracle's
     A* path (``GlobalPlanAgent``; label ``PATH + global plan``); with ``+scan-plan``, waypoints on
     an A* path on a map of its own scans (``curlnav.planners.scan_map``; not with a global plan);
+    with ``+rescue``, ``dwa+scan-plan`` drives while the policy stalls (``curlnav.planners.rescue``);
     with ``+shield`` last, every command goes through the safety shield
-    (``curlnav.planners.shield``). Suffixes stack in that order: ``PATH+scan-plan+shield``."""
+    (``curlnav.planners.shield``). Suffixes stack in that order: ``PATH+scan-plan+rescue+shield``.
+    A map-less planner takes the same suffixes (``dwa+scan-plan``: ``move_base``'s pairing)."""
     if canonical(spec) is not None:
         agent = make_planner(spec, env_config)
         return agent.label, agent
     label = spec
+    plain = spec.split("+", 1)[0]
+    if canonical(plain) is not None and spec.startswith(plain + "+"):
+        if not PLANNERS[canonical(plain)].map_less:
+            raise ValueError(f"{label}: {plain} plans on the true map; only map-less planners take suffixes")
+        load_policy = lambda name, _load=load_policy: make_planner(name, env_config) \
+            if canonical(name) is not None else _load(name)  # noqa: E731
     shield = spec.endswith(SHIELD_SUFFIX)
     if shield:
         spec = spec[:-len(SHIELD_SUFFIX)]
+    rescue = spec.endswith(RESCUE_SUFFIX)
+    if rescue:
+        spec = spec[:-len(RESCUE_SUFFIX)]
     scan_plan = spec.endswith(SCAN_PLAN_SUFFIX)
     if scan_plan:
         spec = spec[:-len(SCAN_PLAN_SUFFIX)]
     if spec.endswith(GLOBAL_PLAN_SUFFIX):
         spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
-    for suffix in (SHIELD_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX):
+    for suffix in (SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX):
         if suffix in spec:
-            raise ValueError(f"{label}: suffixes stack in the order POLICY[+global-plan|+scan-plan][+shield], "
+            raise ValueError(f"{label}: suffixes stack in the order POLICY[+global-plan|+scan-plan][+rescue][+shield], "
                              f"each once")
     if scan_plan and global_plan:
         raise ValueError(f"{label}: +scan-plan and a global plan both set the policy's waypoints; choose one")
@@ -125,7 +139,11 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         from curlnav.planners.global_plan import GlobalPlanAgent
 
         agent = GlobalPlanAgent(agent, env_config, label=spec)
-        label = label if shield else agent.label  # shielded: the argument as given
+        label = label if shield or rescue else agent.label  # wrapped again: the argument as given
+    if rescue:
+        from curlnav.planners.rescue import RescuedPolicy
+
+        agent = RescuedPolicy(agent, env_config, label=label)
     if shield:
         from curlnav.planners.shield import ShieldedPolicy
 
@@ -154,12 +172,13 @@ def agents_help(map_less_only: bool = False) -> str:
                 + _planner_list(True))
     else:
         text = ("policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
-                "a global plan, or +scan-plan behind a plan on its own scans, then +shield to check each command "
-                "against the scan), or a classical planner: " + _planner_list(False))
+                "a global plan, or +scan-plan behind a plan on its own scans, then +rescue to let dwa+scan-plan "
+                "drive while it stalls, then +shield to check each command against the scan; map-less planners "
+                "take them too), or a classical planner: " + _planner_list(False))
     return text.replace("%", "%%")  # argparse formats help with %
 
 
 def __getattr__(name: str):
-    if name in ("global_plan", "local", "oracle", "scan_map", "shield"):
+    if name in ("global_plan", "local", "oracle", "rescue", "scan_map", "shield"):
         return import_module(f".{name}", __name__)
     raise AttributeError(f"module 'curlnav.planners' has no attribute {name!r}")

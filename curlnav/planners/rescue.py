@@ -1,0 +1,118 @@
+"""A rescue for a stalled policy: a planner on a map of its own scans takes over until the robot
+is nearer the goal than it has ever been.
+
+A reactive policy fails in clutter mostly by not arriving: it turns back and forth in front of a
+field too dense to see through, or re-enters the pocket it just left, until the time runs out. Fed
+waypoints all along (``+scan-plan``) the same policy slows and stalls, because it was trained on
+far goals. ``RescuedPolicy`` leaves the policy in charge and watches one thing, the distance to the
+goal (from the observation's goal block, as the policy sees it):
+
+- each control step the ``fallback`` agent is shown the observation too, so that its map and scan
+  memory are current when it is needed (its command is dropped while the policy drives);
+- when the goal has come no nearer than the best distance so far, by ``progress_m``, for
+  ``stall_steps`` steps, the fallback drives;
+- it hands back as soon as the robot is nearer the goal than it has ever been by ``progress_m``,
+  or after ``max_steps``; the stall count starts again from then.
+
+The fallback by default is ``dwa`` following A* on the scan map (``dwa+scan-plan``: unknown cells
+free, the robot's own scans marking and clearing cells), the map-less analogue of ``move_base``,
+the BARN Challenge's baseline stack. It sees only what the policy's robot has: scan, labels, goal
+and odometry.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from curlnav.layout import ObservationLayout
+from curlnav.planners import RESCUE_SUFFIX
+from curlnav.planners.local import goal_in_robot_frame
+from curlnav.sim import EnvConfig, StartGoal, World
+
+
+@dataclass(frozen=True)
+class RescueConfig:
+    """When the rescue takes over and hands back (control steps, m)."""
+
+    stall_steps: int = 40  # steps in which the goal came no nearer than the best so far by progress_m
+    progress_m: float = 0.5  # "nearer": by this much
+    max_steps: int = 100  # the fallback drives at most this many steps at a time
+
+    def __post_init__(self) -> None:
+        for name in ("stall_steps", "max_steps"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 100_000):
+                raise ValueError(f"rescue: {name} must be a whole number 1-100000, got {value!r}")
+        if not (isinstance(self.progress_m, (int, float)) and not isinstance(self.progress_m, bool)
+                and math.isfinite(self.progress_m) and self.progress_m > 0):
+            raise ValueError(f"rescue: progress_m must be a positive number of metres, got {self.progress_m!r}")
+
+
+def default_fallback(env_config: EnvConfig):
+    """``dwa`` behind A* on the map of its own scans (``dwa+scan-plan``)."""
+    from curlnav.planners.local import DynamicWindowPlanner
+    from curlnav.planners.scan_map import ScanMapPlanAgent
+
+    return ScanMapPlanAgent(DynamicWindowPlanner(env_config), env_config, label="dwa")
+
+
+class RescuedPolicy:
+    """``policy`` (``obs -> action`` or an ``EpisodeAgent``) with ``fallback`` (an
+    ``EpisodeAgent``; default ``dwa+scan-plan``) taking over while it stalls (module docstring):
+    ``act(observation, info) -> action``. ``rescues`` counts the takeovers in the current
+    episode, ``rescue_steps`` the steps the fallback drove."""
+
+    def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
+                 config: RescueConfig | None = None, fallback=None, label: str | None = None) -> None:
+        self.env_config = env_config or EnvConfig()
+        self.policy = policy
+        self.config = config or RescueConfig()
+        self.fallback = fallback if fallback is not None else default_fallback(self.env_config)
+        self.layout = ObservationLayout.from_env_config(self.env_config)
+        self.label = label or f"{getattr(policy, 'label', 'policy')}{RESCUE_SUFFIX}"
+        self.reset(None, None)
+
+    def reset(self, world: World | None, pair: StartGoal | None) -> None:
+        for agent in (self.policy, self.fallback):
+            inner = getattr(agent, "reset", None)
+            if callable(inner):
+                inner(world, pair)
+        self.rescues = 0
+        self.rescue_steps = 0
+        self._steps = 0
+        self._best = math.inf  # m, the least distance to the goal so far
+        self._best_at = 0  # the step it was reached
+        self._until = -1  # the last step the fallback drives (-1: the policy drives)
+
+    @property
+    def rescuing(self) -> bool:
+        """Whether the fallback drives the current step."""
+        return self._until >= self._steps
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        raise TypeError(f"{type(self).__name__} needs odometry: call act(observation, info)")
+
+    def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        cfg = self.config
+        _, _, goal_frame = self.layout.newest_frame(np.asarray(observation))
+        gx, gy = goal_in_robot_frame(goal_frame)
+        to_go = math.hypot(gx, gy)
+        if to_go < self._best - cfg.progress_m or not math.isfinite(self._best):
+            self._best, self._best_at = to_go, self._steps
+            self._until = -1  # nearer than ever: the policy drives again
+        elif self._until < self._steps and self._steps - self._best_at >= cfg.stall_steps:
+            self._until = self._steps + cfg.max_steps - 1
+            self._best_at = self._steps + cfg.max_steps  # a new stall is counted after the rescue
+            self.rescues += 1
+        rescue_command = self.fallback.act(observation, info)  # every step: its map and memory stay current
+        if self.rescuing:
+            self.rescue_steps += 1
+            self._steps += 1
+            return np.asarray(rescue_command, dtype=np.float32)
+        self._steps += 1
+        inner = getattr(self.policy, "act", None)
+        return np.asarray(self.policy(observation) if inner is None else inner(observation, info), dtype=np.float32)

@@ -1,0 +1,116 @@
+"""``+rescue`` (``curlnav.planners.rescue``): a policy that stalls in front of a trap is taken round
+it by ``dwa`` on a plan over its own scans, and hands back; a policy that makes progress is never
+overridden."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import u_trap_world
+
+from curlnav.evaluation.protocol import evaluate, evaluation_config
+from curlnav.layout import ObservationLayout
+from curlnav.planners import make_agent
+from curlnav.planners.local import DynamicWindowPlanner, goal_in_robot_frame
+from curlnav.planners.rescue import RescueConfig, RescuedPolicy
+from curlnav.planners.scan_map import ScanMapPlanAgent
+from curlnav.planners.shield import ShieldedPolicy
+from curlnav.sim import NamoEnv
+
+
+class GoalSeeker:
+    """A policy with no sense of obstacles: full speed at the goal of its observation, turning
+    toward it (``[v, w, 0]``, fractions); counts its calls."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        self.calls += 1
+        gx, gy = goal_in_robot_frame(observation[-3:])
+        bearing = math.atan2(gy, gx)
+        return np.array([1.0 if abs(bearing) < 0.5 else 0.2, float(np.clip(2.0 * bearing, -1, 1)), 0.0], np.float32)
+
+
+class CautiousSeeker(GoalSeeker):
+    """A goal seeker that stops a metre short of whatever lies straight ahead: in front of the
+    bottom of a U it waits for ever, with room to turn."""
+
+    def __init__(self, cfg) -> None:
+        super().__init__()
+        self.layout = ObservationLayout.from_env_config(cfg)
+        self.ahead = np.abs(np.linspace(-cfg.lidar_fov / 2, cfg.lidar_fov / 2, cfg.lidar_beams)) < 0.35
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        action = super().__call__(observation)
+        ranges, _, _ = self.layout.newest_frame(observation)
+        if ranges[self.ahead].min() < 1.0:
+            action[0] = 0.0
+        return action
+
+
+def run(agent, world, cfg):
+    env = NamoEnv(world, cfg)
+    try:
+        return evaluate(agent, world, list(world.pairs), cfg, env=env)
+    finally:
+        env.close()
+
+
+def test_a_policy_stalled_in_a_u_trap_is_rescued_round_it_and_drives_the_rest_itself():
+    """A goal seeker that keeps a metre from what lies ahead waits in front of the bottom of a U
+    and times out; with the rescue, dwa on a plan over its scans takes it round the U without a
+    contact, and the policy drives the steps before and after."""
+    cfg = evaluation_config()
+    world = u_trap_world()
+    stuck = run(CautiousSeeker(cfg), world, cfg)
+    assert stuck.success_rate == 0.0 and stuck.collisions_per_episode == 0, "the trap holds it without the rescue"
+    seeker = CautiousSeeker(cfg)
+    rescued = RescuedPolicy(seeker, cfg)
+    result = run(rescued, world, cfg)
+    assert result.success_rate == 1.0 and result.collisions_per_episode == 0
+    assert rescued.rescues >= 1 and rescued.rescue_steps > 0
+    assert seeker.calls > rescued.rescue_steps, "the policy drove most of the episode"
+
+
+def test_a_policy_that_keeps_coming_nearer_is_never_overridden():
+    cfg = evaluation_config()
+    world = u_trap_world()
+    seeker = GoalSeeker()
+    rescued = RescuedPolicy(seeker, cfg, RescueConfig(stall_steps=10))
+    env = NamoEnv(world, cfg)
+    try:
+        obs, info = env.reset(seed=0, options={"pair": 0})
+        rescued.reset(world, world.pairs[0])
+        for _ in range(8):  # 8 steps toward the U's bottom: coming nearer all the time
+            action = rescued.act(obs, info)
+            assert np.array_equal(action, GoalSeeker()(obs)), "the policy's own command"
+            obs, _, terminated, truncated, info = env.step(action)
+            assert not (terminated or truncated)
+    finally:
+        env.close()
+    assert rescued.rescues == 0 and rescued.rescue_steps == 0
+
+
+def test_rescue_stacks_between_the_plan_and_the_shield_and_map_less_planners_take_suffixes():
+    cfg = evaluation_config()
+    label, agent = make_agent("my-policy+scan-plan+rescue+shield", cfg, lambda spec: GoalSeeker())
+    assert label == "my-policy+scan-plan+rescue+shield"
+    assert isinstance(agent, ShieldedPolicy) and isinstance(agent.policy, RescuedPolicy)
+    assert isinstance(agent.policy.policy, ScanMapPlanAgent)
+    label, agent = make_agent("dwa+scan-plan", cfg, lambda spec: pytest.fail("dwa is no policy to load"))
+    assert isinstance(agent, ScanMapPlanAgent) and isinstance(agent.policy, DynamicWindowPlanner)
+    for spec in ("p+rescue+scan-plan", "p+shield+rescue", "p+rescue+rescue"):
+        with pytest.raises(ValueError, match="suffixes stack"):
+            make_agent(spec, cfg, lambda s: GoalSeeker())
+    with pytest.raises(ValueError, match="true map"):
+        make_agent("oracle+shield", cfg, lambda s: GoalSeeker())
+
+
+@pytest.mark.parametrize("bad", [{"stall_steps": 0}, {"max_steps": 1.5}, {"progress_m": -1.0},
+                                 {"progress_m": float("nan")}])
+def test_bad_rescue_settings_are_refused_by_name(bad):
+    with pytest.raises(ValueError, match=f"rescue: {next(iter(bad))}"):
+        RescueConfig(**bad)
