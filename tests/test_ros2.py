@@ -653,3 +653,25 @@ def test_ros2_run_shield_slows_a_command_into_a_wall_and_passes_one_with_room():
     command = node.act(0.1)
     assert 0.0 < command.linear < 0.5  # 0.3 m to the wall: slowed to what stops short of it, not stopped
     assert ahead.interventions == 1
+
+
+def test_ros2_run_rescue_drives_for_a_policy_that_stalls_and_not_before():
+    """``curlnav ros2 run POLICY --rescue``: a policy that never moves is left alone for the stall
+    window (40 steps), then dwa on the node's own scan map drives toward the goal."""
+    from curlnav.planners.rescue import RescuedPolicy
+    from curlnav.ros2.commands import deployed
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+
+    layout = ScanLayout()
+    rescued = deployed(lambda obs: np.array([0.0, 0.0, 0.0]), layout, "husky", rescue=True)
+    assert isinstance(rescued, RescuedPolicy)
+    node = PolicyNode(rescued, layout)
+    node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=8.0, y=0.0))))
+    speeds = []
+    for step in range(rescued.config.stall_steps + 3):
+        t = 0.2 * step
+        node.on_odom(odom_of(0.0, 0.0, 0.0), t)
+        node.on_scan(scan_of([6.0] * 241, [0.0] * 241), t)
+        speeds.append(node.act(t).linear)
+    assert speeds[:rescued.config.stall_steps] == [0.0] * rescued.config.stall_steps, "the policy's own stop"
+    assert speeds[-1] > 0.2 and rescued.rescues == 1

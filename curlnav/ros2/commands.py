@@ -21,6 +21,9 @@ def add_ros2_commands(sub) -> None:
     p.add_argument("--global-plan", action="store_true", help="follow /plan (nav_msgs/Path) waypoint by waypoint")
     p.add_argument("--scan-plan", action="store_true",
                    help="follow an A* plan on a map of the node's own scans (curlnav.planners.scan_map; no /plan needed)")
+    p.add_argument("--rescue", action="store_true",
+                   help="let dwa on a plan over the node's own scans drive while the policy stalls "
+                        "(curlnav.planners.rescue)")
     p.add_argument("--shield", action="store_true",
                    help="check each command's arc against the scan before it goes out (curlnav.planners.shield): "
                         "one into an obstacle is replaced by the nearest safe one")
@@ -117,11 +120,13 @@ def _agent(name: str, robot: str = "husky"):
     return policy, layout
 
 
-def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shield: bool = False):
+def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shield: bool = False,
+             rescue: bool = False):
     """``agent`` (a policy or a map-less planner, as ``_agent`` gives it) behind a plan on its own scans
-    (``scan_plan``) and the safety shield (``shield``), both built for what the node feeds it: the
-    scan, frames and command scale of ``layout`` on robot profile ``robot``."""
-    if not (scan_plan or shield):
+    (``scan_plan``), the rescue by ``dwa+scan-plan`` while it stalls (``rescue``) and the safety
+    shield (``shield``), all built for what the node feeds it: the scan, frames and command scale of
+    ``layout`` on robot profile ``robot``."""
+    if not (scan_plan or shield or rescue):
         return agent
     import dataclasses
 
@@ -139,6 +144,10 @@ def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shiel
         from curlnav.planners.scan_map import ScanMapPlanAgent
 
         agent = ScanMapPlanAgent(agent, env)
+    if rescue:
+        from curlnav.planners.rescue import RescuedPolicy
+
+        agent = RescuedPolicy(agent, env)
     if shield:
         from curlnav.planners.shield import ShieldedPolicy
 
@@ -153,7 +162,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.scan_plan and args.global_plan:
         raise ValueError("--scan-plan and --global-plan both set the policy's waypoints; choose one")
     policy, layout = _agent(args.agent, args.robot)
-    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield)
+    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,
