@@ -197,7 +197,7 @@ class ActorConfig:
     #: together (each environment keeps ``scenes_per_process // envs_per_process``, at least 1).
     #: A scene is 20-30 MB of memory on a NAMO or SLAM-like floor (measured, docs/lab/notebook.md):
     #: 32 keep an actor near 1-1.5 GB; unbounded (16 per environment) one grew to 9 GB.
-    scenes_per_process: int = 32
+    scenes_per_process: int = field(default=32, metadata={"hash": "omit-default"})
 
     def __post_init__(self) -> None:
         _require(isinstance(self.scenes_per_process, int) and not isinstance(self.scenes_per_process, bool)

@@ -204,3 +204,59 @@ def test_astar_reaches_exactly_the_4_connected_free_region_the_scan_plan_checks_
         assert (astar(blocked, (0, 0), (29, 29)) is not None) == same
         found[same] += 1
     assert found[True] >= 10 and found[False] >= 10  # both cases met
+
+
+def test_a_shielded_robot_that_can_reverse_backs_out_of_a_spot_too_tight_to_turn_in():
+    """A goal seeker rams the bottom of a U; the shield stops the base a few cm short, where the
+    Husky's rectangle cannot turn. Forward only, it stays there; given a reverse gear (as the
+    Jackal has), the shield's recovery backs it out, and the base never touches a wall."""
+    import dataclasses
+
+    cfg = evaluation_config()
+    world = u_trap_world()
+    reversing = cfg.replace(robot=dataclasses.replace(cfg.robot, max_reverse_speed=0.5))
+    for env_cfg, can_reverse in ((cfg, False), (reversing, True)):
+        shield = ShieldedPolicy(GoalSeeker(env_cfg), env_cfg)
+        env = NamoEnv(world, env_cfg)
+        try:
+            obs, info = env.reset(seed=0, options={"pair": 0})
+            shield.reset(world, world.pairs[0])
+            speeds, xs = [], []
+            for _ in range(80):
+                action = shield.act(obs, info)
+                speeds.append(float(action[0]))
+                obs, _, terminated, truncated, info = env.step(action)
+                xs.append(info["pose"][0])
+                assert not terminated, "the base touched a wall"
+        finally:
+            env.close()
+        closest = max(xs)
+        if can_reverse:
+            assert min(speeds) < 0 and closest - xs[-1] > 0.2, "it backed away from the wall"
+        else:
+            assert min(speeds) >= 0 and closest - xs[-1] < 0.05, "forward only: it stays"
+
+
+def test_a_reverse_command_is_refused_for_a_forward_only_robot_and_taken_within_a_reversing_ones_limit():
+    import dataclasses
+
+    cfg = evaluation_config()
+    env = NamoEnv(u_trap_world(), cfg)
+    try:
+        env.reset(seed=0, options={"pair": 0})
+        with pytest.raises(ValueError, match=r"v in \[0, 1\]"):
+            env.step([-0.1, 0.0, 0.0])
+    finally:
+        env.close()
+    reversing = cfg.replace(robot=dataclasses.replace(cfg.robot, max_reverse_speed=0.5))
+    env = NamoEnv(u_trap_world(), reversing)
+    try:
+        env.reset(seed=0, options={"pair": 0})
+        x0 = env.scene.robot_pose()[0]
+        for _ in range(5):
+            env.step([-0.5, 0.0, 0.0])
+        assert env.scene.robot_pose()[0] == pytest.approx(x0 - 0.5, abs=0.08), "0.5 m/s back for 1 s"
+        with pytest.raises(ValueError, match=r"v in \[-0.5, 1\]"):
+            env.step([-0.6, 0.0, 0.0])
+    finally:
+        env.close()

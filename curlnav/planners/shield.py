@@ -22,7 +22,9 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
   speed is 0..1 of the top speed, forward). After ``stuck_steps`` replacements in a row that
   barely move the base, the shield drives ``recovery_steps`` steps itself, each the admissible
   command that ends with the most room round the base, as ``move_base`` runs its recovery
-  behaviours, and hands back.
+  behaviours, and hands back. Where the robot can reverse (``RobotConfig.max_reverse_speed``, the
+  Jackal's 0.5 m/s) the recovery may back up, as Nav2's BackUp behaviour: a base that drove into
+  a spot too tight to turn in gets out of it.
 
 The shield uses what the policy's own robot has: the observation (scan, labels, goal) and
 odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). Movable
@@ -110,6 +112,8 @@ class ShieldedPolicy(ScanAgent):
         ws = np.linspace(-1.0, 1.0, cfg.w_samples)
         v, w = np.meshgrid(vs, ws)
         self._grid = np.stack([v.ravel(), w.ravel()], axis=1)  # (N, 2) fractions
+        v, w = np.meshgrid([-1.0, -0.5], np.linspace(-1.0, 1.0, 5))
+        self._reverse = np.stack([v.ravel(), w.ravel()], axis=1)  # backing up: fractions of the reverse limit, of w
         self.interventions = 0
         self.recoveries = 0
         self.steps = 0
@@ -167,7 +171,16 @@ class ShieldedPolicy(ScanAgent):
         admissible = clearance >= need
         if self._recovering or not admissible.any():
             # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
-            # clearance of now): the command that ends with the most room round the base
+            # clearance of now): the command that ends with the most room round the base, backing
+            # up too where the robot can (forward preferred by a little)
+            back = robot.max_reverse_speed / robot.max_linear_speed
+            if back > 0:
+                grid = np.vstack([grid, self._reverse * [back, 1.0]])
+                rv, rw = grid[len(vs):, 0] * robot.max_linear_speed, grid[len(vs):, 1] * robot.max_angular_speed
+                clearance = np.concatenate([clearance, footprint_clearance(near, rv, rw, self._times, self.half_length,
+                                                                           self.half_width)])
+                vs, ws = np.concatenate([vs, rv]), np.concatenate([ws, rw])
+                admissible = clearance >= need
             room = footprint_clearance(near, vs, ws, self._times[-1:], self.half_length, self.half_width)
             best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
                 else int(np.argmax(clearance))

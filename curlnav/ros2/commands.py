@@ -139,7 +139,8 @@ def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shiel
                       range_frames=layout.range_frames, label_frames=layout.label_frames,
                       goal_frames=layout.goal_frames, control_period=layout.control_period_s,
                       robot=dataclasses.replace(env.robot, max_linear_speed=layout.max_linear_speed,
-                                                max_angular_speed=layout.max_angular_speed))
+                                                max_angular_speed=layout.max_angular_speed,
+                                                max_reverse_speed=0.0))  # the node sends forward commands only
     if scan_plan:
         from curlnav.planners.scan_map import ScanMapPlanAgent
 

@@ -43,6 +43,11 @@ class RobotConfig:
     arm_thickness: float = 0.03  # m
     arm_force: float = 200.0  # N, prismatic actuator limit
     arm_speed: float = 1.0  # m/s, prismatic actuator speed limit
+    #: m/s the base may back up at. The policies drive forward only (action[0] in 0..1, as in the
+    #: paper); a negative action[0], down to -max_reverse_speed / max_linear_speed, is taken only
+    #: where the robot can reverse, for a stack's recovery (``curlnav.planners.shield`` backs out
+    #: of a spot it cannot turn in). 0: the base drives forward only.
+    max_reverse_speed: float = field(default=0.0, metadata={"hash": "omit-default"})
 
     @staticmethod
     def husky() -> RobotConfig:
@@ -51,10 +56,11 @@ class RobotConfig:
     @staticmethod
     def jackal() -> RobotConfig:
         """Clearpath's Jackal (its published 0.508 x 0.430 x 0.250 m, 17 kg, 2.0 m/s), no arm; turn
-        rate 1.57 rad/s, the BARN Challenge's own move_base limit."""
+        rate 1.57 rad/s, the BARN Challenge's own move_base limit; it drives both ways (backing up
+        kept to 0.5 m/s: the LiDAR does not see behind it)."""
         return RobotConfig(name="jackal", arm=False, base_length=0.508, base_width=0.430, base_height=0.25,
                            base_mass=17.0, max_linear_speed=2.0, max_angular_speed=1.57, arm_reach=0.3,
-                           arm_length=0.3, drive_force=1000.0)
+                           arm_length=0.3, drive_force=1000.0, max_reverse_speed=0.5)
 
     @property
     def radius(self) -> float:
@@ -66,7 +72,11 @@ class RobotConfig:
             raise ConfigError(f"robot.name must be 1-40 characters of a-z, 0-9, - and _, got {self.name!r}")
         if not isinstance(self.arm, bool):
             raise ConfigError(f"robot.arm must be true or false, got {self.arm!r}")
-        _positive(self, [f.name for f in dataclasses.fields(self) if f.name not in ("name", "arm")])
+        _positive(self, [f.name for f in dataclasses.fields(self) if f.name not in ("name", "arm", "max_reverse_speed")])
+        if not (isinstance(self.max_reverse_speed, (int, float)) and not isinstance(self.max_reverse_speed, bool)
+                and math.isfinite(self.max_reverse_speed) and 0 <= self.max_reverse_speed <= self.max_linear_speed):
+            raise ConfigError(f"robot.max_reverse_speed must be 0 (forward only) up to max_linear_speed "
+                              f"({self.max_linear_speed:g} m/s), got {self.max_reverse_speed!r}")
 
 
 @dataclass(frozen=True)

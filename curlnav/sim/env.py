@@ -299,9 +299,12 @@ class NamoEnv(gym.Env):
         if not (math.isfinite(v) and math.isfinite(w) and math.isfinite(arm)):
             raise ValueError(f"action contains NaN or infinity: {a.tolist()}")
         tol = 1e-5
-        if not (-tol <= v <= 1 + tol and -1 - tol <= w <= 1 + tol and -tol <= arm <= 1 + tol):
-            raise ValueError(f"action {a.tolist()} out of range: v in [0, 1], w in [-1, 1], L in [0, 1]")
-        return min(max(v, 0.0), 1.0), min(max(w, -1.0), 1.0), min(max(arm, 0.0), 1.0)
+        robot = self.config.robot
+        back = robot.max_reverse_speed / robot.max_linear_speed  # 0: forward only (the policies' range)
+        if not (-back - tol <= v <= 1 + tol and -1 - tol <= w <= 1 + tol and -tol <= arm <= 1 + tol):
+            low = f"{-back:g}" if back > 0 else "0"
+            raise ValueError(f"action {a.tolist()} out of range: v in [{low}, 1], w in [-1, 1], L in [0, 1]")
+        return min(max(v, -back), 1.0), min(max(w, -1.0), 1.0), min(max(arm, 0.0), 1.0)
 
     def _sensed(self, ranges: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The newest frame the observation shows: the scan and the goal frame as the robot

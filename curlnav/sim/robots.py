@@ -114,7 +114,8 @@ def _robot_from_dict(data: dict) -> RobotConfig:
                 raise ConfigError(f"robot.arm must be true or false, got {value!r}")
             values[key] = value
         elif isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"RobotConfig.{key} must be a positive number, got {value!r}")
+            kind = "a number of at least 0" if key == "max_reverse_speed" else "a positive number"
+            raise ConfigError(f"RobotConfig.{key} must be {kind}, got {value!r}")
         else:
             values[key] = float(value)
     return RobotConfig(**values)
