@@ -98,3 +98,29 @@ def test_eight_environments_per_actor_fit_their_batches_to_the_replays_insert_ba
         core.loop.close()
     with pytest.raises(ConfigError, match="actor.envs_per_process x d4pg.n_step"):
         apply_overrides(ExperimentConfig(), ["d4pg.n_step=8"])
+
+
+def test_an_onnx_actor_taking_broadcast_after_broadcast_does_not_grow():
+    """An actor loads new weights about once a second for hours. Each load used to leave 0.8 MB
+    behind (protobuf kept every replaced initializer): 9 GB per actor over a 4-hour run. 150 loads
+    now keep the process within a few MB (they left about 120 MB)."""
+    import numpy as np
+
+    from curlnav.learner.networks import Actor, OnnxActorRunner
+
+    def rss_mb() -> float:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * 4096 / 2**20
+
+    network = Actor(LAYOUT, D4PGConfig())
+    runner = OnnxActorRunner(network)
+    obs = np.zeros((8, LAYOUT.size), np.float32)
+    state = network.state_dict()
+    for _ in range(20):  # warm up allocators
+        runner.load(state)
+        runner(obs)
+    before = rss_mb()
+    for _ in range(150):
+        runner.load(state)
+        runner(obs)
+    assert rss_mb() - before < 40, "each weights load leaves memory behind"
