@@ -114,3 +114,21 @@ def test_rescue_stacks_between_the_plan_and_the_shield_and_map_less_planners_tak
 def test_bad_rescue_settings_are_refused_by_name(bad):
     with pytest.raises(ValueError, match=f"rescue: {next(iter(bad))}"):
         RescueConfig(**bad)
+
+
+def test_the_rescues_dwa_backs_away_from_a_wall_too_near_to_turn_at_where_the_robot_can_reverse():
+    """A wall 5 cm ahead of the bumper (inside DWA's 10 cm margin): forward-only DWA can only stop;
+    the rescue's DWA, on a robot with a reverse gear, backs away."""
+    import dataclasses
+
+    from curlnav.planners.local import DwaConfig
+
+    cfg = evaluation_config()
+    reversing = cfg.replace(robot=dataclasses.replace(cfg.robot, max_reverse_speed=0.5))
+    front = cfg.robot.base_length / 2 + 0.05
+    wall = np.stack([np.full(41, front), np.linspace(-1.0, 1.0, 41)], axis=1)  # m, robot frame
+    assert DynamicWindowPlanner(reversing).choose(wall, 5.0, 0.0) == (0.0, 0.0), "the baseline stops"
+    v, _ = DynamicWindowPlanner(reversing, DwaConfig(reverse=True)).choose(wall, 5.0, 0.0)
+    assert v < 0
+    v, _ = DynamicWindowPlanner(cfg, DwaConfig(reverse=True)).choose(wall, 5.0, 0.0)
+    assert v == 0.0, "a forward-only robot never backs up"

@@ -209,14 +209,15 @@ def test_astar_reaches_exactly_the_4_connected_free_region_the_scan_plan_checks_
 def test_a_shielded_robot_that_can_reverse_backs_out_of_a_spot_too_tight_to_turn_in():
     """A goal seeker rams the bottom of a U; the shield stops the base a few cm short, where the
     Husky's rectangle cannot turn. Forward only, it stays there; given a reverse gear (as the
-    Jackal has), the shield's recovery backs it out, and the base never touches a wall."""
+    Jackal has) and ``reverse_recovery``, the shield's recovery backs it out, and the base never
+    touches a wall."""
     import dataclasses
 
     cfg = evaluation_config()
     world = u_trap_world()
     reversing = cfg.replace(robot=dataclasses.replace(cfg.robot, max_reverse_speed=0.5))
     for env_cfg, can_reverse in ((cfg, False), (reversing, True)):
-        shield = ShieldedPolicy(GoalSeeker(env_cfg), env_cfg)
+        shield = ShieldedPolicy(GoalSeeker(env_cfg), env_cfg, ShieldConfig(reverse_recovery=True))
         env = NamoEnv(world, env_cfg)
         try:
             obs, info = env.reset(seed=0, options={"pair": 0})

@@ -169,9 +169,10 @@ class ScanAgent:
         return goal_in_robot_frame(goal)
 
     def action(self, v: float, w: float) -> np.ndarray:
-        """``[v, w, 0]`` from m/s and rad/s, clipped to the robot's limits (arm retracted)."""
+        """``[v, w, 0]`` from m/s and rad/s, clipped to the robot's limits (arm retracted; backing
+        up only as far as the robot can)."""
         robot = self.env_config.robot
-        return np.array([float(np.clip(v / robot.max_linear_speed, 0.0, 1.0)),
+        return np.array([float(np.clip(v / robot.max_linear_speed, -robot.max_reverse_speed / robot.max_linear_speed, 1.0)),
                          float(np.clip(w / robot.max_angular_speed, -1.0, 1.0)), 0.0], dtype=np.float32)
 
 
@@ -429,6 +430,10 @@ class DwaConfig:
     clearance_cap_m: float = 0.4  # clearance beyond this scores no more
     margin_m: float = 0.1  # a trajectory is dropped when its footprint comes this close to a static point
     ignore_beyond_m: float = 2.6  # static points further than this cannot matter within sim_time_s
+    #: also sample backing up (down to the robot's ``max_reverse_speed``; ROS's negative min_vel_x):
+    #: off for the baseline, on for the rescue (``curlnav.planners.rescue``), which must get a robot
+    #: out of a spot where no forward arc keeps the margin
+    reverse: bool = False
 
 
 class DynamicWindowPlanner(ScanAgent):
@@ -459,7 +464,8 @@ class DynamicWindowPlanner(ScanAgent):
         robot = self.env_config.robot
         dt = self.env_config.control_period
         v0, w0 = self._velocity
-        vs = np.linspace(max(0.0, v0 - cfg.acc_lim_x * dt), min(robot.max_linear_speed, v0 + cfg.acc_lim_x * dt),
+        slowest = -robot.max_reverse_speed if cfg.reverse else 0.0
+        vs = np.linspace(max(slowest, v0 - cfg.acc_lim_x * dt), min(robot.max_linear_speed, v0 + cfg.acc_lim_x * dt),
                          cfg.v_samples)
         ws = np.linspace(max(-robot.max_angular_speed, w0 - cfg.acc_lim_theta * dt),
                          min(robot.max_angular_speed, w0 + cfg.acc_lim_theta * dt), cfg.w_samples)

@@ -16,7 +16,7 @@ goal (from the observation's goal block, as the policy sees it):
 
 The fallback by default is ``dwa`` following A* on the scan map (``dwa+scan-plan``: unknown cells
 free, the robot's own scans marking and clearing cells), the map-less analogue of ``move_base``,
-the BARN Challenge's baseline stack. It sees only what the policy's robot has: scan, labels, goal
+the BARN Challenge's baseline stack; on a robot that can reverse its DWA samples backing up too. It sees only what the policy's robot has: scan, labels, goal
 and odometry.
 """
 
@@ -54,10 +54,10 @@ class RescueConfig:
 
 def default_fallback(env_config: EnvConfig):
     """``dwa`` behind A* on the map of its own scans (``dwa+scan-plan``)."""
-    from curlnav.planners.local import DynamicWindowPlanner
+    from curlnav.planners.local import DwaConfig, DynamicWindowPlanner
     from curlnav.planners.scan_map import ScanMapPlanAgent
 
-    return ScanMapPlanAgent(DynamicWindowPlanner(env_config), env_config, label="dwa")
+    return ScanMapPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=True)), env_config, label="dwa")
 
 
 class RescuedPolicy:

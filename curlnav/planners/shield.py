@@ -22,9 +22,10 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
   speed is 0..1 of the top speed, forward). After ``stuck_steps`` replacements in a row that
   barely move the base, the shield drives ``recovery_steps`` steps itself, each the admissible
   command that ends with the most room round the base, as ``move_base`` runs its recovery
-  behaviours, and hands back. Where the robot can reverse (``RobotConfig.max_reverse_speed``, the
-  Jackal's 0.5 m/s) the recovery may back up, as Nav2's BackUp behaviour: a base that drove into
-  a spot too tight to turn in gets out of it.
+  behaviours, and hands back. With ``reverse_recovery``, on a robot that can reverse
+  (``RobotConfig.max_reverse_speed``, the Jackal's 0.5 m/s), the recovery may back up, as Nav2's
+  BackUp behaviour: a base that drove into a spot too tight to turn in gets out of it. A backing
+  command from the policy's stack (the rescue's DWA) is checked like any other.
 
 The shield uses what the policy's own robot has: the observation (scan, labels, goal) and
 odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). Movable
@@ -59,6 +60,10 @@ class ShieldConfig:
     stuck_steps: int = 5  # this many replaced commands in a row that barely move the base ...
     recovery_steps: int = 5  # ... and the shield drives this many steps itself, to the most room
     stuck_speed: float = 0.1  # "barely moves": a replacement's speed below this fraction
+    #: the recovery may back up, on a robot that can (``RobotConfig.max_reverse_speed``). Off by
+    #: default: the LiDAR does not see behind the base, and on the BARN validation courses a
+    #: backing recovery once met a post it had passed more than a second before
+    reverse_recovery: bool = False
 
     def __post_init__(self) -> None:
         for name in ("horizon_s", "step_s", "margin_m", "turn_weight", "ignore_beyond_m"):
@@ -76,6 +81,8 @@ class ShieldConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 1000):
                 raise ValueError(f"shield: {name} must be a whole number 0-1000 (0: no recovery), got {value!r}")
+        if not isinstance(self.reverse_recovery, bool):
+            raise ValueError(f"shield: reverse_recovery must be true or false, got {self.reverse_recovery!r}")
         if not (isinstance(self.stuck_speed, (int, float)) and 0 <= self.stuck_speed <= 1):
             raise ValueError(f"shield: stuck_speed must be a fraction 0-1, got {self.stuck_speed!r}")
         if self.step_s > self.horizon_s:
@@ -157,7 +164,8 @@ class ShieldedPolicy(ScanAgent):
             out = proposed.copy()
             out[:] = 0.0
             return out  # a broken command: stop (counted as an intervention)
-        v0, w0 = float(np.clip(proposed[0], 0.0, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
+        back = robot.max_reverse_speed / robot.max_linear_speed  # 0: forward only
+        v0, w0 = float(np.clip(proposed[0], -back, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
         mine = footprint_clearance(near, np.array([v0 * robot.max_linear_speed]),
                                    np.array([w0 * robot.max_angular_speed]), self._times,
                                    self.half_length, self.half_width)[0]
@@ -173,8 +181,7 @@ class ShieldedPolicy(ScanAgent):
             # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
             # clearance of now): the command that ends with the most room round the base, backing
             # up too where the robot can (forward preferred by a little)
-            back = robot.max_reverse_speed / robot.max_linear_speed
-            if back > 0:
+            if back > 0 and cfg.reverse_recovery:
                 grid = np.vstack([grid, self._reverse * [back, 1.0]])
                 rv, rw = grid[len(vs):, 0] * robot.max_linear_speed, grid[len(vs):, 1] * robot.max_angular_speed
                 clearance = np.concatenate([clearance, footprint_clearance(near, rv, rw, self._times, self.half_length,
