@@ -79,12 +79,12 @@ def test_a_policy_that_keeps_coming_nearer_is_never_overridden():
     cfg = evaluation_config()
     world = u_trap_world()
     seeker = GoalSeeker()
-    rescued = RescuedPolicy(seeker, cfg, RescueConfig(stall_steps=10))
+    rescued = RescuedPolicy(seeker, cfg, RescueConfig(stall_steps=5))
     env = NamoEnv(world, cfg)
     try:
         obs, info = env.reset(seed=0, options={"pair": 0})
         rescued.reset(world, world.pairs[0])
-        for _ in range(8):  # 8 steps toward the U's bottom: coming nearer all the time
+        for _ in range(25):  # 5 m toward the U's bottom at 1 m/s: 0.5 m nearer every 3 steps
             action = rescued.act(obs, info)
             assert np.array_equal(action, GoalSeeker()(obs)), "the policy's own command"
             obs, _, terminated, truncated, info = env.step(action)
@@ -105,6 +105,11 @@ def test_rescue_stacks_between_the_plan_and_the_shield_and_map_less_planners_tak
     for spec in ("p+rescue+scan-plan", "p+shield+rescue", "p+rescue+rescue"):
         with pytest.raises(ValueError, match="suffixes stack"):
             make_agent(spec, cfg, lambda s: GoalSeeker())
+    for spec in ("dwa+global-plan", "dwa+global-plan+rescue"):
+        with pytest.raises(ValueError, match="global plan is for policies"):
+            make_agent(spec, cfg, lambda s: GoalSeeker())
+    label, agent = make_agent("my-policy+global-plan+rescue", cfg, lambda spec: GoalSeeker())
+    assert isinstance(agent, RescuedPolicy), "built without a world: the plan is made at reset"
     with pytest.raises(ValueError, match="true map"):
         make_agent("oracle+shield", cfg, lambda s: GoalSeeker())
 

@@ -673,5 +673,9 @@ def test_ros2_run_rescue_drives_for_a_policy_that_stalls_and_not_before():
         node.on_odom(odom_of(0.0, 0.0, 0.0), t)
         node.on_scan(scan_of([6.0] * 241, [0.0] * 241), t)
         speeds.append(node.act(t).linear)
-    assert speeds[:rescued.config.stall_steps] == [0.0] * rescued.config.stall_steps, "the policy's own stop"
+    stall = rescued.config.stall_steps
+    assert speeds[:stall] == [0.0] * stall, "the policy's own stop"
     assert speeds[-1] > 0.2 and rescued.rescues == 1
+    # the planner starts from the standstill that was sent (its acceleration limit: 2.5 m/s^2 x
+    # 0.2 s), not from the speeds it proposed while the policy drove
+    assert 0.0 < speeds[stall] <= 0.5 + 1e-6

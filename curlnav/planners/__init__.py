@@ -108,7 +108,8 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         return agent.label, agent
     label = spec
     plain = spec.split("+", 1)[0]
-    if canonical(plain) is not None and spec.startswith(plain + "+"):
+    planner = canonical(plain) is not None
+    if planner:
         if not PLANNERS[canonical(plain)].map_less:
             raise ValueError(f"{label}: {plain} plans on the true map; only map-less planners take suffixes")
         load_policy = lambda name, _load=load_policy: make_planner(name, env_config) \
@@ -130,6 +131,9 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
                              f"each once")
     if scan_plan and global_plan:
         raise ValueError(f"{label}: +scan-plan and a global plan both set the policy's waypoints; choose one")
+    if planner and global_plan:
+        raise ValueError(f"{label}: a global plan is for policies; a map-less planner takes +scan-plan, "
+                         f"+rescue and +shield")
     agent = load_policy(spec)
     if scan_plan:
         from curlnav.planners.scan_map import ScanMapPlanAgent

@@ -458,6 +458,14 @@ class DynamicWindowPlanner(ScanAgent):
         self._velocity = (v, w)
         return self.action(v, w)
 
+    def commanded(self, action: np.ndarray) -> None:
+        """The command ``[v, w, L]`` (fractions) the robot was sent this step, when another agent
+        chose it (``curlnav.planners.rescue``): the next window is centred on it."""
+        robot = self.env_config.robot
+        v, w = float(action[0]), float(action[1])
+        if math.isfinite(v) and math.isfinite(w):
+            self._velocity = (v * robot.max_linear_speed, w * robot.max_angular_speed)
+
     def window(self) -> tuple[np.ndarray, np.ndarray]:
         """The sampled speeds (m/s) and turn rates (rad/s) reachable within one control period."""
         cfg = self.config

@@ -41,23 +41,29 @@ class RescueConfig:
     stall_steps: int = 40  # steps in which the goal came no nearer than the best so far by progress_m
     progress_m: float = 0.5  # "nearer": by this much
     max_steps: int = 100  # the fallback drives at most this many steps at a time
+    #: the default fallback's DWA may back up, on a robot that can (``RobotConfig.max_reverse_speed``);
+    #: it checks a backing arc against its one-second scan memory only: the LiDAR does not see behind
+    reverse: bool = True
 
     def __post_init__(self) -> None:
         for name in ("stall_steps", "max_steps"):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 100_000):
                 raise ValueError(f"rescue: {name} must be a whole number 1-100000, got {value!r}")
+        if not isinstance(self.reverse, bool):
+            raise ValueError(f"rescue: reverse must be true or false, got {self.reverse!r}")
         if not (isinstance(self.progress_m, (int, float)) and not isinstance(self.progress_m, bool)
                 and math.isfinite(self.progress_m) and self.progress_m > 0):
             raise ValueError(f"rescue: progress_m must be a positive number of metres, got {self.progress_m!r}")
 
 
-def default_fallback(env_config: EnvConfig):
-    """``dwa`` behind A* on the map of its own scans (``dwa+scan-plan``)."""
+def default_fallback(env_config: EnvConfig, reverse: bool = True):
+    """``dwa`` behind A* on the map of its own scans (``dwa+scan-plan``), backing up with ``reverse``
+    where the robot can."""
     from curlnav.planners.local import DwaConfig, DynamicWindowPlanner
     from curlnav.planners.scan_map import ScanMapPlanAgent
 
-    return ScanMapPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=True)), env_config, label="dwa")
+    return ScanMapPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=reverse)), env_config, label="dwa")
 
 
 class RescuedPolicy:
@@ -71,16 +77,20 @@ class RescuedPolicy:
         self.env_config = env_config or EnvConfig()
         self.policy = policy
         self.config = config or RescueConfig()
-        self.fallback = fallback if fallback is not None else default_fallback(self.env_config)
+        self.fallback = fallback if fallback is not None else default_fallback(self.env_config, self.config.reverse)
         self.layout = ObservationLayout.from_env_config(self.env_config)
         self.label = label or f"{getattr(policy, 'label', 'policy')}{RESCUE_SUFFIX}"
-        self.reset(None, None)
+        self._clear()
 
     def reset(self, world: World | None, pair: StartGoal | None) -> None:
         for agent in (self.policy, self.fallback):
             inner = getattr(agent, "reset", None)
             if callable(inner):
                 inner(world, pair)
+        self._clear()
+
+    def _clear(self) -> None:
+        """The episode's counters and stall state, as at its start."""
         self.rescues = 0
         self.rescue_steps = 0
         self._steps = 0
@@ -101,18 +111,23 @@ class RescuedPolicy:
         _, _, goal_frame = self.layout.newest_frame(np.asarray(observation))
         gx, gy = goal_in_robot_frame(goal_frame)
         to_go = math.hypot(gx, gy)
-        if to_go < self._best - cfg.progress_m or not math.isfinite(self._best):
+        if math.isfinite(to_go) and (to_go < self._best - cfg.progress_m or not math.isfinite(self._best)):
             self._best, self._best_at = to_go, self._steps
             self._until = -1  # nearer than ever: the policy drives again
         elif self._until < self._steps and self._steps - self._best_at >= cfg.stall_steps:
             self._until = self._steps + cfg.max_steps - 1
             self._best_at = self._steps + cfg.max_steps  # a new stall is counted after the rescue
             self.rescues += 1
-        rescue_command = self.fallback.act(observation, info)  # every step: its map and memory stay current
+        # both every step: the fallback's map and scan memory, and whatever the policy keeps (a
+        # plan's map, its frames), stay current for when each drives again
+        rescue_command = np.asarray(self.fallback.act(observation, info), dtype=np.float32)
+        inner = getattr(self.policy, "act", None)
+        own = np.asarray(self.policy(observation) if inner is None else inner(observation, info), dtype=np.float32)
+        command = rescue_command if self.rescuing else own
         if self.rescuing:
             self.rescue_steps += 1
-            self._steps += 1
-            return np.asarray(rescue_command, dtype=np.float32)
         self._steps += 1
-        inner = getattr(self.policy, "act", None)
-        return np.asarray(self.policy(observation) if inner is None else inner(observation, info), dtype=np.float32)
+        sent = getattr(self.fallback, "commanded", None)
+        if callable(sent):
+            sent(command)  # its next window starts from what was sent, not from what it proposed
+        return command

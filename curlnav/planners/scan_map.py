@@ -288,6 +288,13 @@ class ScanMapPlanAgent(GlobalPlanAgent):
         if callable(inner):
             inner(world, pair)
 
+    def commanded(self, action: np.ndarray) -> None:
+        """The command the robot was sent this step (``DynamicWindowPlanner.commanded``), passed
+        on to the agent behind the plan when it takes it."""
+        inner = getattr(self.policy, "commanded", None)
+        if callable(inner):
+            inner(action)
+
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
         pose = odometry(info)
         self._poses.append(pose)

@@ -74,9 +74,9 @@ class RobotConfig:
             raise ConfigError(f"robot.arm must be true or false, got {self.arm!r}")
         _positive(self, [f.name for f in dataclasses.fields(self) if f.name not in ("name", "arm", "max_reverse_speed")])
         if not (isinstance(self.max_reverse_speed, (int, float)) and not isinstance(self.max_reverse_speed, bool)
-                and math.isfinite(self.max_reverse_speed) and 0 <= self.max_reverse_speed <= self.max_linear_speed):
-            raise ConfigError(f"robot.max_reverse_speed must be 0 (forward only) up to max_linear_speed "
-                              f"({self.max_linear_speed:g} m/s), got {self.max_reverse_speed!r}")
+                and math.isfinite(self.max_reverse_speed) and self.max_reverse_speed >= 0):
+            raise ConfigError(f"robot.max_reverse_speed must be a number of m/s of at least 0 (0: forward only), "
+                              f"got {self.max_reverse_speed!r}")
 
 
 @dataclass(frozen=True)
