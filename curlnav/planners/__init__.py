@@ -24,8 +24,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import import_module
 
-__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "agents_help",
-           "canonical", "global_plan", "local", "make_agent", "make_planner", "oracle", "register", "rescue", "scan_map", "shield"]
+__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX",
+           "SHIELD_SUFFIX", "agents_help", "canonical", "global_plan", "local", "make_agent", "make_planner",
+           "oracle", "register", "rescue", "scan_map", "shield"]
 
 
 @dataclass(frozen=True)

@@ -16,8 +16,10 @@ goal (from the observation's goal block, as the policy sees it):
 
 The fallback by default is ``dwa`` following A* on the scan map (``dwa+scan-plan``: unknown cells
 free, the robot's own scans marking and clearing cells), the map-less analogue of ``move_base``,
-the BARN Challenge's baseline stack; on a robot that can reverse its DWA samples backing up too. It sees only what the policy's robot has: scan, labels, goal
-and odometry.
+the BARN Challenge's baseline stack; on a robot that can reverse its DWA samples backing up too
+(``RescueConfig.reverse``). It sees only what the policy's robot has: scan, labels, goal and
+odometry. While the policy drives, the fallback is told each command sent (``commanded``), so
+that its dynamic window starts from the robot's real speed when it takes over.
 """
 
 from __future__ import annotations
