@@ -137,3 +137,28 @@ def test_the_rescues_dwa_backs_away_from_a_wall_too_near_to_turn_at_where_the_ro
     assert v < 0
     v, _ = DynamicWindowPlanner(cfg, DwaConfig(reverse=True)).choose(wall, 5.0, 0.0)
     assert v == 0.0, "a forward-only robot never backs up"
+
+
+def test_an_artefact_named_alone_drives_with_the_helpers_its_metadata_ships_and_bare_without(tmp_path):
+    """``metadata.json`` ``deploy: "+rescue+shield"``: ``curlnav eval ARTEFACT`` drives it behind
+    both (label: the path as given), ``ARTEFACT+bare`` is the network alone, explicit suffixes win,
+    and a malformed stack is refused in one line."""
+    import json
+
+    cfg = evaluation_config()
+    artefact = tmp_path / "policy"
+    artefact.mkdir()
+    (artefact / "metadata.json").write_text(json.dumps({"deploy": "+rescue+shield"}))
+    load = lambda spec: GoalSeeker()  # noqa: E731
+    label, agent = make_agent(str(artefact), cfg, load)
+    assert label == str(artefact)
+    assert isinstance(agent, ShieldedPolicy) and isinstance(agent.policy, RescuedPolicy)
+    label, agent = make_agent(f"{artefact}+bare", cfg, load)
+    assert isinstance(agent, GoalSeeker) and label == f"{artefact}+bare"
+    _, agent = make_agent(f"{artefact}+shield", cfg, load)
+    assert isinstance(agent, ShieldedPolicy) and isinstance(agent.policy, GoalSeeker), "the suffixes given win"
+    with pytest.raises(ValueError, match=r"\+bare is the network alone"):
+        make_agent(f"{artefact}+shield+bare", cfg, load)
+    (artefact / "metadata.json").write_text(json.dumps({"deploy": "+shield+rescue"}))
+    with pytest.raises(ValueError, match="deploy must be suffixes"):
+        make_agent(str(artefact), cfg, load)

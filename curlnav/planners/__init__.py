@@ -20,12 +20,15 @@ each new goal. To add one: a module here and one ``Planner(...)`` line in ``PLAN
 
 from __future__ import annotations
 
+import json
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import import_module
+from pathlib import Path
 
-__all__ = ["ALIASES", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX",
-           "SHIELD_SUFFIX", "agents_help", "canonical", "global_plan", "local", "make_agent", "make_planner",
+__all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX",
+           "SHIELD_SUFFIX", "agents_help", "canonical", "deploy_stack", "global_plan", "local", "make_agent", "make_planner",
            "oracle", "register", "rescue", "scan_map", "shield"]
 
 
@@ -69,6 +72,26 @@ SHIELD_SUFFIX = "+shield"
 SCAN_PLAN_SUFFIX = "+scan-plan"
 #: appended to a policy argument, lets ``dwa+scan-plan`` drive while the policy stalls (``curlnav.planners.rescue``)
 RESCUE_SUFFIX = "+rescue"
+#: appended to a policy artefact whose metadata names a deploy stack: the network alone, without it
+BARE_SUFFIX = "+bare"
+_DEPLOY = re.compile(r"^(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?$")
+
+
+def deploy_stack(spec: str) -> str:
+    """The helpers a policy artefact folder is shipped with: its ``metadata.json``'s ``deploy``
+    (suffixes in their order, e.g. ``"+rescue+shield"``), "" when it names none or ``spec`` is no
+    artefact folder. A malformed one is refused in one line (``ValueError``)."""
+    meta = Path(spec) / "metadata.json"
+    if not meta.is_file():
+        return ""
+    try:
+        deploy = json.loads(meta.read_text()).get("deploy", "")
+    except (OSError, ValueError, AttributeError):
+        return ""  # the policy loader reports a broken metadata.json itself
+    if not isinstance(deploy, str) or not _DEPLOY.match(deploy):
+        raise ValueError(f"{meta}: deploy must be suffixes in the order [+global-plan|+scan-plan][+rescue][+shield], "
+                         f"got {deploy!r}")
+    return deploy
 
 for _planner in (
     Planner("tare-l", "curlnav.planners.local:TareLocalPlanner", "map-less, after TARE's local planner", True),
@@ -103,11 +126,19 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     with ``+rescue``, ``dwa+scan-plan`` drives while the policy stalls (``curlnav.planners.rescue``);
     with ``+shield`` last, every command goes through the safety shield
     (``curlnav.planners.shield``). Suffixes stack in that order: ``PATH+scan-plan+rescue+shield``.
+    An artefact folder named without a suffix drives with the helpers its metadata ships it with
+    (``deploy_stack``; label: the path as given); ``PATH+bare`` is the network alone.
     A map-less planner takes the same suffixes (``dwa+scan-plan``: ``move_base``'s pairing)."""
     if canonical(spec) is not None:
         agent = make_planner(spec, env_config)
         return agent.label, agent
     label = spec
+    if spec.endswith(BARE_SUFFIX):
+        spec = spec[:-len(BARE_SUFFIX)]  # the network alone, whatever its artefact deploys it with
+        if "+" in spec:
+            raise ValueError(f"{label}: +bare is the network alone, without any other suffix")
+    elif not any(spec.endswith(s) for s in (SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX)):
+        spec += deploy_stack(spec)  # an artefact named alone drives as it is shipped
     plain = spec.split("+", 1)[0]
     planner = canonical(plain) is not None
     if planner:
@@ -126,7 +157,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         spec = spec[:-len(SCAN_PLAN_SUFFIX)]
     if spec.endswith(GLOBAL_PLAN_SUFFIX):
         spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
-    for suffix in (SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX):
+    for suffix in (SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX, BARE_SUFFIX):
         if suffix in spec:
             raise ValueError(f"{label}: suffixes stack in the order POLICY[+global-plan|+scan-plan][+rescue][+shield], "
                              f"each once")

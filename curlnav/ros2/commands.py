@@ -24,6 +24,8 @@ def add_ros2_commands(sub) -> None:
     p.add_argument("--rescue", action="store_true",
                    help="let dwa on a plan over the node's own scans drive while the policy stalls "
                         "(curlnav.planners.rescue)")
+    p.add_argument("--bare", action="store_true",
+                   help="the network alone: without the helpers its artefact's metadata ships it with (deploy)")
     p.add_argument("--shield", action="store_true",
                    help="check each command's arc against the scan before it goes out (curlnav.planners.shield): "
                         "one into an obstacle is replaced by the nearest safe one")
@@ -163,6 +165,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.scan_plan and args.global_plan:
         raise ValueError("--scan-plan and --global-plan both set the policy's waypoints; choose one")
     policy, layout = _agent(args.agent, args.robot)
+    if not (args.bare or args.scan_plan or args.global_plan or args.rescue or args.shield):
+        from curlnav.planners import deploy_stack
+
+        stack = deploy_stack(args.agent)  # an artefact named alone drives as it is shipped
+        if stack:
+            args.scan_plan, args.global_plan = "+scan-plan" in stack, "+global-plan" in stack
+            args.rescue, args.shield = "+rescue" in stack, "+shield" in stack
+            print(f"{args.agent}: driven as its artefact ships it, {stack} (metadata.json deploy; --bare: the "
+                  f"network alone)")
     policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
