@@ -48,6 +48,9 @@ def main() -> int:
     from curlnav.planners import make_agent
 
     agents = {spec: make_agent(spec, env_config, load)[1] for spec in args.policies}
+    from curlnav.evaluation.commands import _say_deploy_stacks
+
+    _say_deploy_stacks(args.policies)  # an artefact named alone drives with its deploy stack; POLICY+bare: without
     episodes = Comparison(agents, worlds, lambda world: list(world.pairs), env_config).run(1)
     best = None
     for spec in args.policies:

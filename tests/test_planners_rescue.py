@@ -162,3 +162,22 @@ def test_an_artefact_named_alone_drives_with_the_helpers_its_metadata_ships_and_
     (artefact / "metadata.json").write_text(json.dumps({"deploy": "+shield+rescue"}))
     with pytest.raises(ValueError, match="deploy must be suffixes"):
         make_agent(str(artefact), cfg, load)
+
+
+def test_the_global_plan_flag_keeps_an_artefacts_shipped_helpers_and_says_so_in_the_label(tmp_path):
+    import json
+
+    from curlnav.planners.global_plan import GlobalPlanAgent
+
+    cfg = evaluation_config()
+    artefact = tmp_path / "policy"
+    artefact.mkdir()
+    (artefact / "metadata.json").write_text(json.dumps({"deploy": "+rescue+shield"}))
+    load = lambda spec: GoalSeeker()  # noqa: E731
+    label, agent = make_agent(str(artefact), cfg, load, global_plan=True)
+    assert label == f"{artefact}+global-plan"
+    assert isinstance(agent.policy, RescuedPolicy) and isinstance(agent.policy.policy, GlobalPlanAgent)
+    label, agent = make_agent(f"{artefact}+bare", cfg, load, global_plan=True)
+    assert label == f"{artefact}+bare+global-plan" and isinstance(agent, GlobalPlanAgent)
+    _, agent = make_agent(str(artefact / "metadata.json"), cfg, load)
+    assert isinstance(agent, ShieldedPolicy), "the artefact named by its metadata file ships the same"

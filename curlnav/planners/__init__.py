@@ -81,7 +81,8 @@ def deploy_stack(spec: str) -> str:
     """The helpers a policy artefact folder is shipped with: its ``metadata.json``'s ``deploy``
     (suffixes in their order, e.g. ``"+rescue+shield"``), "" when it names none or ``spec`` is no
     artefact folder. A malformed one is refused in one line (``ValueError``)."""
-    meta = Path(spec) / "metadata.json"
+    path = Path(spec)
+    meta = path if path.name == "metadata.json" else path / "metadata.json"  # the folder, or its metadata
     if not meta.is_file():
         return ""
     try:
@@ -133,7 +134,8 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         agent = make_planner(spec, env_config)
         return agent.label, agent
     label = spec
-    if spec.endswith(BARE_SUFFIX):
+    bare = spec.endswith(BARE_SUFFIX)
+    if bare:
         spec = spec[:-len(BARE_SUFFIX)]  # the network alone, whatever its artefact deploys it with
         if "+" in spec:
             raise ValueError(f"{label}: +bare is the network alone, without any other suffix")
@@ -175,7 +177,9 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         from curlnav.planners.global_plan import GlobalPlanAgent
 
         agent = GlobalPlanAgent(agent, env_config, label=spec)
-        label = label if shield or rescue else agent.label  # wrapped again: the argument as given
+        label = label if shield or rescue or bare else agent.label  # wrapped again: the argument as given
+        if label != agent.label and GLOBAL_PLAN_SUFFIX not in label:
+            label += GLOBAL_PLAN_SUFFIX  # the --global-plan flag: said in the label
     if rescue:
         from curlnav.planners.rescue import RescuedPolicy
 
@@ -210,7 +214,8 @@ def agents_help(map_less_only: bool = False) -> str:
         text = ("policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
                 "a global plan, or +scan-plan behind a plan on its own scans, then +rescue to let dwa+scan-plan "
                 "drive while it stalls, then +shield to check each command against the scan; map-less planners "
-                "take them too), or a classical planner: " + _planner_list(False))
+                "take them too; an artefact named alone drives with the helpers its metadata ships, +bare "
+                "without), or a classical planner: " + _planner_list(False))
     return text.replace("%", "%%")  # argparse formats help with %
 
 

@@ -165,12 +165,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.scan_plan and args.global_plan:
         raise ValueError("--scan-plan and --global-plan both set the policy's waypoints; choose one")
     policy, layout = _agent(args.agent, args.robot)
-    if not (args.bare or args.scan_plan or args.global_plan or args.rescue or args.shield):
+    if args.bare and (args.scan_plan or args.global_plan or args.rescue or args.shield):
+        raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue and --shield")
+    if not (args.bare or args.scan_plan or args.rescue or args.shield):
         from curlnav.planners import deploy_stack
 
-        stack = deploy_stack(args.agent)  # an artefact named alone drives as it is shipped
+        stack = deploy_stack(args.agent)  # an artefact named alone (or with --global-plan) drives as it is shipped
         if stack:
-            args.scan_plan, args.global_plan = "+scan-plan" in stack, "+global-plan" in stack
+            if args.global_plan and "+scan-plan" in stack:
+                raise ValueError(f"{args.agent} ships with +scan-plan, which --global-plan replaces; add --bare, or "
+                                 f"name the helpers yourself")
+            args.scan_plan, args.global_plan = "+scan-plan" in stack, args.global_plan or "+global-plan" in stack
             args.rescue, args.shield = "+rescue" in stack, "+shield" in stack
             print(f"{args.agent}: driven as its artefact ships it, {stack} (metadata.json deploy; --bare: the "
                   f"network alone)")
