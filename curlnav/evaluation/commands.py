@@ -278,10 +278,9 @@ def add_rollout_command(sub) -> None:
 
 def _say_deploy_stacks(specs: list[str]) -> None:
     """One line per artefact named alone whose metadata ships it with helpers (``deploy_stack``)."""
-    from curlnav.planners import deploy_stack
+    from curlnav.planners import deploy_notice
 
     for spec in specs:
-        stack = deploy_stack(spec) if "+" not in spec else ""
-        if stack:
-            print(f"{spec}: driven as its artefact ships it, {spec}{stack} (metadata.json deploy; "
-                  f"{spec}+bare: the network alone)")
+        line = deploy_notice(spec, f"{spec}+bare: the network alone")
+        if line:
+            print(line)

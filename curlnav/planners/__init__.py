@@ -28,8 +28,8 @@ from importlib import import_module
 from pathlib import Path
 
 __all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX",
-           "SHIELD_SUFFIX", "agents_help", "canonical", "deploy_stack", "global_plan", "local", "make_agent", "make_planner",
-           "oracle", "register", "rescue", "scan_map", "shield"]
+           "SHIELD_SUFFIX", "agents_help", "canonical", "deploy_notice", "deploy_stack", "global_plan", "local", "make_agent",
+           "make_planner", "oracle", "register", "rescue", "scan_map", "shield"]
 
 
 @dataclass(frozen=True)
@@ -93,6 +93,14 @@ def deploy_stack(spec: str) -> str:
         raise ValueError(f"{meta}: deploy must be suffixes in the order [+global-plan|+scan-plan][+rescue][+shield], "
                          f"got {deploy!r}")
     return deploy
+
+
+def deploy_notice(spec: str, bare_hint: str) -> str:
+    """The line that says an artefact named alone drives with its shipped helpers (``deploy_stack``),
+    "" when it ships none or ``spec`` carries suffixes; ``bare_hint`` names how to drop them."""
+    stack = deploy_stack(spec) if "+" not in spec else ""
+    return f"{spec}: driven as its artefact ships it, {spec}{stack} (metadata.json deploy; {bare_hint})" if stack else ""
+
 
 for _planner in (
     Planner("tare-l", "curlnav.planners.local:TareLocalPlanner", "map-less, after TARE's local planner", True),

@@ -172,7 +172,7 @@ class ScanAgent:
         """``[v, w, 0]`` from m/s and rad/s, clipped to the robot's limits (arm retracted; backing
         up only as far as the robot can)."""
         robot = self.env_config.robot
-        return np.array([float(np.clip(v / robot.max_linear_speed, -robot.max_reverse_speed / robot.max_linear_speed, 1.0)),
+        return np.array([float(np.clip(v / robot.max_linear_speed, -robot.reverse_fraction, 1.0)),
                          float(np.clip(w / robot.max_angular_speed, -1.0, 1.0)), 0.0], dtype=np.float32)
 
 

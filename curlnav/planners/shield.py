@@ -164,7 +164,7 @@ class ShieldedPolicy(ScanAgent):
             out = proposed.copy()
             out[:] = 0.0
             return out  # a broken command: stop (counted as an intervention)
-        back = robot.max_reverse_speed / robot.max_linear_speed  # 0: forward only
+        back = robot.reverse_fraction  # 0: forward only
         v0, w0 = float(np.clip(proposed[0], -back, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
         mine = footprint_clearance(near, np.array([v0 * robot.max_linear_speed]),
                                    np.array([w0 * robot.max_angular_speed]), self._times,

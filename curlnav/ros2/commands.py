@@ -168,7 +168,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.bare and (args.scan_plan or args.global_plan or args.rescue or args.shield):
         raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue and --shield")
     if not (args.bare or args.scan_plan or args.rescue or args.shield):
-        from curlnav.planners import deploy_stack
+        from curlnav.planners import deploy_notice, deploy_stack
 
         stack = deploy_stack(args.agent)  # an artefact named alone (or with --global-plan) drives as it is shipped
         if stack:
@@ -177,8 +177,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                                  f"name the helpers yourself")
             args.scan_plan, args.global_plan = "+scan-plan" in stack, args.global_plan or "+global-plan" in stack
             args.rescue, args.shield = "+rescue" in stack, "+shield" in stack
-            print(f"{args.agent}: driven as its artefact ships it, {stack} (metadata.json deploy; --bare: the "
-                  f"network alone)")
+            print(deploy_notice(args.agent, "--bare: the network alone"))
     policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,

@@ -63,6 +63,12 @@ class RobotConfig:
                            arm_length=0.3, drive_force=1000.0, max_reverse_speed=0.5)
 
     @property
+    def reverse_fraction(self) -> float:
+        """The lowest ``action[0]`` the base takes: ``-reverse_fraction`` backs up at
+        ``max_reverse_speed`` (0: forward only, the policies' range)."""
+        return self.max_reverse_speed / self.max_linear_speed
+
+    @property
     def radius(self) -> float:
         """Circumscribed radius of the base footprint (m)."""
         return 0.5 * math.hypot(self.base_length, self.base_width)

@@ -300,7 +300,7 @@ class NamoEnv(gym.Env):
             raise ValueError(f"action contains NaN or infinity: {a.tolist()}")
         tol = 1e-5
         robot = self.config.robot
-        back = robot.max_reverse_speed / robot.max_linear_speed  # 0: forward only (the policies' range)
+        back = robot.reverse_fraction  # 0: forward only (the policies' range)
         if not (-back - tol <= v <= 1 + tol and -1 - tol <= w <= 1 + tol and -tol <= arm <= 1 + tol):
             low = f"{-back:g}" if back > 0 else "0"
             raise ValueError(f"action {a.tolist()} out of range: v in [{low}, 1], w in [-1, 1], L in [0, 1]")
