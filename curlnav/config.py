@@ -330,7 +330,7 @@ def config_to_dict(cfg: Any, for_hash: bool = False) -> Any:
     hold their default, so that adding such a field keeps the hash of every existing config."""
     if dataclasses.is_dataclass(cfg):
         if hasattr(cfg, "config_dict"):
-            return cfg.config_dict()
+            return cfg.config_dict(for_hash)
         return {f.name: config_to_dict(getattr(cfg, f.name), for_hash) for f in dataclasses.fields(cfg)
                 if not (for_hash and _omitted_from_hash(f, getattr(cfg, f.name)))}
     if isinstance(cfg, tuple):

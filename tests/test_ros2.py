@@ -679,3 +679,34 @@ def test_ros2_run_rescue_drives_for_a_policy_that_stalls_and_not_before():
     # the planner starts from the standstill that was sent (its acceleration limit: 2.5 m/s^2 x
     # 0.2 s), not from the speeds it proposed while the policy drove
     assert 0.0 < speeds[stall] <= 0.5 + 1e-6
+
+
+def test_ros2_run_track_drops_a_one_scan_movable_label_on_a_wall_the_policy_saw_before():
+    """``curlnav ros2 run POLICY --track``: a wall the scans showed as static is labelled movable in
+    one scan's intensities (a segmenter's error); the policy reads it static. A ball seen movable
+    from its first scan stays movable."""
+    from curlnav.planners.label_filter import LabelFilteredPolicy
+    from curlnav.ros2.commands import deployed
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+
+    layout = ScanLayout()
+    seen = []
+    tracked = deployed(lambda obs: seen.append(obs) or np.array([0.0, 0.0, 0.0]), layout, "husky", track=True)
+    assert isinstance(tracked, LabelFilteredPolicy)
+    node = PolicyNode(tracked, layout)
+    node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=8.0, y=0.0))))
+    wall, ball = [3.0] * 241, list(range(100, 106))
+    labels = [0.0] * 241
+    for step in range(3):  # the wall, seen static
+        node.on_odom(odom_of(0.0, 0.0, 0.0), 0.2 * step)
+        node.on_scan(scan_of(wall, labels), 0.2 * step)
+        node.act(0.2 * step)
+    wrong = [1.0 if 20 <= k < 30 else 0.0 for k in range(241)]  # ten wall beams labelled movable ...
+    ranges = [1.5 if k in ball else 3.0 for k in range(241)]
+    wrong = [1.0 if k in ball else v for k, v in enumerate(wrong)]  # ... and a ball appears
+    node.on_odom(odom_of(0.0, 0.0, 0.0), 0.6)
+    node.on_scan(scan_of(ranges, wrong), 0.6)
+    node.act(0.6)
+    _, labels_seen, _ = tracked.layout.newest_frame(seen[-1])
+    assert labels_seen[20:30].sum() == 0  # the wall's one-scan label: voted away
+    assert labels_seen[100:106].sum() == 6  # the new ball: nothing voted against it

@@ -254,6 +254,56 @@ def test_odometry_drift_grows_with_distance_travelled_and_moves_the_goal_input(m
     assert 0.005 < np.mean(at[10.0]) < 0.06  # a few percent of the distance, as configured (2 %)
 
 
+def heading_errors(env: NamoEnv, seeds: int = 16, steps: int = 40) -> tuple[np.ndarray, float, float]:
+    """Turn in place at full rate for ``steps`` control periods from each seed: the odometry's
+    heading error (rad) at the end of each, the mean angle turned (rad) and the time (s)."""
+    errors, turned = [], []
+    for seed in range(seeds):
+        obs, info = env.reset(seed=seed)
+        total, yaw_before = 0.0, info["pose"][2]
+        for _ in range(steps):
+            obs, _, _, _, info = env.step(np.array([0.0, 1.0, 0.0], np.float32))
+            yaw = info["pose"][2]
+            total += math.atan2(math.sin(yaw - yaw_before), math.cos(yaw - yaw_before))
+            yaw_before = yaw
+        error = info["odometry"][2] - info["pose"][2]
+        errors.append(math.atan2(math.sin(error), math.cos(error)))
+        turned.append(total)
+    return np.array(errors), float(np.mean(turned)), steps * env.config.control_period
+
+
+def test_an_imu_heading_drifts_by_its_gyro_errors_where_the_wheels_heading_drifts_by_rotation(make_env):
+    # the wheels' heading: 5 % of the angle turned (per-episode scale plus per-step noise)
+    wheels, turned, _ = heading_errors(make_env(open_hall(), noise=only(odometry_rotation_drift=0.05)))
+    assert turned > 6.0  # more than a turn: the errors below are fractions of a large angle
+    assert 0.025 < np.sqrt(np.mean(wheels ** 2)) / turned < 0.1
+    # a gyro's scale-factor error of 1 %: 1 % of the angle turned, whatever the wheels say
+    scale, _, _ = heading_errors(make_env(open_hall(), noise=only(heading="imu", gyro_scale=0.01,
+                                                                  odometry_rotation_drift=0.05)))
+    assert 0.004 < np.sqrt(np.mean(scale ** 2)) / turned < 0.02
+    # a gyro's bias: an angle that grows with time (rad/s x s), not with the angle turned
+    bias, _, seconds = heading_errors(make_env(open_hall(), noise=only(heading="imu", gyro_bias=0.01)))
+    assert 0.5 * 0.01 * seconds < np.sqrt(np.mean(bias ** 2)) < 2.0 * 0.01 * seconds
+    # wheel slip fools the wheels (they turn further than the base), not the gyro
+    slipping, _, _ = heading_errors(make_env(open_hall(), noise=only(wheel_slip=0.1)))
+    gyro_slipping, _, _ = heading_errors(make_env(open_hall(), noise=only(heading="imu", wheel_slip=0.1)))
+    assert np.mean(slipping) > 0.05 * turned and np.max(np.abs(gyro_slipping)) < 1e-9
+
+
+def test_the_presets_take_the_heading_from_an_imu_and_a_config_from_before_keeps_its_hash():
+    assert SensorNoiseConfig("realistic").heading == SensorNoiseConfig("harsh").heading == "imu"
+    assert SensorNoiseConfig("none").heading == "wheels" and SensorNoiseConfig("none").is_exact
+    realistic = apply_overrides(ExperimentConfig(), ["env.sensor_noise.preset=realistic"])
+    wheels = apply_overrides(realistic, ["env.sensor_noise.heading=wheels"])
+    assert wheels.env.sensor_noise.heading == "wheels" and config_hash(wheels) != config_hash(realistic)
+    # recorded before the IMU heading existed: a run's config hash (resume, services' agreement) is kept
+    assert config_hash(realistic) == \
+        "c21f7ce8db8a3fd84c2e9a4d0a55047706aa76c69ee655aae01659a298e690d2"
+    assert SensorNoiseConfig.from_strings("realistic", ["heading=wheels"]).describe() == "realistic heading=wheels"
+    with pytest.raises(ConfigError, match="sensor_noise.heading must be 'wheels' or 'imu', got 'gps'"):
+        SensorNoiseConfig.from_strings("realistic", ["heading=gps"])
+
+
 def speeds(env: NamoEnv, action, steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Measured linear (m/s) and angular (rad/s) speed of the base over each control period."""
     obs, info = env.reset(seed=seed)

@@ -237,11 +237,12 @@ def add_commands(sub) -> None:
     p.add_argument("--sensor-noise", default="none", metavar="PRESET",
                    help=f"imperfect senses for every agent: {', '.join(SENSOR_NOISE_PRESETS)} (default none: the "
                         "exact simulator); range noise, dropouts, spurious returns, label errors, latency, odometry "
-                        "drift, acceleration limits, lag and wheel slip, drawn from each episode's seed "
+                        "drift (heading from an IMU in realistic and harsh), acceleration limits, lag and wheel slip, "
+                        "drawn from each episode's seed "
                         "(docs/guide/environment.md)")
     p.add_argument("--sensor-set", action="append", metavar="FIELD=VALUE",
-                   help=f"override one magnitude of the --sensor-noise preset; repeat for several. Fields: "
-                        f"{', '.join(SENSOR_NOISE_FIELDS)}")
+                   help=f"override one field of the --sensor-noise preset; repeat for several. Fields: "
+                        f"heading (wheels or imu), {', '.join(SENSOR_NOISE_FIELDS)}")
     p.add_argument("--out", default=None, help="folder for episodes.csv, summary.csv and trajectories/*.png")
     p.add_argument("--mcap", default=None, metavar="DIR",
                    help="also write every episode of every agent to an MCAP file with ROS 2 schemas in DIR "

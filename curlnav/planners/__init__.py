@@ -28,8 +28,8 @@ from importlib import import_module
 from pathlib import Path
 
 __all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX",
-           "SHIELD_SUFFIX", "agents_help", "canonical", "deploy_notice", "deploy_stack", "global_plan", "local", "make_agent",
-           "make_planner", "oracle", "register", "rescue", "scan_map", "shield"]
+           "SHIELD_SUFFIX", "TRACK_SUFFIX", "agents_help", "canonical", "deploy_notice", "deploy_stack", "global_plan",
+           "label_filter", "local", "make_agent", "make_planner", "oracle", "register", "rescue", "scan_map", "shield"]
 
 
 @dataclass(frozen=True)
@@ -72,9 +72,12 @@ SHIELD_SUFFIX = "+shield"
 SCAN_PLAN_SUFFIX = "+scan-plan"
 #: appended to a policy argument, lets ``dwa+scan-plan`` drive while the policy stalls (``curlnav.planners.rescue``)
 RESCUE_SUFFIX = "+rescue"
+#: appended last to a policy or map-less planner, votes its movable labels over the last scans (``curlnav.planners.label_filter``)
+TRACK_SUFFIX = "+track"
 #: appended to a policy artefact whose metadata names a deploy stack: the network alone, without it
 BARE_SUFFIX = "+bare"
-_DEPLOY = re.compile(r"^(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?$")
+_DEPLOY = re.compile(r"^(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?(\+track)?$")
+_ORDER = "POLICY[+global-plan|+scan-plan][+rescue][+shield][+track]"
 
 
 def deploy_stack(spec: str) -> str:
@@ -90,7 +93,7 @@ def deploy_stack(spec: str) -> str:
     except (OSError, ValueError, AttributeError):
         return ""  # the policy loader reports a broken metadata.json itself
     if not isinstance(deploy, str) or not _DEPLOY.match(deploy):
-        raise ValueError(f"{meta}: deploy must be suffixes in the order [+global-plan|+scan-plan][+rescue][+shield], "
+        raise ValueError(f"{meta}: deploy must be suffixes in the order [+global-plan|+scan-plan][+rescue][+shield][+track], "
                          f"got {deploy!r}")
     return deploy
 
@@ -133,8 +136,10 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     A* path (``GlobalPlanAgent``; label ``PATH + global plan``); with ``+scan-plan``, waypoints on
     an A* path on a map of its own scans (``curlnav.planners.scan_map``; not with a global plan);
     with ``+rescue``, ``dwa+scan-plan`` drives while the policy stalls (``curlnav.planners.rescue``);
-    with ``+shield`` last, every command goes through the safety shield
-    (``curlnav.planners.shield``). Suffixes stack in that order: ``PATH+scan-plan+rescue+shield``.
+    with ``+shield``, every command goes through the safety shield (``curlnav.planners.shield``);
+    with ``+track`` last, all of them see movable labels voted over the last scans
+    (``curlnav.planners.label_filter``). Suffixes stack in that order:
+    ``PATH+scan-plan+rescue+shield+track``.
     An artefact folder named without a suffix drives with the helpers its metadata ships it with
     (``deploy_stack``; label: the path as given); ``PATH+bare`` is the network alone.
     A map-less planner takes the same suffixes (``dwa+scan-plan``: ``move_base``'s pairing)."""
@@ -147,7 +152,8 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         spec = spec[:-len(BARE_SUFFIX)]  # the network alone, whatever its artefact deploys it with
         if "+" in spec:
             raise ValueError(f"{label}: +bare is the network alone, without any other suffix")
-    elif not any(spec.endswith(s) for s in (SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX)):
+    elif not any(spec.endswith(s) for s in (TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX,
+                                            GLOBAL_PLAN_SUFFIX)):
         spec += deploy_stack(spec)  # an artefact named alone drives as it is shipped
     plain = spec.split("+", 1)[0]
     planner = canonical(plain) is not None
@@ -156,6 +162,9 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
             raise ValueError(f"{label}: {plain} plans on the true map; only map-less planners take suffixes")
         load_policy = lambda name, _load=load_policy: make_planner(name, env_config) \
             if canonical(name) is not None else _load(name)  # noqa: E731
+    track = spec.endswith(TRACK_SUFFIX)
+    if track:
+        spec = spec[:-len(TRACK_SUFFIX)]
     shield = spec.endswith(SHIELD_SUFFIX)
     if shield:
         spec = spec[:-len(SHIELD_SUFFIX)]
@@ -167,15 +176,14 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         spec = spec[:-len(SCAN_PLAN_SUFFIX)]
     if spec.endswith(GLOBAL_PLAN_SUFFIX):
         spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
-    for suffix in (SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX, BARE_SUFFIX):
+    for suffix in (TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX, BARE_SUFFIX):
         if suffix in spec:
-            raise ValueError(f"{label}: suffixes stack in the order POLICY[+global-plan|+scan-plan][+rescue][+shield], "
-                             f"each once")
+            raise ValueError(f"{label}: suffixes stack in the order {_ORDER}, each once")
     if scan_plan and global_plan:
         raise ValueError(f"{label}: +scan-plan and a global plan both set the policy's waypoints; choose one")
     if planner and global_plan:
         raise ValueError(f"{label}: a global plan is for policies; a map-less planner takes +scan-plan, "
-                         f"+rescue and +shield")
+                         f"+rescue, +shield and +track")
     agent = load_policy(spec)
     if scan_plan:
         from curlnav.planners.scan_map import ScanMapPlanAgent
@@ -185,7 +193,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         from curlnav.planners.global_plan import GlobalPlanAgent
 
         agent = GlobalPlanAgent(agent, env_config, label=spec)
-        label = label if shield or rescue or bare else agent.label  # wrapped again: the argument as given
+        label = label if shield or rescue or track or bare else agent.label  # wrapped again: the argument as given
         if label != agent.label and GLOBAL_PLAN_SUFFIX not in label:
             label += GLOBAL_PLAN_SUFFIX  # the --global-plan flag: said in the label
     if rescue:
@@ -196,6 +204,10 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         from curlnav.planners.shield import ShieldedPolicy
 
         agent = ShieldedPolicy(agent, env_config, label=label)
+    if track:
+        from curlnav.planners.label_filter import LabelFilteredPolicy
+
+        agent = LabelFilteredPolicy(agent, env_config, label=label)
     return label, agent
 
 
@@ -221,13 +233,14 @@ def agents_help(map_less_only: bool = False) -> str:
     else:
         text = ("policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
                 "a global plan, or +scan-plan behind a plan on its own scans, then +rescue to let dwa+scan-plan "
-                "drive while it stalls, then +shield to check each command against the scan; map-less planners "
+                "drive while it stalls, then +shield to check each command against the scan, then +track to vote "
+                "its movable labels over the last scans; map-less planners "
                 "take them too; an artefact named alone drives with the helpers its metadata ships, +bare "
                 "without), or a classical planner: " + _planner_list(False))
     return text.replace("%", "%%")  # argparse formats help with %
 
 
 def __getattr__(name: str):
-    if name in ("global_plan", "local", "oracle", "rescue", "scan_map", "shield"):
+    if name in ("global_plan", "label_filter", "local", "oracle", "rescue", "scan_map", "shield"):
         return import_module(f".{name}", __name__)
     raise AttributeError(f"module 'curlnav.planners' has no attribute {name!r}")

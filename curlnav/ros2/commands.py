@@ -29,6 +29,9 @@ def add_ros2_commands(sub) -> None:
     p.add_argument("--shield", action="store_true",
                    help="check each command's arc against the scan before it goes out (curlnav.planners.shield): "
                         "one into an obstacle is replaced by the nearest safe one")
+    p.add_argument("--track", action="store_true",
+                   help="vote the scan's movable labels (intensities) over the last scans before anything reads "
+                        "them (curlnav.planners.label_filter): a segmenter's one-frame errors are dropped")
     p.add_argument("--rate-hz", type=float, default=None, help="control rate (default: the policy's, 5 Hz)")
     p.add_argument("--silence-s", type=float, default=0.5,
                    help="stop when /scan or /odom is older than this, or no /cmd_vel went out for this long (s)")
@@ -123,12 +126,12 @@ def _agent(name: str, robot: str = "husky"):
 
 
 def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shield: bool = False,
-             rescue: bool = False):
+             rescue: bool = False, track: bool = False):
     """``agent`` (a policy or a map-less planner, as ``_agent`` gives it) behind a plan on its own scans
-    (``scan_plan``), the rescue by ``dwa+scan-plan`` while it stalls (``rescue``) and the safety
-    shield (``shield``), all built for what the node feeds it: the scan, frames and command scale of
-    ``layout`` on robot profile ``robot``."""
-    if not (scan_plan or shield or rescue):
+    (``scan_plan``), the rescue by ``dwa+scan-plan`` while it stalls (``rescue``), the safety
+    shield (``shield``) and the label vote in front of them all (``track``), all built for what
+    the node feeds it: the scan, frames and command scale of ``layout`` on robot profile ``robot``."""
+    if not (scan_plan or shield or rescue or track):
         return agent
     import dataclasses
 
@@ -155,6 +158,10 @@ def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shiel
         from curlnav.planners.shield import ShieldedPolicy
 
         agent = ShieldedPolicy(agent, env)
+    if track:
+        from curlnav.planners.label_filter import LabelFilteredPolicy
+
+        agent = LabelFilteredPolicy(agent, env)
     return agent
 
 
@@ -165,9 +172,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.scan_plan and args.global_plan:
         raise ValueError("--scan-plan and --global-plan both set the policy's waypoints; choose one")
     policy, layout = _agent(args.agent, args.robot)
-    if args.bare and (args.scan_plan or args.global_plan or args.rescue or args.shield):
-        raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue and --shield")
-    if not (args.bare or args.scan_plan or args.rescue or args.shield):
+    if args.bare and (args.scan_plan or args.global_plan or args.rescue or args.shield or args.track):
+        raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue, --shield "
+                         "and --track")
+    if not (args.bare or args.scan_plan or args.rescue or args.shield or args.track):
         from curlnav.planners import deploy_notice, deploy_stack
 
         stack = deploy_stack(args.agent)  # an artefact named alone (or with --global-plan) drives as it is shipped
@@ -176,9 +184,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 raise ValueError(f"{args.agent} ships with +scan-plan, which --global-plan replaces; add --bare, or "
                                  f"name the helpers yourself")
             args.scan_plan, args.global_plan = "+scan-plan" in stack, args.global_plan or "+global-plan" in stack
-            args.rescue, args.shield = "+rescue" in stack, "+shield" in stack
+            args.rescue, args.shield, args.track = "+rescue" in stack, "+shield" in stack, "+track" in stack
             print(deploy_notice(args.agent, "--bare: the network alone"))
-    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue)
+    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue, args.track)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,

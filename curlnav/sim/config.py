@@ -123,21 +123,33 @@ class RewardConfig:
 
 #: The magnitudes of ``SensorNoiseConfig`` (every field but ``preset`` and ``randomise``), in order.
 SENSOR_NOISE_FIELDS = ("range_sigma", "range_sigma_fraction", "dropout", "spurious", "label_error", "label_run",
-                       "latency_steps", "odometry_drift", "odometry_rotation_drift", "max_linear_accel",
-                       "max_angular_accel", "actuation_lag", "wheel_slip")
+                       "latency_steps", "odometry_drift", "odometry_rotation_drift", "gyro_bias", "gyro_scale",
+                       "gyro_noise", "max_linear_accel", "max_angular_accel", "actuation_lag", "wheel_slip")
+
+_ADDED_WITH_IMU = ("gyro_bias", "gyro_scale", "gyro_noise")
+
+#: Where the odometry's heading comes from in each preset (``SensorNoiseConfig.heading``):
+#: ``wheels`` (the wheels' differential, ``odometry_rotation_drift``) or ``imu`` (a gyro fused
+#: with the wheels' translation, as the Husky's and the Jackal's robot_localization EKFs do:
+#: ``gyro_bias``, ``gyro_scale``, ``gyro_noise``).
+SENSOR_NOISE_HEADINGS: dict[str, str] = {"none": "wheels", "realistic": "imu", "harsh": "imu"}
 
 #: Named presets of ``SensorNoiseConfig``: ``none`` (exact senses, the default), ``realistic`` (a
-#: robot with a datasheet LiDAR, a segmenter and wheel odometry) and ``harsh`` (about double).
+#: robot with a datasheet LiDAR, a segmenter, wheel odometry and an IMU's heading) and ``harsh``
+#: (about double).
 #: Sources of the values: docs/guide/environment.md, "Sensor, odometry and actuation models".
 SENSOR_NOISE_PRESETS: dict[str, dict[str, float | int]] = {
     "none": dict(range_sigma=0.0, range_sigma_fraction=0.0, dropout=0.0, spurious=0.0, label_error=0.0,
                  label_run=1.0, latency_steps=0, odometry_drift=0.0, odometry_rotation_drift=0.0,
+                 gyro_bias=0.0, gyro_scale=0.0, gyro_noise=0.0,
                  max_linear_accel=0.0, max_angular_accel=0.0, actuation_lag=0.0, wheel_slip=0.0),
     "realistic": dict(range_sigma=0.03, range_sigma_fraction=0.0, dropout=0.02, spurious=0.005, label_error=0.05,
                       label_run=6.0, latency_steps=1, odometry_drift=0.02, odometry_rotation_drift=0.05,
+                      gyro_bias=math.radians(0.02), gyro_scale=0.01, gyro_noise=math.radians(0.01),
                       max_linear_accel=3.0, max_angular_accel=6.0, actuation_lag=0.05, wheel_slip=0.02),
     "harsh": dict(range_sigma=0.05, range_sigma_fraction=0.01, dropout=0.05, spurious=0.01, label_error=0.10,
                   label_run=10.0, latency_steps=2, odometry_drift=0.05, odometry_rotation_drift=0.10,
+                  gyro_bias=math.radians(0.04), gyro_scale=0.02, gyro_noise=math.radians(0.02),
                   max_linear_accel=1.5, max_angular_accel=3.0, actuation_lag=0.1, wheel_slip=0.05),
 }
 
@@ -170,7 +182,12 @@ class SensorNoiseConfig:
     label_run: float | None = None  # beams, mean length of a false movable run (1: isolated beams)
     latency_steps: int | None = None  # control periods by which the whole observation lags
     odometry_drift: float | None = None  # 1-sigma translation error per metre travelled (fraction of distance)
-    odometry_rotation_drift: float | None = None  # 1-sigma heading error per radian turned (fraction of rotation)
+    #: where the odometry's heading comes from: ``"wheels"`` or ``"imu"`` (``SENSOR_NOISE_HEADINGS``)
+    heading: str | None = None
+    odometry_rotation_drift: float | None = None  # heading "wheels": 1-sigma heading error per radian turned
+    gyro_bias: float | None = None  # heading "imu": rad/s, 1-sigma per-episode gyro bias left after calibration
+    gyro_scale: float | None = None  # heading "imu": 1-sigma per-episode gyro scale-factor error (fraction)
+    gyro_noise: float | None = None  # heading "imu": rad/s/sqrt(Hz), the gyro's angle random walk
     max_linear_accel: float | None = None  # m/s^2 of the base (0: none)
     max_angular_accel: float | None = None  # rad/s^2 of the base (0: none)
     actuation_lag: float | None = None  # s, first-order time constant from command to velocity (0: none)
@@ -186,6 +203,8 @@ class SensorNoiseConfig:
         for name in SENSOR_NOISE_FIELDS:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, base[name])
+        if self.heading is None:
+            object.__setattr__(self, "heading", SENSOR_NOISE_HEADINGS[self.preset])
         self.validate()
 
     def validate(self) -> None:
@@ -194,8 +213,11 @@ class SensorNoiseConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ConfigError(f"sensor_noise.{name} must be a finite number, got {value!r}")
+        if self.heading not in ("wheels", "imu"):
+            raise ConfigError(f"sensor_noise.heading must be 'wheels' or 'imu', got {self.heading!r}")
         bounded = {"range_sigma": 1.0, "range_sigma_fraction": 0.5, "dropout": 1.0, "spurious": 1.0,
                    "label_error": 1.0, "odometry_drift": 1.0, "odometry_rotation_drift": 1.0,
+                   "gyro_bias": 1.0, "gyro_scale": 0.5, "gyro_noise": 1.0,
                    "max_linear_accel": 1e3, "max_angular_accel": 1e3, "actuation_lag": 10.0, "wheel_slip": 0.5}
         for name, high in bounded.items():
             value = getattr(self, name)
@@ -213,10 +235,10 @@ class SensorNoiseConfig:
     @staticmethod
     def from_preset(name: str, **overrides: Any) -> SensorNoiseConfig:
         """Preset ``name`` with some magnitudes overridden (unknown names raise ``ConfigError``)."""
-        unknown = set(overrides) - set(SENSOR_NOISE_FIELDS) - {"randomise"}
+        unknown = set(overrides) - set(SENSOR_NOISE_FIELDS) - {"randomise", "heading"}
         if unknown:
             raise ConfigError(f"unknown sensor-noise field {sorted(unknown)[0]}; known: "
-                              f"{', '.join(SENSOR_NOISE_FIELDS + ('randomise',))}")
+                              f"{', '.join(SENSOR_NOISE_FIELDS + ('heading', 'randomise'))}")
         return SensorNoiseConfig(preset=name, **overrides)
 
     @staticmethod
@@ -229,9 +251,12 @@ class SensorNoiseConfig:
             name, raw = name.strip(), raw.strip()
             if not sep or not name or not raw:
                 raise ConfigError(f"a sensor-noise override must look like field=value, got {item!r}")
-            if name not in SENSOR_NOISE_FIELDS and name != "randomise":
+            if name not in SENSOR_NOISE_FIELDS and name not in ("randomise", "heading"):
                 raise ConfigError(f"unknown sensor-noise field {name!r}; known: "
-                                  f"{', '.join(SENSOR_NOISE_FIELDS + ('randomise',))}")
+                                  f"{', '.join(SENSOR_NOISE_FIELDS + ('heading', 'randomise'))}")
+            if name == "heading":
+                overrides[name] = raw  # checked by the config: 'wheels' or 'imu'
+                continue
             if name == "randomise":
                 if raw.lower() not in ("true", "false", "yes", "no", "1", "0", "on", "off"):
                     raise ConfigError(f"sensor_noise.randomise must be true or false, got {raw!r}")
@@ -253,6 +278,8 @@ class SensorNoiseConfig:
         """One line: the preset and the magnitudes that differ from it."""
         base = SENSOR_NOISE_PRESETS[self.preset]
         changed = [f"{name}={getattr(self, name):g}" for name in SENSOR_NOISE_FIELDS if getattr(self, name) != base[name]]
+        if self.heading != SENSOR_NOISE_HEADINGS[self.preset]:
+            changed.insert(0, f"heading={self.heading}")
         return " ".join([self.preset, *changed, *(["randomised per episode"] if self.randomise else [])])
 
     @property
@@ -279,15 +306,20 @@ class SensorNoiseConfig:
                 values[name] = value * scale
         values["max_linear_accel"] = min(values["max_linear_accel"], 1e3)
         values["max_angular_accel"] = min(values["max_angular_accel"], 1e3)
-        return SensorNoiseConfig(preset=self.preset, randomise=False, **values)
+        return SensorNoiseConfig(preset=self.preset, randomise=False, heading=self.heading, **values)
 
-    def config_dict(self) -> dict[str, Any]:
-        """The config-file form: ``preset``, ``randomise`` and each magnitude, ``None`` where it is
-        the preset's (so that a later change of preset carries the magnitudes with it)."""
+    def config_dict(self, for_hash: bool = False) -> dict[str, Any]:
+        """The config-file form: ``preset``, ``randomise``, ``heading`` and each magnitude, ``None``
+        where it is the preset's (so that a later change of preset carries the magnitudes with it).
+        ``for_hash``: the fields added with the IMU heading (``heading``, ``gyro_*``) are left out
+        while they are the preset's, so a config written before them keeps its hash."""
         base = SENSOR_NOISE_PRESETS[self.preset]
         out: dict[str, Any] = {"preset": self.preset, "randomise": self.randomise}
+        if not for_hash or self.heading != SENSOR_NOISE_HEADINGS[self.preset]:
+            out["heading"] = None if self.heading == SENSOR_NOISE_HEADINGS[self.preset] else self.heading
         out.update({name: None if getattr(self, name) == base[name] else getattr(self, name)
-                    for name in SENSOR_NOISE_FIELDS})
+                    for name in SENSOR_NOISE_FIELDS
+                    if not (for_hash and name in _ADDED_WITH_IMU and getattr(self, name) == base[name])})
         return out
 
 

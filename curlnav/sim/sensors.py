@@ -17,10 +17,15 @@ Per step, in this order:
   for nothing within range, as a ROS ``LaserScan``'s +inf) or a spurious short return
   (``spurious``: uniform in [0, range], a mixed pixel). Dropped and spurious beams are labelled 0.
 - **Odometry** (``Odometry``): the pose estimate integrates the measured motion, which is the true
-  motion with per-episode biases (scale and sideways: 1-sigma ``odometry_drift`` per metre;
-  rotation scale: 1-sigma ``odometry_rotation_drift`` per radian) plus as much again in per-step
-  noise, and the wheels' motion before slip. The goal frames of the observation are computed from
-  this estimate, so their error grows with the distance travelled and the angle turned.
+  motion with per-episode biases (scale and sideways: 1-sigma ``odometry_drift`` per metre) plus as
+  much again in per-step noise, and the wheels' motion before slip. Its heading comes from the
+  wheels (``heading="wheels"``: rotation scale 1-sigma ``odometry_rotation_drift`` per radian, plus
+  as much per-step noise; slip counts here too) or from a gyro fused in (``heading="imu"``, as the
+  Husky's and the Jackal's robot_localization EKFs take it: the true turn with a per-episode scale
+  error, 1-sigma ``gyro_scale``, a per-episode bias, 1-sigma ``gyro_bias`` rad/s, integrated over
+  the control period, and angle random walk, ``gyro_noise`` rad/s/sqrt(Hz); wheel slip does not
+  fool a gyro). The goal frames of the observation are computed from this estimate, so their error
+  grows with the distance travelled and the angle turned (or the time, for a gyro's bias).
 - **Latency** (``latency_steps`` = k): the observation's newest frame (ranges, labels, goal) is the
   one measured k control periods ago.
 
@@ -85,13 +90,19 @@ class Odometry:
     """A pose estimate ``(x, y, yaw)`` (map frame, m and rad) that starts at the true pose and
     drifts by a fraction of the distance travelled and of the angle turned."""
 
-    def __init__(self, pose: tuple[float, float, float], noise: SensorNoiseConfig, rng: np.random.Generator) -> None:
+    def __init__(self, pose: tuple[float, float, float], noise: SensorNoiseConfig, rng: np.random.Generator,
+                 period: float = 0.2) -> None:
+        """``period``: s between updates (the control period), over which a gyro's bias integrates."""
         self.pose = pose
         self._noise = noise
         self._rng = rng
+        self._period = period
         # per-episode biases: a wheel radius and a track width a little off (calibration)
         self._scale, self._sideways, self._turn = rng.standard_normal(3) * (
             noise.odometry_drift, noise.odometry_drift, noise.odometry_rotation_drift)
+        self._gyro_scale = self._gyro_bias = 0.0
+        if noise.heading == "imu":  # two more draws, only for a gyro: the wheels' stream is unchanged
+            self._gyro_scale, self._gyro_bias = rng.standard_normal(2) * (noise.gyro_scale, noise.gyro_bias)
         self.travelled = 0.0  # m, true distance since the reset
 
     def update(self, before: tuple[float, float, float], after: tuple[float, float, float],
@@ -103,14 +114,20 @@ class Odometry:
         c, s = math.cos(yaw0), math.sin(yaw0)
         dx, dy = c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0)
         turn = _wrap(yaw1 - yaw0)
+        true_turn = turn
         dx, dy, turn = dx / (1 - slip[0]), dy / (1 - slip[0]), turn / (1 - slip[1])
         d = math.hypot(dx, dy)
         self.travelled += math.hypot(x1 - x0, y1 - y0)
         z = self._rng.standard_normal(3)
-        drift, rot = self._noise.odometry_drift, self._noise.odometry_rotation_drift
+        noise = self._noise
+        drift, rot = noise.odometry_drift, noise.odometry_rotation_drift
         mx = dx * (1 + self._scale) + drift * d * z[0]
         my = dy + (self._sideways + drift * z[1]) * d
-        mturn = turn * (1 + self._turn) + rot * abs(turn) * z[2]
+        if noise.heading == "imu":
+            mturn = (true_turn * (1 + self._gyro_scale) + self._gyro_bias * self._period
+                     + noise.gyro_noise * math.sqrt(self._period) * z[2])
+        else:
+            mturn = turn * (1 + self._turn) + rot * abs(turn) * z[2]
         ex, ey, eyaw = self.pose
         ce, se = math.cos(eyaw), math.sin(eyaw)
         self.pose = (ex + ce * mx - se * my, ey + se * mx + ce * my, _wrap(eyaw + mturn))
@@ -161,7 +178,7 @@ class SensorModel:
         self.noise = noise
         self.rng = rng
         self.max_range = cfg.lidar_max_range
-        self.odometry = Odometry(pose, noise, rng)
+        self.odometry = Odometry(pose, noise, rng, cfg.control_period)
         self.actuator = Actuator(cfg, noise, rng)
         self.moves_differently = noise.wheel_slip > 0 or noise.actuation_lag > 0 or (
             noise.max_linear_accel > 0 or noise.max_angular_accel > 0)
