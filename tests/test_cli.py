@@ -152,6 +152,26 @@ def test_policy_run_with_gif_writes_an_animation_beside_the_picture(tmp_path, ar
     assert BANNER not in result.stdout + result.stderr
 
 
+@pytest.mark.slow
+def test_policy_run_drives_an_artefact_as_it_ships_and_bare_without(tmp_path, artefact):
+    import json
+    import shutil
+
+    shipped = tmp_path / "shipped"
+    shutil.copytree(artefact, shipped)
+    meta = json.loads((shipped / "metadata.json").read_text())
+    (shipped / "metadata.json").write_text(json.dumps({**meta, "deploy": "+shield"}))
+    result = curlnav("policy", "run", str(shipped), "--world", "open-room", "--pair", "across",
+                     "--out", str(tmp_path / "a"), timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"{shipped}: driven as its artefact ships it, {shipped}+shield" in result.stdout
+    assert "-shield-open-room-across.png" in result.stdout  # the picture names the stack it drove
+    bare = curlnav("policy", "run", str(shipped), "--bare", "--world", "open-room", "--pair", "across",
+                   "--out", str(tmp_path / "b"), timeout=300)
+    assert bare.returncode == 0, bare.stderr[-2000:]
+    assert "driven as its artefact ships it" not in bare.stdout and "-shield-" not in bare.stdout
+
+
 # -- curlnav status ------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def scheduler_status():

@@ -165,6 +165,7 @@ def _eval_barn(args: argparse.Namespace) -> int:
 def _cmd_policy_run(args: argparse.Namespace) -> int:
     from curlnav.evaluation.animation import drive_and_draw
     from curlnav.evaluation.protocol import evaluation_config
+    from curlnav.planners import deploy_notice, deploy_stack, make_agent
     from curlnav.policy import PolicyArtefact
     from curlnav.sim.robots import PROFILES, check_observation, check_robot, load_profile, recorded_robot, speed_limited
 
@@ -182,9 +183,15 @@ def _cmd_policy_run(args: argparse.Namespace) -> int:
     env_config = profile.apply(evaluation_config())
     check_robot(policy.metadata, profile.robot, args.artefact)
     check_observation(policy.metadata, env_config, args.artefact)
-    return drive_and_draw(speed_limited(policy, profile.robot), args.world, args.pair, args.seed, env_config, args.out,
-                          f"policy-v{policy.version}", gif=args.gif, mcap=args.mcap,
-                          recorder=_mcap_file if args.mcap else None)
+    agent = speed_limited(policy, profile.robot)
+    stack = "" if args.bare else deploy_stack(args.artefact)
+    label = f"policy-v{policy.version}"
+    if stack:  # an artefact drives as it is shipped, as in eval and ros2 run
+        print(deploy_notice(args.artefact, "--bare: the network alone"))
+        _, agent = make_agent(args.artefact + stack, env_config, lambda name: agent)
+        label += stack.replace("+", "-")
+    return drive_and_draw(agent, args.world, args.pair, args.seed, env_config, args.out, label, gif=args.gif,
+                          mcap=args.mcap, recorder=_mcap_file if args.mcap else None)
 
 
 def _cmd_rollout(args: argparse.Namespace) -> int:
@@ -263,6 +270,8 @@ def add_commands(sub) -> None:
                         "an artefact trained for another robot is refused")
     p.add_argument("--mcap", default=None, metavar="FILE",
                    help="also write the episode to an MCAP file with ROS 2 schemas (Foxglove opens it)")
+    p.add_argument("--bare", action="store_true",
+                   help="the network alone: without the helpers its artefact's metadata ships it with (deploy)")
     p.set_defaults(func=_cmd_policy_run)
 
 
