@@ -4,9 +4,7 @@ A movable-object segmenter (a point-cloud network, or a camera detector projecte
 scan) errs a frame at a time: it labels a stretch of wall movable for one frame, or misses a
 ball for one. Nothing on a robot consumes its raw per-frame output: detections are tracked over
 frames, and an object counts once it has been seen more than once. A policy that reads raw
-labels takes a wall it was just told is movable for something to push, drives into it and stalls
-behind the shield (under the `realistic` preset's 5 % label errors, 12 of 60 more validation trials
-timed out than on exact labels: docs/results/2026-11-27-namo-robust/README.md).
+labels may take a wall it was just told is movable for something to push.
 
 ``LabelFilteredPolicy`` sits in front of everything else of an agent (the suffix ``+track``): each
 control step it takes the newest scan of the observation, moves its returns into the odometry

@@ -57,7 +57,8 @@ def add_ros2_commands(sub) -> None:
                    help="publish imperfect senses: none (default), realistic or harsh; /scan carries the noisy ranges "
                         "and labels, /odom and /tf the drifting odometry (docs/guide/environment.md)")
     p.add_argument("--sensor-set", action="append", metavar="FIELD=VALUE",
-                   help="override one magnitude of the --sensor-noise preset; repeat for several")
+                   help="override one field of the --sensor-noise preset (heading: wheels or imu, or a magnitude: "
+                        "docs/guide/environment.md); repeat for several")
     _common(p)
     p.set_defaults(func=_cmd_sim)
 

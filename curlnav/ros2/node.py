@@ -572,6 +572,9 @@ class PolicyNode:
         if self._stacks is None or self.state != "active":
             self._stacks = (np.repeat(ranges[None], lay.range_frames, 0), np.repeat(labels[None], lay.label_frames, 0),
                             np.repeat(frame[None], lay.goal_frames, 0))
+            # the agent starts afresh with its frames: a label vote, scan memory or rescue kept from
+            # before a stop would stand beside frames of now
+            self._reset_agent = self.agent is not None
         else:
             for stack, new in zip(self._stacks, (ranges, labels, frame)):
                 stack[:-1] = stack[1:]

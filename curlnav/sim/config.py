@@ -121,7 +121,7 @@ class RewardConfig:
         _positive(self, ["moving_threshold", "heading_cone"])
 
 
-#: The magnitudes of ``SensorNoiseConfig`` (every field but ``preset`` and ``randomise``), in order.
+#: The magnitudes of ``SensorNoiseConfig`` (every field but ``preset``, ``randomise`` and ``heading``), in order.
 SENSOR_NOISE_FIELDS = ("range_sigma", "range_sigma_fraction", "dropout", "spurious", "label_error", "label_run",
                        "latency_steps", "odometry_drift", "odometry_rotation_drift", "gyro_bias", "gyro_scale",
                        "gyro_noise", "max_linear_accel", "max_angular_accel", "actuation_lag", "wheel_slip")
@@ -311,15 +311,23 @@ class SensorNoiseConfig:
     def config_dict(self, for_hash: bool = False) -> dict[str, Any]:
         """The config-file form: ``preset``, ``randomise``, ``heading`` and each magnitude, ``None``
         where it is the preset's (so that a later change of preset carries the magnitudes with it).
-        ``for_hash``: the fields added with the IMU heading (``heading``, ``gyro_*``) are left out
-        while they are the preset's, so a config written before them keeps its hash."""
+        ``for_hash``: the heading and the gyro's magnitudes count only with ``heading: imu``, by
+        value: a config driving by the wheels' heading, as every config did before the IMU existed,
+        keeps its hash, and one whose preset now means the IMU gets a new one (the physics differ,
+        so services of one run started before and after cannot agree)."""
         base = SENSOR_NOISE_PRESETS[self.preset]
         out: dict[str, Any] = {"preset": self.preset, "randomise": self.randomise}
-        if not for_hash or self.heading != SENSOR_NOISE_HEADINGS[self.preset]:
+        imu = self.heading == "imu"
+        if for_hash and imu:
+            out["heading"] = self.heading
+        elif not for_hash:
             out["heading"] = None if self.heading == SENSOR_NOISE_HEADINGS[self.preset] else self.heading
-        out.update({name: None if getattr(self, name) == base[name] else getattr(self, name)
-                    for name in SENSOR_NOISE_FIELDS
-                    if not (for_hash and name in _ADDED_WITH_IMU and getattr(self, name) == base[name])})
+        for name in SENSOR_NOISE_FIELDS:
+            if name in _ADDED_WITH_IMU and for_hash:
+                if imu:
+                    out[name] = getattr(self, name)
+                continue
+            out[name] = None if getattr(self, name) == base[name] else getattr(self, name)
         return out
 
 
