@@ -681,20 +681,29 @@ def test_ros2_run_rescue_drives_for_a_policy_that_stalls_and_not_before():
     assert 0.0 < speeds[stall] <= 0.5 + 1e-6
 
 
+def staged_node(goal_x: float, **stage):
+    """A node driving a standing policy behind a stage (``deployed(..., track=True)`` and the
+    like), with a goal ``goal_x`` m ahead in the odom frame: (the stage, the node, the
+    observations the policy was shown)."""
+    from curlnav.ros2.commands import deployed
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+
+    seen: list[np.ndarray] = []
+    layout = ScanLayout()
+    staged = deployed(lambda obs: seen.append(obs) or np.array([0.0, 0.0, 0.0]), layout, "husky", **stage)
+    node = PolicyNode(staged, layout)
+    node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=goal_x, y=0.0))))
+    return staged, node, seen
+
+
 def test_ros2_run_track_drops_a_one_scan_movable_label_on_a_wall_the_policy_saw_before():
     """``curlnav ros2 run POLICY --track``: a wall the scans showed as static is labelled movable in
     one scan's intensities (a segmenter's error); the policy reads it static. A ball seen movable
     from its first scan stays movable."""
     from curlnav.planners.label_filter import LabelFilteredPolicy
-    from curlnav.ros2.commands import deployed
-    from curlnav.ros2.node import PolicyNode, ScanLayout
 
-    layout = ScanLayout()
-    seen = []
-    tracked = deployed(lambda obs: seen.append(obs) or np.array([0.0, 0.0, 0.0]), layout, "husky", track=True)
+    tracked, node, seen = staged_node(8.0, track=True)
     assert isinstance(tracked, LabelFilteredPolicy)
-    node = PolicyNode(tracked, layout)
-    node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=8.0, y=0.0))))
     wall, ball = [3.0] * 241, list(range(100, 106))
     labels = [0.0] * 241
     for step in range(3):  # the wall, seen static
@@ -710,3 +719,28 @@ def test_ros2_run_track_drops_a_one_scan_movable_label_on_a_wall_the_policy_saw_
     _, labels_seen, _ = tracked.layout.newest_frame(seen[-1])
     assert labels_seen[20:30].sum() == 0  # the wall's one-scan label: voted away
     assert labels_seen[100:106].sum() == 6  # the new ball: nothing voted against it
+
+
+def test_ros2_run_scan_match_steers_by_the_scans_when_odom_drifts():
+    """``curlnav ros2 run POLICY --scan-match``: /odom claims the robot drove 1 m forward while
+    the scan of a walled room stays the same (the wheels spun); the goal the policy is shown stays
+    where the scans put it, not 1 m nearer."""
+    from curlnav.planners.local import goal_in_robot_frame
+    from curlnav.planners.scan_match import ScanMatchedPolicy
+
+    matched, node, seen = staged_node(5.0, scan_match=True)
+    assert isinstance(matched, ScanMatchedPolicy)
+    angles = np.linspace(-math.radians(120), math.radians(120), 241)
+    # a 6 x 4 m room round the robot at (0, 0), facing +x: each beam's range to the nearest wall
+    room = np.minimum.reduce([np.where(np.cos(angles) > 1e-6, 3.0 / np.maximum(np.cos(angles), 1e-6), 99),
+                              np.where(np.cos(angles) < -1e-6, -3.0 / np.minimum(np.cos(angles), -1e-6), 99),
+                              np.where(np.sin(angles) > 1e-6, 2.0 / np.maximum(np.sin(angles), 1e-6), 99),
+                              np.where(np.sin(angles) < -1e-6, -2.0 / np.minimum(np.sin(angles), -1e-6), 99)])
+    for step in range(6):
+        t = 0.2 * step
+        node.on_odom(odom_of(0.2 * step, 0.0, 0.0), t)  # the wheels: 0.2 m a step
+        node.on_scan(scan_of(room, [0.0] * 241), t)  # the walls: the robot has not moved
+        node.act(t)
+    dx, dy = goal_in_robot_frame(matched.layout.newest_frame(seen[-1])[2])
+    assert math.hypot(dx - 5.0, dy) < 0.15, (dx, dy)  # the scans' word, not the wheels' 4 m
+    assert matched.matched >= 4

@@ -27,9 +27,10 @@ from dataclasses import dataclass
 from importlib import import_module
 from pathlib import Path
 
-__all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_PLAN_SUFFIX",
-           "SHIELD_SUFFIX", "TRACK_SUFFIX", "agents_help", "canonical", "deploy_notice", "deploy_stack", "global_plan",
-           "label_filter", "local", "make_agent", "make_planner", "oracle", "register", "rescue", "scan_map", "shield"]
+__all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_MATCH_SUFFIX",
+           "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "TRACK_SUFFIX", "agents_help", "canonical", "deploy_notice",
+           "deploy_stack", "global_plan", "label_filter", "local", "make_agent", "make_planner", "oracle", "register",
+           "rescue", "scan_map", "scan_match", "shield"]
 
 
 @dataclass(frozen=True)
@@ -74,10 +75,12 @@ SCAN_PLAN_SUFFIX = "+scan-plan"
 RESCUE_SUFFIX = "+rescue"
 #: appended last to a policy or map-less planner, votes its movable labels over the last scans (``curlnav.planners.label_filter``)
 TRACK_SUFFIX = "+track"
+#: appended last to a policy or map-less planner, gives it laser odometry (``curlnav.planners.scan_match``)
+SCAN_MATCH_SUFFIX = "+scan-match"
 #: appended to a policy artefact whose metadata names a deploy stack: the network alone, without it
 BARE_SUFFIX = "+bare"
-_DEPLOY = re.compile(r"^(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?(\+track)?$")
-_ORDER = "POLICY[+global-plan|+scan-plan][+rescue][+shield][+track]"
+_DEPLOY = re.compile(r"^(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?(\+track)?(\+scan-match)?$")
+_ORDER = "POLICY[+global-plan|+scan-plan][+rescue][+shield][+track][+scan-match]"
 
 
 def deploy_stack(spec: str) -> str:
@@ -93,7 +96,7 @@ def deploy_stack(spec: str) -> str:
     except (OSError, ValueError, AttributeError):
         return ""  # the policy loader reports a broken metadata.json itself
     if not isinstance(deploy, str) or not _DEPLOY.match(deploy):
-        raise ValueError(f"{meta}: deploy must be suffixes in the order [+global-plan|+scan-plan][+rescue][+shield][+track], "
+        raise ValueError(f"{meta}: deploy must be suffixes in the order {_ORDER[6:]}, "
                          f"got {deploy!r}")
     return deploy
 
@@ -137,9 +140,10 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     an A* path on a map of its own scans (``curlnav.planners.scan_map``; not with a global plan);
     with ``+rescue``, ``dwa+scan-plan`` drives while the policy stalls (``curlnav.planners.rescue``);
     with ``+shield``, every command goes through the safety shield (``curlnav.planners.shield``);
-    with ``+track`` last, all of them see movable labels voted over the last scans
-    (``curlnav.planners.label_filter``). Suffixes stack in that order:
-    ``PATH+scan-plan+rescue+shield+track``.
+    with ``+track``, all of them see movable labels voted over the last scans
+    (``curlnav.planners.label_filter``); with ``+scan-match`` last, goal and odometry come from
+    laser odometry (``curlnav.planners.scan_match``). Suffixes stack in that order:
+    ``PATH+scan-plan+rescue+shield+track+scan-match``.
     An artefact folder named without a suffix drives with the helpers its metadata ships it with
     (``deploy_stack``; label: the path as given); ``PATH+bare`` is the network alone.
     A map-less planner takes the same suffixes (``dwa+scan-plan``: ``move_base``'s pairing)."""
@@ -152,8 +156,8 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         spec = spec[:-len(BARE_SUFFIX)]  # the network alone, whatever its artefact deploys it with
         if "+" in spec:
             raise ValueError(f"{label}: +bare is the network alone, without any other suffix")
-    elif not any(spec.endswith(s) for s in (TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX,
-                                            GLOBAL_PLAN_SUFFIX)):
+    elif not any(spec.endswith(s) for s in (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX,
+                                            SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX)):
         spec += deploy_stack(spec)  # an artefact named alone drives as it is shipped
     plain = spec.split("+", 1)[0]
     planner = canonical(plain) is not None
@@ -162,6 +166,9 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
             raise ValueError(f"{label}: {plain} plans on the true map; only map-less planners take suffixes")
         load_policy = lambda name, _load=load_policy: make_planner(name, env_config) \
             if canonical(name) is not None else _load(name)  # noqa: E731
+    scan_match = spec.endswith(SCAN_MATCH_SUFFIX)
+    if scan_match:
+        spec = spec[:-len(SCAN_MATCH_SUFFIX)]
     track = spec.endswith(TRACK_SUFFIX)
     if track:
         spec = spec[:-len(TRACK_SUFFIX)]
@@ -176,14 +183,15 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         spec = spec[:-len(SCAN_PLAN_SUFFIX)]
     if spec.endswith(GLOBAL_PLAN_SUFFIX):
         spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
-    for suffix in (TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX, BARE_SUFFIX):
+    for suffix in (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX,
+                   BARE_SUFFIX):
         if suffix in spec:
             raise ValueError(f"{label}: suffixes stack in the order {_ORDER}, each once")
     if scan_plan and global_plan:
         raise ValueError(f"{label}: +scan-plan and a global plan both set the policy's waypoints; choose one")
     if planner and global_plan:
         raise ValueError(f"{label}: a global plan is for policies; a map-less planner takes +scan-plan, "
-                         f"+rescue, +shield and +track")
+                         f"+rescue, +shield, +track and +scan-match")
     agent = load_policy(spec)
     if scan_plan:
         from curlnav.planners.scan_map import ScanMapPlanAgent
@@ -193,7 +201,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         from curlnav.planners.global_plan import GlobalPlanAgent
 
         agent = GlobalPlanAgent(agent, env_config, label=spec)
-        label = label if shield or rescue or track or bare else agent.label  # wrapped again: the argument as given
+        label = label if shield or rescue or track or scan_match or bare else agent.label  # wrapped again: as given
         if label != agent.label and GLOBAL_PLAN_SUFFIX not in label:
             label += GLOBAL_PLAN_SUFFIX  # the --global-plan flag: said in the label
     if rescue:
@@ -208,6 +216,10 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         from curlnav.planners.label_filter import LabelFilteredPolicy
 
         agent = LabelFilteredPolicy(agent, env_config, label=label)
+    if scan_match:
+        from curlnav.planners.scan_match import ScanMatchedPolicy
+
+        agent = ScanMatchedPolicy(agent, env_config, label=label)
     return label, agent
 
 
@@ -234,13 +246,13 @@ def agents_help(map_less_only: bool = False) -> str:
         text = ("policy artefact folder or checkpoint .safetensors (append +global-plan to put it behind "
                 "a global plan, or +scan-plan behind a plan on its own scans, then +rescue to let dwa+scan-plan "
                 "drive while it stalls, then +shield to check each command against the scan, then +track to vote "
-                "its movable labels over the last scans; map-less planners "
+                "its movable labels over the last scans, then +scan-match for laser odometry; map-less planners "
                 "take them too; an artefact named alone drives with the helpers its metadata ships, +bare "
                 "without), or a classical planner: " + _planner_list(False))
     return text.replace("%", "%%")  # argparse formats help with %
 
 
 def __getattr__(name: str):
-    if name in ("global_plan", "label_filter", "local", "oracle", "rescue", "scan_map", "shield"):
+    if name in ("global_plan", "label_filter", "local", "oracle", "rescue", "scan_map", "scan_match", "shield"):
         return import_module(f".{name}", __name__)
     raise AttributeError(f"module 'curlnav.planners' has no attribute {name!r}")

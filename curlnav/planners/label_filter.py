@@ -32,11 +32,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from curlnav.layout import ObservationLayout
 from curlnav.planners import TRACK_SUFFIX
 from curlnav.planners.local import odometry
 from curlnav.planners.scan_filter import _KEY, _NEIGHBOURS, to_frame
-from curlnav.sim import EnvConfig, StartGoal, World
+from curlnav.planners.stage import FrontStage
+from curlnav.sim import EnvConfig
 
 
 @dataclass(frozen=True)
@@ -53,49 +53,36 @@ class LabelFilterConfig:
             raise ValueError(f"label filter: cell_m must be a positive number of metres, got {self.cell_m!r}")
 
 
-class LabelFilteredPolicy:
+class LabelFilteredPolicy(FrontStage):
     """``policy`` (``obs -> action`` or an ``EpisodeAgent``) fed observations whose movable labels
     were voted over the last scans (module docstring): ``act(observation, info) -> action``.
     ``dropped`` counts the movable beams the vote removed in the current episode, ``labelled`` the
     movable beams it was shown."""
 
+    suffix = TRACK_SUFFIX
+
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
                  config: LabelFilterConfig | None = None, label: str | None = None) -> None:
-        self.env_config = env_config or EnvConfig()
-        self.policy = policy
         self.config = config or LabelFilterConfig()
-        self.layout = ObservationLayout.from_env_config(self.env_config)
-        self.label = label or f"{getattr(policy, 'label', 'policy')}{TRACK_SUFFIX}"
-        fov, beams = self.env_config.lidar_fov, self.env_config.lidar_beams
-        angles = np.linspace(-fov / 2, fov / 2, beams)  # rad, beam 0 on the right
-        self._cos, self._sin = np.cos(angles), np.sin(angles)
-        self._max_range = self.env_config.lidar_max_range
-        latency = getattr(getattr(self.env_config, "sensor_noise", None), "latency_steps", 0) or 0
-        self._poses: deque[tuple[float, float, float]] = deque(maxlen=int(latency) + 1)  # odometry, oldest first
         # per scan: the cells of its movable returns and their neighbours, the cells of its static returns
         self._cells: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=self.config.scans)
-        self._frames: deque[np.ndarray] = deque(maxlen=self.layout.label_frames)  # filtered labels, oldest first
-        self.dropped = self.labelled = 0
+        self._frames: deque[np.ndarray] = deque()  # filtered labels, oldest first
+        super().__init__(policy, env_config, label)
+        self._frames = deque(maxlen=self.layout.label_frames)
 
-    def reset(self, world: World | None, pair: StartGoal | None) -> None:
-        inner = getattr(self.policy, "reset", None)
-        if callable(inner):
-            inner(world, pair)
-        self._poses.clear()
+    def _clear(self) -> None:
         self._cells.clear()
         self._frames.clear()
         self.dropped = self.labelled = 0
-
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        raise TypeError(f"{type(self).__name__} needs odometry: call act(observation, info)")
+        super()._clear()
 
     def filter(self, ranges: np.ndarray, labels: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
         """The voted labels (``(beams,)`` float32, 1.0 movable) of the newest scan (``ranges`` m,
         ``labels``) seen from the odometry ``pose`` (x, y, yaw; m, rad). Call once per scan."""
-        returned = ranges < self._max_range - 1e-3
+        returned = ranges < self.max_range - 1e-3
         movable = (labels > 0.5) & returned
         r = ranges.astype(np.float64)
-        points = to_frame(np.stack([r * self._cos, r * self._sin], axis=1), pose)
+        points = to_frame(np.stack([r * self.beam_cos, r * self.beam_sin], axis=1), pose)
         cell = self.config.cell_m
         keys = np.floor(points[:, 0] / cell).astype(np.int64) * _KEY + np.floor(points[:, 1] / cell).astype(np.int64)
         self._cells.append((np.unique((keys[movable][:, None] + _NEIGHBOURS[None, :]).ravel()),
@@ -114,9 +101,9 @@ class LabelFilteredPolicy:
     def observation(self, observation: np.ndarray, info: dict) -> np.ndarray:
         """``observation`` with its label frames replaced by the voted labels of the same steps."""
         obs = np.asarray(observation, dtype=np.float32)
-        self._poses.append(odometry(info))
+        self.poses.append(odometry(info))
         ranges, labels, _ = self.layout.newest_frame(obs)
-        voted = self.filter(ranges, labels, self._poses[0])
+        voted = self.filter(ranges, labels, self.poses[0])
         if not self._frames:  # the episode's first observation repeats its first frame
             self._frames.extend([voted] * (self.layout.label_frames - 1))
         self._frames.append(voted)
@@ -125,8 +112,3 @@ class LabelFilteredPolicy:
         out = obs.copy()
         out[start:start + self.layout.label_frames * b] = np.concatenate(self._frames)
         return out
-
-    def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
-        filtered = self.observation(observation, info)
-        inner = getattr(self.policy, "act", None)
-        return np.asarray(self.policy(filtered) if inner is None else inner(filtered, info), dtype=np.float32)

@@ -32,6 +32,10 @@ def add_ros2_commands(sub) -> None:
     p.add_argument("--track", action="store_true",
                    help="vote the scan's movable labels (intensities) over the last scans before anything reads "
                         "them (curlnav.planners.label_filter): a segmenter's one-frame errors are dropped")
+    p.add_argument("--scan-match", action="store_true",
+                   help="laser odometry in front of everything (curlnav.planners.scan_match): the goal and the pose "
+                        "the helpers keep their maps in come from matching each scan to a reference scan, fused with "
+                        "/odom")
     p.add_argument("--rate-hz", type=float, default=None, help="control rate (default: the policy's, 5 Hz)")
     p.add_argument("--silence-s", type=float, default=0.5,
                    help="stop when /scan or /odom is older than this, or no /cmd_vel went out for this long (s)")
@@ -127,12 +131,13 @@ def _agent(name: str, robot: str = "husky"):
 
 
 def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shield: bool = False,
-             rescue: bool = False, track: bool = False):
+             rescue: bool = False, track: bool = False, scan_match: bool = False):
     """``agent`` (a policy or a map-less planner, as ``_agent`` gives it) behind a plan on its own scans
     (``scan_plan``), the rescue by ``dwa+scan-plan`` while it stalls (``rescue``), the safety
-    shield (``shield``) and the label vote in front of them all (``track``), all built for what
-    the node feeds it: the scan, frames and command scale of ``layout`` on robot profile ``robot``."""
-    if not (scan_plan or shield or rescue or track):
+    shield (``shield``), the label vote in front of them (``track``) and laser odometry in front
+    of all (``scan_match``), all built for what the node feeds it: the scan, frames and command
+    scale of ``layout`` on robot profile ``robot``."""
+    if not (scan_plan or shield or rescue or track or scan_match):
         return agent
     import dataclasses
 
@@ -163,6 +168,10 @@ def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shiel
         from curlnav.planners.label_filter import LabelFilteredPolicy
 
         agent = LabelFilteredPolicy(agent, env)
+    if scan_match:
+        from curlnav.planners.scan_match import ScanMatchedPolicy
+
+        agent = ScanMatchedPolicy(agent, env)
     return agent
 
 
@@ -173,10 +182,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.scan_plan and args.global_plan:
         raise ValueError("--scan-plan and --global-plan both set the policy's waypoints; choose one")
     policy, layout = _agent(args.agent, args.robot)
-    if args.bare and (args.scan_plan or args.global_plan or args.rescue or args.shield or args.track):
-        raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue, --shield "
-                         "and --track")
-    if not (args.bare or args.scan_plan or args.rescue or args.shield or args.track):
+    helpers = args.scan_plan or args.rescue or args.shield or args.track or args.scan_match
+    if args.bare and (helpers or args.global_plan):
+        raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue, --shield, "
+                         "--track and --scan-match")
+    if not (args.bare or helpers):
         from curlnav.planners import deploy_notice, deploy_stack
 
         stack = deploy_stack(args.agent)  # an artefact named alone (or with --global-plan) drives as it is shipped
@@ -186,8 +196,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
                                  f"name the helpers yourself")
             args.scan_plan, args.global_plan = "+scan-plan" in stack, args.global_plan or "+global-plan" in stack
             args.rescue, args.shield, args.track = "+rescue" in stack, "+shield" in stack, "+track" in stack
+            args.scan_match = "+scan-match" in stack
             print(deploy_notice(args.agent, "--bare: the network alone"))
-    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue, args.track)
+    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue, args.track,
+                      args.scan_match)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,

@@ -1,0 +1,253 @@
+"""Laser odometry: the robot's pose from matching each scan to the one before, in front of an agent.
+
+Wheel odometry drifts with the distance driven (a wheel radius a little off, a track width that
+slips), and an agent that reads its goal from odometry stops where its odometry puts the goal:
+under the ``harsh`` preset, about half the goals lie more than the 0.8 m tolerance away by the time
+the shortest route reaches them (docs/results/2026-11-27-namo-robust/README.md). Robots match
+scans for it: ``rf2o_laser_odometry`` or ``laser_scan_matcher`` feed ``robot_localization``'s EKF
+beside the wheels. ``ScanMatchedPolicy`` (the suffix ``+scan-match``) does the same, map-less:
+
+- each control step, the static returns of the newest scan (label 0, within ``range_m``) are
+  matched to those of the scan before by point-to-line ICP (Gauss-Newton over ``iterations``,
+  pairs further than ``pair_m`` apart dropped, each previous point's line fitted to the points of
+  the beams around it: ``lines``), started from the wheels' motion between the two scans;
+- scans are matched to a reference scan, not each to the one before (which adds up the noise of
+  every match, even standing still); the reference is replaced once the robot is ``keyframe_m``
+  from it or has turned ``keyframe_rad``;
+- a match needs ``min_pairs`` pairs agreeing to ``max_rms_m``; it is then fused with the wheels'
+  motion since the reference, each weighed by its information (the fit's Gauss-Newton matrix over
+  its residual variance; the wheels' a ``wheel_fraction`` of their motion plus floors), as
+  ``robot_localization`` fuses the two: in a straight corridor, where a scan says nothing along
+  it, the wheels carry that direction. Without a match the wheels' motion stands;
+- the estimate chains the reference poses from the episode's start (the odometry's start: the
+  goal's frame), and moves on from the newest scan's pose by the wheels' motion since it was
+  measured (the observation may be ``latency_steps`` late).
+
+The observation's goal frames are recomputed from this estimate (the goal's place in the odometry
+frame is read once, from the first observation, when odometry and estimate agree), and the agent
+behind is given it as ``info["odometry"]`` (the rescue's scan map and the shield's memory are
+kept in it). Movable returns (balls being pushed, doors swinging) take no part in the match.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from curlnav.planners import SCAN_MATCH_SUFFIX
+from curlnav.planners.local import goal_in_robot_frame, odometry
+from curlnav.planners.stage import FrontStage
+from curlnav.sim import EnvConfig
+
+Pose = tuple[float, float, float]  # x, y (m), yaw (rad)
+
+
+@dataclass(frozen=True)
+class ScanMatchConfig:
+    """The matcher's settings (m, counts, fractions)."""
+
+    range_m: float = 8.0  # static returns nearer than this take part
+    pair_m: float = 0.3  # a point and its nearest previous point further apart than this are no pair
+    iterations: int = 12  # Gauss-Newton steps per match
+    min_pairs: int = 40  # a match needs at least this many pairs ...
+    max_rms_m: float = 0.1  # ... whose point-to-line distances have at most this RMS ...
+    keyframe_m: float = 0.5  # scans are matched to a reference scan, replaced once the robot is this far from it ...
+    keyframe_rad: float = 0.3  # ... or has turned this much (matching each scan to the one before adds up noise)
+    #: the wheels' motion since the reference: 1-sigma error of this fraction of the distance (and
+    #: of the angle turned), plus the floors below, weighed against the match's own fit
+    wheel_fraction: float = 0.05
+    wheel_floor_m: float = 0.01
+    wheel_floor_rad: float = 0.005
+    robust_m: float = 0.05  # Cauchy weight scale of a pair's point-to-line distance
+    line_beams: int = 8  # a point's line is fitted to the beams this many on either side ...
+    line_m: float = 0.8  # ... whose points lie this near it ...
+    line_points: int = 5  # ... at least this many of them ...
+    line_flatness: float = 0.25  # ... and flat: the lesser axis at most this fraction of the greater
+
+    def __post_init__(self) -> None:
+        for name in ("range_m", "pair_m", "max_rms_m", "keyframe_m", "keyframe_rad", "wheel_fraction", "wheel_floor_m",
+                     "wheel_floor_rad", "robust_m", "line_m", "line_flatness"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"scan match: {name} must be a positive number, got {value!r}")
+        for name in ("iterations", "min_pairs", "line_beams", "line_points"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 10_000):
+                raise ValueError(f"scan match: {name} must be a whole number 1-10000, got {value!r}")
+
+
+def compose(a: Pose, b: Pose) -> Pose:
+    """Pose ``b`` (given in the frame of ``a``) in the frame ``a`` is given in."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
+            math.atan2(math.sin(a[2] + b[2]), math.cos(a[2] + b[2])))
+
+
+def relative(a: Pose, b: Pose) -> Pose:
+    """Pose ``b`` seen from pose ``a`` (both in one frame): ``compose(a, relative(a, b)) == b``."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2])))
+
+
+def lines(points: np.ndarray, config: ScanMatchConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The points of ``points`` (``(n, 2)``, m, in beam order) that lie on a line, moved onto it,
+    and the line's unit normal at each: a principal-axis fit to the points of the beams within
+    ``line_beams`` on either side that lie within ``line_m``, kept where at least ``line_points``
+    of them do and they are flat (the lesser axis at most ``line_flatness`` of the greater), so
+    that a few centimetres of range noise on points a few centimetres apart do not turn a wall."""
+    n = len(points)
+    k = config.line_beams
+    index = np.arange(n)[:, None] + np.arange(-k, k + 1)[None, :]
+    valid = (index >= 0) & (index < n)
+    near = points[np.clip(index, 0, n - 1)]  # (n, 2k+1, 2)
+    valid &= np.hypot(*(near - points[:, None, :]).transpose(2, 0, 1)) < config.line_m
+    count = valid.sum(axis=1)
+    w = valid[..., None]
+    mean = (near * w).sum(axis=1) / np.maximum(count, 1)[:, None]
+    d = (near - mean[:, None, :]) * w
+    a, b, c = (d[..., 0] ** 2).sum(1), (d[..., 0] * d[..., 1]).sum(1), (d[..., 1] ** 2).sum(1)
+    half, root = (a + c) / 2, np.sqrt(((a - c) / 2) ** 2 + b ** 2)
+    major, minor = half + root, half - root
+    angle = 0.5 * np.arctan2(2 * b, a - c)  # of the greater axis: the line's direction
+    keep = (count >= config.line_points) & (minor <= config.line_flatness ** 2 * np.maximum(major, 1e-12))
+    normals = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
+    # each point moved onto its fitted line (the line's centroid plus the point's offset along it):
+    # the fit averages the range noise of the window, the point alone does not
+    along = np.einsum("ij,ij->i", points - mean, np.stack([np.cos(angle), np.sin(angle)], axis=1))
+    on_line = mean + along[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    return on_line[keep], normals[keep]
+
+
+def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: Pose,
+          config: ScanMatchConfig) -> tuple[Pose, np.ndarray] | None:
+    """The pose of the current scan's frame in the reference scan's frame that lays ``current``
+    (``(n, 2)`` robot-frame points, m) onto the reference's lines (``lines`` of its points),
+    started from ``guess``, and the fit's information matrix ``(3, 3)`` (1/m², 1/rad²); None
+    when too few pairs agree (module docstring)."""
+    points, normals = reference
+    if len(points) < config.min_pairs or len(current) < config.min_pairs:
+        return None
+    tree = cKDTree(points)
+    x, y, yaw = guess
+    for _ in range(config.iterations):
+        c, s = math.cos(yaw), math.sin(yaw)
+        moved = np.stack([x + c * current[:, 0] - s * current[:, 1], y + s * current[:, 0] + c * current[:, 1]], axis=1)
+        distance, index = tree.query(moved, distance_upper_bound=config.pair_m)
+        paired = np.isfinite(distance)
+        if paired.sum() < config.min_pairs:
+            return None
+        n, p, q = normals[index[paired]], points[index[paired]], moved[paired]
+        residual = np.einsum("ij,ij->i", n, q - p)
+        arm = q - np.array([x, y])
+        jacobian = np.stack([n[:, 0], n[:, 1], n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1]], axis=1)
+        weight = 1.0 / (1.0 + (residual / config.robust_m) ** 2)  # Cauchy: a pair on the wrong wall counts little
+        hessian = jacobian.T @ (jacobian * weight[:, None])
+        try:
+            step = np.linalg.solve(hessian + 1e-9 * np.eye(3), -jacobian.T @ (weight * residual))
+        except np.linalg.LinAlgError:
+            return None
+        x, y, yaw = x + step[0], y + step[1], yaw + step[2]
+        if abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-5:
+            break
+    rms = float(np.sqrt(np.sum(weight * residual ** 2) / np.sum(weight)))
+    if rms > config.max_rms_m:
+        return None
+    # the fit's information (inverse covariance) in (x, y, yaw): weak along a corridor, where the
+    # fusion with the wheels lets the wheels speak
+    information = hessian / max(rms, config.robust_m / 5) ** 2
+    return (float(x), float(y), math.atan2(math.sin(yaw), math.cos(yaw))), information
+
+
+def fuse(fitted: tuple[Pose, np.ndarray], predicted: Pose, wheels_moved: Pose, config: ScanMatchConfig) -> Pose:
+    """The motion since the reference: the match's and the prediction's, each weighed by its
+    information (the wheels': ``wheel_fraction`` of ``wheels_moved`` plus the floors)."""
+    (pose, information) = fitted
+    sigma_xy = config.wheel_fraction * math.hypot(wheels_moved[0], wheels_moved[1]) + config.wheel_floor_m
+    sigma_yaw = config.wheel_fraction * abs(wheels_moved[2]) + config.wheel_floor_rad
+    wheels = np.diag([sigma_xy ** -2, sigma_xy ** -2, sigma_yaw ** -2])
+    a, b = np.array(pose), np.array(predicted)
+    a[2] = b[2] + math.atan2(math.sin(a[2] - b[2]), math.cos(a[2] - b[2]))  # the same turn, unwrapped
+    fused = np.linalg.solve(information + wheels, information @ a + wheels @ b)
+    return (float(fused[0]), float(fused[1]), math.atan2(math.sin(fused[2]), math.cos(fused[2])))
+
+
+class ScanMatchedPolicy(FrontStage):
+    """``policy`` (``obs -> action`` or an ``EpisodeAgent``) fed goal frames and odometry from
+    laser odometry (module docstring): ``act(observation, info) -> action``. ``pose`` is the
+    estimate of now; ``matched`` and ``unmatched`` count the steps the scans and the wheels gave."""
+
+    suffix = SCAN_MATCH_SUFFIX
+
+    def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
+                 config: ScanMatchConfig | None = None, label: str | None = None) -> None:
+        self.config = config or ScanMatchConfig()
+        super().__init__(policy, env_config, label)
+
+    def _clear(self) -> None:
+        # the reference scan: its lines, the estimate and the wheel pose when it was measured
+        self._reference: tuple[tuple[np.ndarray, np.ndarray], Pose, Pose] | None = None
+        self._wheels_seen: Pose | None = None  # the wheel pose of the last scan
+        self._seen: Pose | None = None  # the estimate at the last scan
+        self._goal: tuple[float, float] | None = None  # m, the goal in the odometry frame
+        self._frames: np.ndarray | None = None  # (goal_frames, 3)
+        self.pose: Pose | None = None
+        self.matched = self.unmatched = 0
+        super()._clear()
+
+    def static_points(self, ranges: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        """``(n, 2)`` robot-frame points (m), in beam order, of the static returns within ``range_m``."""
+        keep = (labels < 0.5) & (ranges < min(self.config.range_m, self.max_range - 1e-3))
+        r = ranges[keep].astype(np.float64)
+        return np.stack([r * self.beam_cos[keep], r * self.beam_sin[keep]], axis=1)
+
+    def update(self, ranges: np.ndarray, labels: np.ndarray, wheels_now: Pose) -> Pose:
+        """Take the newest scan and the wheel odometry now; return the estimate at the scan's time."""
+        cfg = self.config
+        self.poses.append(wheels_now)
+        wheels_seen = self.poses[0]  # the wheel pose the newest scan was measured at
+        points = self.static_points(ranges, labels)
+        if self._reference is None:
+            self._seen = wheels_seen  # the start: odometry and estimate agree
+        else:
+            lines_ref, estimate_ref, wheels_ref = self._reference
+            wheels_moved = relative(wheels_ref, wheels_seen)  # since the reference, by the wheels
+            predicted = relative(estimate_ref, compose(self._seen, relative(self._wheels_seen, wheels_seen)))
+            fitted = match(lines_ref, points, predicted, cfg)
+            self.matched += fitted is not None
+            self.unmatched += fitted is None
+            moved = predicted if fitted is None else fuse(fitted, predicted, wheels_moved, cfg)
+            self._seen = compose(estimate_ref, moved)
+        self._wheels_seen = wheels_seen
+        if self._reference is None or math.hypot(*relative(self._reference[1], self._seen)[:2]) > cfg.keyframe_m or \
+                abs(relative(self._reference[1], self._seen)[2]) > cfg.keyframe_rad:
+            self._reference = (lines(points, cfg), self._seen, wheels_seen)
+        self.pose = compose(self._seen, relative(wheels_seen, wheels_now))
+        return self._seen
+
+    def observation(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        """``observation`` with its goal frames seen from the estimate (``update`` called)."""
+        obs = np.asarray(observation, dtype=np.float32)
+        ranges, labels, goal_frame = self.layout.newest_frame(obs)
+        wheels_now = odometry(info)
+        seen = self.update(ranges, labels, wheels_now)
+        if self._goal is None:  # the goal where the first observation puts it, from where it was seen
+            dx, dy = goal_in_robot_frame(goal_frame)
+            c, s = math.cos(seen[2]), math.sin(seen[2])
+            self._goal = (seen[0] + c * dx - s * dy, seen[1] + s * dx + c * dy)
+        gx, gy, _ = relative(seen, (*self._goal, 0.0))
+        frame = np.array([math.copysign(math.log1p(abs(gx)), gx), math.copysign(math.log1p(abs(gy)), gy),
+                          math.atan2(gy, gx)], dtype=np.float32)
+        count = self.layout.goal_frames
+        self._frames = (np.repeat(frame[None], count, 0) if self._frames is None
+                        else np.vstack([self._frames[1:], frame[None]]))
+        out = obs.copy()
+        out[-3 * count:] = self._frames.ravel()
+        return out
+
+    def inner_info(self, info: dict) -> dict:
+        return {**info, "odometry": self.pose}  # the helpers behind keep their maps in the estimate's frame

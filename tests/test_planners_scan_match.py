@@ -1,0 +1,110 @@
+"""``+scan-match`` (``curlnav.planners.scan_match``): laser odometry against the simulator's true
+pose. Two scans of the office floor give back the motion between them; on a drive under the
+``harsh`` preset the estimate ends nearer the true pose than the wheels' odometry; on exact
+senses the goal the policy is shown is the environment's own, within centimetres; the suffix stacks last."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from curlnav.layout import ObservationLayout
+from curlnav.planners import make_agent
+from curlnav.planners.label_filter import LabelFilteredPolicy
+from curlnav.planners.local import goal_in_robot_frame
+from curlnav.planners.scan_match import ScanMatchConfig, ScanMatchedPolicy, compose, lines, match, relative
+from curlnav.sim import EnvConfig, NamoEnv, SensorNoiseConfig
+from curlnav.sim.controllers import GoalSeekingController
+
+OFFICE = "namo-office:3"  # 22 x 14 m: walls, doors, furniture, balls
+
+
+def test_two_scans_of_the_office_give_back_the_motion_between_them():
+    cfg = EnvConfig(end_on_base_collision=False)
+    env = NamoEnv(OFFICE, cfg)
+    try:
+        _, info = env.reset(seed=0)
+        here = info["pose"]
+        there = compose(here, (0.35, -0.12, 0.15))  # a step and a turn further
+        agent = ScanMatchedPolicy(lambda obs: obs, cfg)
+        first = agent.static_points(*env.scene.scan(*here)[:2])
+        second = agent.static_points(*env.scene.scan(*there)[:2])
+    finally:
+        env.close()
+    config = ScanMatchConfig()
+    fitted = match(lines(first, config), second, (0.3, -0.05, 0.1), config)  # started a few cm and degrees off
+    assert fitted is not None
+    (x, y, yaw), information = fitted
+    truth = relative(here, there)
+    assert math.hypot(x - truth[0], y - truth[1]) < 0.02 and abs(yaw - truth[2]) < math.radians(0.5)
+    assert np.all(np.linalg.eigvalsh(information) > 0)
+
+
+def drive(noise: SensorNoiseConfig, seeds=range(4), steps: int = 150) -> tuple[list[float], list[float]]:
+    """The goal-seeking controller behind ``+scan-match`` on the office floor: per seed, how far
+    the wheels' odometry and the estimate are off the true pose at the end (m)."""
+    cfg = EnvConfig(sensor_noise=noise, end_on_base_collision=False)
+    env = NamoEnv(OFFICE, cfg)
+    wheels, scans = [], []
+    try:
+        for seed in seeds:
+            agent = ScanMatchedPolicy(GoalSeekingController(cfg).act, cfg)
+            obs, info = env.reset(seed=seed)
+            agent.reset(env.world, None)
+            for _ in range(steps):
+                obs, _, terminated, truncated, info = env.step(agent.act(obs, info))
+                if terminated or truncated:
+                    break
+            agent.observation(obs, info)  # the last scan too
+            (x, y, _), (ox, oy, _), (ex, ey, _) = info["pose"], info["odometry"], agent.pose
+            wheels.append(math.hypot(ox - x, oy - y))
+            scans.append(math.hypot(ex - x, ey - y))
+    finally:
+        env.close()
+    return wheels, scans
+
+
+def test_under_harsh_senses_the_laser_odometry_ends_nearer_the_true_pose_than_the_wheels():
+    wheels, scans = drive(SensorNoiseConfig("harsh"))
+    assert np.mean(wheels) > 0.1  # the wheels drifted (5 % of a few metres)
+    assert np.mean(scans) < 0.5 * np.mean(wheels), (wheels, scans)
+
+
+def test_on_exact_senses_the_policy_is_shown_the_environments_goal():
+    cfg = EnvConfig(end_on_base_collision=False)
+    layout = ObservationLayout.from_env_config(cfg)
+    seen: list[np.ndarray] = []
+    controller = GoalSeekingController(cfg)
+    agent = ScanMatchedPolicy(lambda obs: seen.append(obs) or controller.act(obs), cfg)
+    env = NamoEnv(OFFICE, cfg)
+    try:
+        obs, info = env.reset(seed=1)
+        agent.reset(env.world, None)
+        for _ in range(40):
+            action = agent.act(obs, info)
+            # within the matches' own error, weighed against exact wheels: a centimetre and a few tenths
+            # of a degree, so at most 0.2 m at the goal 17-18 m away
+            shown = goal_in_robot_frame(layout.newest_frame(seen[-1])[2])
+            truth = goal_in_robot_frame(layout.newest_frame(obs)[2])
+            assert math.hypot(shown[0] - truth[0], shown[1] - truth[1]) < 0.2
+            obs, _, terminated, truncated, info = env.step(action)
+            if terminated or truncated:
+                break
+    finally:
+        env.close()
+    assert agent.matched > 30  # the scans were matched, and changed little
+
+
+def test_scan_match_stacks_last_and_its_settings_are_checked():
+    cfg = EnvConfig()
+    label, agent = make_agent("seeker+shield+track+scan-match", cfg, lambda name: GoalSeekingController(cfg).act)
+    assert label == "seeker+shield+track+scan-match" and isinstance(agent, ScanMatchedPolicy)
+    assert isinstance(agent.policy, LabelFilteredPolicy)
+    with pytest.raises(ValueError, match=r"\[\+track\]\[\+scan-match\], each once"):
+        make_agent("seeker+scan-match+shield", cfg, lambda name: GoalSeekingController(cfg).act)
+    with pytest.raises(ValueError, match="pair_m"):
+        ScanMatchConfig(pair_m=-1.0)
+    with pytest.raises(ValueError, match="min_pairs"):
+        ScanMatchConfig(min_pairs=0)
