@@ -18,7 +18,9 @@ beside the wheels. ``ScanMatchedPolicy`` (the suffix ``+scan-match``) does the s
   motion since the reference, each weighed by its information (the fit's Gauss-Newton matrix over
   its residual variance; the wheels' a ``wheel_fraction`` of their motion plus floors), as
   ``robot_localization`` fuses the two: in a straight corridor, where a scan says nothing along
-  it, the wheels carry that direction. Without a match the wheels' motion stands;
+  it, the wheels carry that direction. A match further than ``gate`` standard deviations from the
+  wheels' motion is dropped (it laid the scan on the wrong walls). Without a match the wheels'
+  motion stands;
 - the estimate chains the reference poses from the episode's start (the odometry's start: the
   goal's frame), and moves on from the newest scan's pose by the wheels' motion since it was
   measured (the observation may be ``latency_steps`` late).
@@ -62,6 +64,7 @@ class ScanMatchConfig:
     wheel_fraction: float = 0.05
     wheel_floor_m: float = 0.01
     wheel_floor_rad: float = 0.005
+    gate: float = 3.0  # a match further than this many standard deviations from the wheels' motion is dropped
     robust_m: float = 0.05  # Cauchy weight scale of a pair's point-to-line distance
     line_beams: int = 8  # a point's line is fitted to the beams this many on either side ...
     line_m: float = 0.8  # ... whose points lie this near it ...
@@ -70,7 +73,7 @@ class ScanMatchConfig:
 
     def __post_init__(self) -> None:
         for name in ("range_m", "pair_m", "max_rms_m", "keyframe_m", "keyframe_rad", "wheel_fraction", "wheel_floor_m",
-                     "wheel_floor_rad", "robust_m", "line_m", "line_flatness"):
+                     "wheel_floor_rad", "gate", "robust_m", "line_m", "line_flatness"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"scan match: {name} must be a positive number, got {value!r}")
@@ -163,15 +166,21 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
     return (float(x), float(y), math.atan2(math.sin(yaw), math.cos(yaw))), information
 
 
-def fuse(fitted: tuple[Pose, np.ndarray], predicted: Pose, wheels_moved: Pose, config: ScanMatchConfig) -> Pose:
+def fuse(fitted: tuple[Pose, np.ndarray], predicted: Pose, wheels_moved: Pose, config: ScanMatchConfig) -> Pose | None:
     """The motion since the reference: the match's and the prediction's, each weighed by its
-    information (the wheels': ``wheel_fraction`` of ``wheels_moved`` plus the floors)."""
+    information (the wheels': ``wheel_fraction`` of ``wheels_moved`` plus the floors); None when
+    the two disagree by more than ``gate`` (a Mahalanobis distance, as ``robot_localization``'s
+    rejection thresholds): a match that laid the scan on the wrong walls."""
     (pose, information) = fitted
     sigma_xy = config.wheel_fraction * math.hypot(wheels_moved[0], wheels_moved[1]) + config.wheel_floor_m
     sigma_yaw = config.wheel_fraction * abs(wheels_moved[2]) + config.wheel_floor_rad
     wheels = np.diag([sigma_xy ** -2, sigma_xy ** -2, sigma_yaw ** -2])
     a, b = np.array(pose), np.array(predicted)
     a[2] = b[2] + math.atan2(math.sin(a[2] - b[2]), math.cos(a[2] - b[2]))  # the same turn, unwrapped
+    difference = a - b
+    covariance = np.linalg.inv(wheels) + np.linalg.pinv(information)
+    if float(difference @ np.linalg.solve(covariance, difference)) > config.gate ** 2:
+        return None
     fused = np.linalg.solve(information + wheels, information @ a + wheels @ b)
     return (float(fused[0]), float(fused[1]), math.atan2(math.sin(fused[2]), math.cos(fused[2])))
 
@@ -218,9 +227,10 @@ class ScanMatchedPolicy(FrontStage):
             wheels_moved = relative(wheels_ref, wheels_seen)  # since the reference, by the wheels
             predicted = relative(estimate_ref, compose(self._seen, relative(self._wheels_seen, wheels_seen)))
             fitted = match(lines_ref, points, predicted, cfg)
-            self.matched += fitted is not None
-            self.unmatched += fitted is None
-            moved = predicted if fitted is None else fuse(fitted, predicted, wheels_moved, cfg)
+            moved = None if fitted is None else fuse(fitted, predicted, wheels_moved, cfg)
+            self.matched += moved is not None
+            self.unmatched += moved is None
+            moved = predicted if moved is None else moved
             self._seen = compose(estimate_ref, moved)
         self._wheels_seen = wheels_seen
         if self._reference is None or math.hypot(*relative(self._reference[1], self._seen)[:2]) > cfg.keyframe_m or \
