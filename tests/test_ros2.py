@@ -722,25 +722,29 @@ def test_ros2_run_track_drops_a_one_scan_movable_label_on_a_wall_the_policy_saw_
 
 
 def test_ros2_run_scan_match_steers_by_the_scans_when_odom_drifts():
-    """``curlnav ros2 run POLICY --scan-match``: /odom claims the robot drove 1 m forward while
-    the scan of a walled room stays the same (the wheels spun); the goal the policy is shown stays
-    where the scans put it, not 1 m nearer."""
+    """``curlnav ros2 run POLICY --scan-match``: in a walled room the robot drives 0.2 m a step
+    while /odom, its wheels slipping, counts 0.25 m; after five steps the goal the policy is shown
+    is where the scans put it (4 m ahead), not where the wheels do (3.75 m)."""
     from curlnav.planners.local import goal_in_robot_frame
     from curlnav.planners.scan_match import ScanMatchedPolicy
 
     matched, node, seen = staged_node(5.0, scan_match=True)
     assert isinstance(matched, ScanMatchedPolicy)
     angles = np.linspace(-math.radians(120), math.radians(120), 241)
-    # a 6 x 4 m room round the robot at (0, 0), facing +x: each beam's range to the nearest wall
-    room = np.minimum.reduce([np.where(np.cos(angles) > 1e-6, 3.0 / np.maximum(np.cos(angles), 1e-6), 99),
-                              np.where(np.cos(angles) < -1e-6, -3.0 / np.minimum(np.cos(angles), -1e-6), 99),
-                              np.where(np.sin(angles) > 1e-6, 2.0 / np.maximum(np.sin(angles), 1e-6), 99),
-                              np.where(np.sin(angles) < -1e-6, -2.0 / np.minimum(np.sin(angles), -1e-6), 99)])
+    c, s = np.cos(angles), np.sin(angles)
+
+    def room(x: float) -> np.ndarray:
+        """Ranges from (x, 0) facing +x in a room of walls x = -3, x = 3, y = -2, y = 2 (m)."""
+        with np.errstate(divide="ignore"):
+            to_x = np.where(c > 1e-9, (3.0 - x) / c, np.where(c < -1e-9, (-3.0 - x) / c, np.inf))
+            to_y = np.where(np.abs(s) > 1e-9, 2.0 / np.abs(s), np.inf)
+        return np.minimum(to_x, to_y)
+
     for step in range(6):
         t = 0.2 * step
-        node.on_odom(odom_of(0.2 * step, 0.0, 0.0), t)  # the wheels: 0.2 m a step
-        node.on_scan(scan_of(room, [0.0] * 241), t)  # the walls: the robot has not moved
+        node.on_odom(odom_of(0.25 * step, 0.0, 0.0), t)  # the wheels, slipping: 0.25 m a step
+        node.on_scan(scan_of(room(0.2 * step), [0.0] * 241), t)  # the walls: 0.2 m a step
         node.act(t)
     dx, dy = goal_in_robot_frame(matched.layout.newest_frame(seen[-1])[2])
-    assert math.hypot(dx - 5.0, dy) < 0.15, (dx, dy)  # the scans' word, not the wheels' 4 m
+    assert math.hypot(dx - 4.0, dy) < 0.1, (dx, dy)  # the scans' word (the wheels': 3.75 m)
     assert matched.matched >= 4
