@@ -23,7 +23,7 @@ from curlnav.config import ExperimentConfig
 from curlnav.evaluation.compare import SEED_STRIDE, episode_pairs
 from curlnav.evaluation.protocol import EVAL_SEED, evaluate
 from curlnav.planners import make_planner
-from curlnav.planners.scan_match import ScanMatchedPolicy
+from curlnav.planners.scan_match import ScanMatchedPolicy, compose, relative
 from curlnav.sim import NamoEnv, get_world
 from curlnav.sim.config import SensorNoiseConfig
 
@@ -60,7 +60,10 @@ def main() -> int:
                     trials += 1
                     if info["is_success"]:
                         reached += 1
-                        (x, y, _), (ex, ey, _) = info["pose"], agent.pose if args.scan_match else info["odometry"]
+                        estimate = info["odometry"]
+                        if args.scan_match:  # its estimate at the last act, moved on by the wheels since
+                            estimate = compose(agent.pose, relative(agent.poses[-1], info["odometry"]))
+                        (x, y, _), (ex, ey, _) = info["pose"], estimate
                         errors.append(math.hypot(ex - x, ey - y))
 
                 evaluate(agent, world, pairs, cfg, seed=EVAL_SEED + k * SEED_STRIDE, on_episode=record, env=env)

@@ -97,6 +97,31 @@ def test_on_exact_senses_the_policy_is_shown_the_environments_goal():
     assert agent.matched > 30  # the scans were matched, and changed little
 
 
+def test_with_late_observations_every_goal_frame_is_the_environments():
+    # two control periods late, exact senses otherwise: each of the ten goal frames the policy is
+    # shown is the environment's own frame of the same step, within the matches' error
+    cfg = EnvConfig(sensor_noise=SensorNoiseConfig("none", latency_steps=2), end_on_base_collision=False)
+    layout = ObservationLayout.from_env_config(cfg)
+    seen: list[np.ndarray] = []
+    controller = GoalSeekingController(cfg)
+    agent = ScanMatchedPolicy(lambda obs: seen.append(obs) or controller.act(obs), cfg)
+    env = NamoEnv(OFFICE, cfg)
+    try:
+        obs, info = env.reset(seed=2)
+        agent.reset(env.world, None)
+        for _ in range(30):
+            action = agent.act(obs, info)
+            shown, truth = layout.split(seen[-1][None])[2].reshape(-1, 3), layout.split(obs[None])[2].reshape(-1, 3)
+            for a, b in zip(shown, truth):
+                (ax, ay), (bx, by) = goal_in_robot_frame(a), goal_in_robot_frame(b)
+                assert math.hypot(ax - bx, ay - by) < 0.2
+            obs, _, terminated, truncated, info = env.step(action)
+            if terminated or truncated:
+                break
+    finally:
+        env.close()
+
+
 def test_scan_match_stacks_last_and_its_settings_are_checked():
     cfg = EnvConfig()
     label, agent = make_agent("seeker+shield+track+scan-match", cfg, lambda name: GoalSeekingController(cfg).act)

@@ -18,21 +18,25 @@ beside the wheels. ``ScanMatchedPolicy`` (the suffix ``+scan-match``) does the s
   motion since the reference, each weighed by its information (the fit's Gauss-Newton matrix over
   its residual variance; the wheels' a ``wheel_fraction`` of their motion plus floors), as
   ``robot_localization`` fuses the two: in a straight corridor, where a scan says nothing along
-  it, the wheels carry that direction. A match further than ``gate`` standard deviations from the
-  wheels' motion is dropped (it laid the scan on the wrong walls). Without a match the wheels'
-  motion stands;
+  it, the wheels carry that direction. A match too far from the wheels' motion (``gate_chi2``, a
+  squared Mahalanobis distance) is dropped: it laid the scan on the wrong walls. Without a match
+  the wheels' motion stands; the reference is renewed only after an accepted match (or
+  ``renew_after`` failures in a row), so that one dropped match is not laid down as the next
+  reference;
 - the estimate chains the reference poses from the episode's start (the odometry's start: the
   goal's frame), and moves on from the newest scan's pose by the wheels' motion since it was
   measured (the observation may be ``latency_steps`` late).
 
 The observation's goal frames are recomputed from this estimate (the goal's place in the odometry
-frame is read once, from the first observation, when odometry and estimate agree), and the agent
-behind is given it as ``info["odometry"]`` (the rescue's scan map and the shield's memory are
-kept in it). Movable returns (balls being pushed, doors swinging) take no part in the match.
+frame read from each observation and the wheel pose it was computed from, so a plan's moving
+waypoint is followed too), and the agent behind is given it as ``info["odometry"]`` (the rescue's
+scan map and the shield's memory are kept in it). Movable returns (balls being pushed, doors
+swinging) take no part in the match.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -64,7 +68,10 @@ class ScanMatchConfig:
     wheel_fraction: float = 0.05
     wheel_floor_m: float = 0.01
     wheel_floor_rad: float = 0.005
-    gate: float = 3.0  # a match further than this many standard deviations from the wheels' motion is dropped
+    #: a match whose squared Mahalanobis distance from the wheels' motion exceeds this is dropped
+    #: (14.2: the 99.7 % quantile of chi-squared with 3 degrees of freedom, "3 sigma" in 3-D)
+    gate_chi2: float = 14.2
+    renew_after: int = 5  # the reference is renewed after an accepted match, or after this many failures in a row
     robust_m: float = 0.05  # Cauchy weight scale of a pair's point-to-line distance
     line_beams: int = 8  # a point's line is fitted to the beams this many on either side ...
     line_m: float = 0.8  # ... whose points lie this near it ...
@@ -73,11 +80,11 @@ class ScanMatchConfig:
 
     def __post_init__(self) -> None:
         for name in ("range_m", "pair_m", "max_rms_m", "keyframe_m", "keyframe_rad", "wheel_fraction", "wheel_floor_m",
-                     "wheel_floor_rad", "gate", "robust_m", "line_m", "line_flatness"):
+                     "wheel_floor_rad", "gate_chi2", "robust_m", "line_m", "line_flatness"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"scan match: {name} must be a positive number, got {value!r}")
-        for name in ("iterations", "min_pairs", "line_beams", "line_points"):
+        for name in ("iterations", "min_pairs", "renew_after", "line_beams", "line_points"):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 10_000):
                 raise ValueError(f"scan match: {name} must be a whole number 1-10000, got {value!r}")
@@ -137,7 +144,7 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
         return None
     tree = cKDTree(points)
     x, y, yaw = guess
-    for _ in range(config.iterations):
+    for iteration in range(config.iterations + 1):  # the last pass scores the pose it ends at
         c, s = math.cos(yaw), math.sin(yaw)
         moved = np.stack([x + c * current[:, 0] - s * current[:, 1], y + s * current[:, 0] + c * current[:, 1]], axis=1)
         distance, index = tree.query(moved, distance_upper_bound=config.pair_m)
@@ -150,13 +157,15 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
         jacobian = np.stack([n[:, 0], n[:, 1], n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1]], axis=1)
         weight = 1.0 / (1.0 + (residual / config.robust_m) ** 2)  # Cauchy: a pair on the wrong wall counts little
         hessian = jacobian.T @ (jacobian * weight[:, None])
+        if iteration == config.iterations:
+            break
         try:
             step = np.linalg.solve(hessian + 1e-9 * np.eye(3), -jacobian.T @ (weight * residual))
         except np.linalg.LinAlgError:
             return None
         x, y, yaw = x + step[0], y + step[1], yaw + step[2]
         if abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-5:
-            break
+            config = dataclasses.replace(config, iterations=iteration + 1)  # converged: score this pose next
     rms = float(np.sqrt(np.sum(weight * residual ** 2) / np.sum(weight)))
     if rms > config.max_rms_m:
         return None
@@ -169,8 +178,8 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
 def fuse(fitted: tuple[Pose, np.ndarray], predicted: Pose, wheels_moved: Pose, config: ScanMatchConfig) -> Pose | None:
     """The motion since the reference: the match's and the prediction's, each weighed by its
     information (the wheels': ``wheel_fraction`` of ``wheels_moved`` plus the floors); None when
-    the two disagree by more than ``gate`` (a Mahalanobis distance, as ``robot_localization``'s
-    rejection thresholds): a match that laid the scan on the wrong walls."""
+    the two disagree by more than ``gate_chi2`` (their squared Mahalanobis distance, as
+    ``robot_localization``'s rejection thresholds): a match that laid the scan on the wrong walls."""
     (pose, information) = fitted
     sigma_xy = config.wheel_fraction * math.hypot(wheels_moved[0], wheels_moved[1]) + config.wheel_floor_m
     sigma_yaw = config.wheel_fraction * abs(wheels_moved[2]) + config.wheel_floor_rad
@@ -178,8 +187,8 @@ def fuse(fitted: tuple[Pose, np.ndarray], predicted: Pose, wheels_moved: Pose, c
     a, b = np.array(pose), np.array(predicted)
     a[2] = b[2] + math.atan2(math.sin(a[2] - b[2]), math.cos(a[2] - b[2]))  # the same turn, unwrapped
     difference = a - b
-    covariance = np.linalg.inv(wheels) + np.linalg.pinv(information)
-    if float(difference @ np.linalg.solve(covariance, difference)) > config.gate ** 2:
+    covariance = np.linalg.inv(wheels) + np.linalg.inv(information + 1e-9 * np.eye(3))
+    if float(difference @ np.linalg.solve(covariance, difference)) > config.gate_chi2:
         return None
     fused = np.linalg.solve(information + wheels, information @ a + wheels @ b)
     return (float(fused[0]), float(fused[1]), math.atan2(math.sin(fused[2]), math.cos(fused[2])))
@@ -201,8 +210,8 @@ class ScanMatchedPolicy(FrontStage):
         # the reference scan: its lines, the estimate and the wheel pose when it was measured
         self._reference: tuple[tuple[np.ndarray, np.ndarray], Pose, Pose] | None = None
         self._wheels_seen: Pose | None = None  # the wheel pose of the last scan
+        self._failures = 0  # matches dropped in a row
         self._seen: Pose | None = None  # the estimate at the last scan
-        self._goal: tuple[float, float] | None = None  # m, the goal in the odometry frame
         self._frames: np.ndarray | None = None  # (goal_frames, 3)
         self.pose: Pose | None = None
         self.matched = self.unmatched = 0
@@ -230,12 +239,14 @@ class ScanMatchedPolicy(FrontStage):
             moved = None if fitted is None else fuse(fitted, predicted, wheels_moved, cfg)
             self.matched += moved is not None
             self.unmatched += moved is None
-            moved = predicted if moved is None else moved
-            self._seen = compose(estimate_ref, moved)
+            self._failures = 0 if moved is not None else self._failures + 1
+            self._seen = compose(estimate_ref, predicted if moved is None else moved)
         self._wheels_seen = wheels_seen
-        if self._reference is None or math.hypot(*relative(self._reference[1], self._seen)[:2]) > cfg.keyframe_m or \
-                abs(relative(self._reference[1], self._seen)[2]) > cfg.keyframe_rad:
+        away = None if self._reference is None else relative(self._reference[1], self._seen)
+        if away is None or self._failures >= cfg.renew_after or (self._failures == 0 and (
+                math.hypot(away[0], away[1]) > cfg.keyframe_m or abs(away[2]) > cfg.keyframe_rad)):
             self._reference = (lines(points, cfg), self._seen, wheels_seen)
+            self._failures = 0
         self.pose = compose(self._seen, relative(wheels_seen, wheels_now))
         return self._seen
 
@@ -245,11 +256,10 @@ class ScanMatchedPolicy(FrontStage):
         ranges, labels, goal_frame = self.layout.newest_frame(obs)
         wheels_now = odometry(info)
         seen = self.update(ranges, labels, wheels_now)
-        if self._goal is None:  # the goal where the first observation puts it, from where it was seen
-            dx, dy = goal_in_robot_frame(goal_frame)
-            c, s = math.cos(seen[2]), math.sin(seen[2])
-            self._goal = (seen[0] + c * dx - s * dy, seen[1] + s * dx + c * dy)
-        gx, gy, _ = relative(seen, (*self._goal, 0.0))
+        # the goal (or a plan's waypoint) in the odometry frame: where the observation puts it,
+        # from the wheel pose the scan was measured at, as the environment and the node compute it
+        goal = compose(self.poses[0], (*goal_in_robot_frame(goal_frame), 0.0))
+        gx, gy, _ = relative(seen, goal)
         frame = np.array([math.copysign(math.log1p(abs(gx)), gx), math.copysign(math.log1p(abs(gy)), gy),
                           math.atan2(gy, gx)], dtype=np.float32)
         count = self.layout.goal_frames
