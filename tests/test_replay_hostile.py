@@ -118,8 +118,12 @@ def test_a_real_replay_shows_its_drops_on_its_http_status_and_metrics(tmp_path):
             f"http://127.0.0.1:{int(port_file.read_text())}/healthz") and f"http://127.0.0.1:{port_file.read_text()}",
             timeout=120)
         session = cluster.bus_session("actor", ident="actor-0")
+        publisher = session.declare_publisher(Topology("drops").transitions("actor-0"))
+        # a put before the router has the replay's subscription is dropped on the way: wait for it
+        wait_for("the replay's subscription to reach this session", lambda: publisher.matching_status.matching,
+                 timeout=60)
         for payload in forgotten_frames_batches():
-            session.put(Topology("drops").transitions("actor-0"), payload)
+            publisher.put(payload)
         wait_for("the two batches accepted and inserted", lambda: (h := http_json_or_none(f"{url}/healthz"))
                  and h["accepted"] == 6 and h["waiting"] == 0, timeout=60)
         status = http_json_or_none(f"{url}/status")
