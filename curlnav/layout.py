@@ -17,6 +17,16 @@ MAX_BEAMS = 1 << 16  # beams of one scan
 MAX_FRAMES = 256  # range, label or goal frames of one observation
 
 
+def goal_frame(x: float, y: float, yaw: float, gx: float, gy: float) -> np.ndarray:
+    """One goal frame, ``[sign(dx) log(1+|dx|), sign(dy) log(1+|dy|), atan2(dy, dx)]`` (float32),
+    of the point ``(gx, gy)`` seen from the pose ``(x, y, yaw)`` (m, rad; ``dx`` ahead, ``dy`` to
+    the left): the environment's, the ROS 2 node's and every helper that rewrites the goal."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = c * (gx - x) + s * (gy - y), -s * (gx - x) + c * (gy - y)
+    return np.array([math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy),
+                     math.atan2(dy, dx)], dtype=np.float32)
+
+
 @dataclass(frozen=True)
 class ObservationLayout:
     beams: int = 241

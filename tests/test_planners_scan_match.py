@@ -72,54 +72,48 @@ def test_under_harsh_senses_the_laser_odometry_ends_nearer_the_true_pose_than_th
     assert np.mean(scans) < 0.5 * np.mean(wheels), (wheels, scans)
 
 
-def test_on_exact_senses_the_policy_is_shown_the_environments_goal():
-    cfg = EnvConfig(end_on_base_collision=False)
+def shown_and_true_goals(cfg: EnvConfig, seed: int, steps: int, agent_out: list):
+    """Drive the goal-seeking controller behind ``+scan-match`` on the office floor; yield, each
+    step, the goal frames ``(goal_frames, 3)`` the policy was shown and the environment's own. The
+    agent goes into ``agent_out``."""
     layout = ObservationLayout.from_env_config(cfg)
     seen: list[np.ndarray] = []
     controller = GoalSeekingController(cfg)
     agent = ScanMatchedPolicy(lambda obs: seen.append(obs) or controller.act(obs), cfg)
+    agent_out.append(agent)
     env = NamoEnv(OFFICE, cfg)
     try:
-        obs, info = env.reset(seed=1)
+        obs, info = env.reset(seed=seed)
         agent.reset(env.world, None)
-        for _ in range(40):
+        for _ in range(steps):
             action = agent.act(obs, info)
-            # within the matches' own error, weighed against exact wheels: a centimetre and a few tenths
-            # of a degree, so at most 0.2 m at the goal 17-18 m away
-            shown = goal_in_robot_frame(layout.newest_frame(seen[-1])[2])
-            truth = goal_in_robot_frame(layout.newest_frame(obs)[2])
-            assert math.hypot(shown[0] - truth[0], shown[1] - truth[1]) < 0.2
+            yield layout.split(seen[-1][None])[2].reshape(-1, 3), layout.split(obs[None])[2].reshape(-1, 3)
             obs, _, terminated, truncated, info = env.step(action)
             if terminated or truncated:
                 break
     finally:
         env.close()
-    assert agent.matched > 30  # the scans were matched, and changed little
+
+
+def test_on_exact_senses_the_policy_is_shown_the_environments_goal():
+    agents: list[ScanMatchedPolicy] = []
+    for shown, truth in shown_and_true_goals(EnvConfig(end_on_base_collision=False), seed=1, steps=40,
+                                             agent_out=agents):
+        # within the matches' own error, weighed against exact wheels: a centimetre and a few tenths
+        # of a degree, so at most 0.2 m at the goal 17-18 m away
+        (ax, ay), (bx, by) = goal_in_robot_frame(shown[-1]), goal_in_robot_frame(truth[-1])
+        assert math.hypot(ax - bx, ay - by) < 0.2
+    assert agents[0].matched > 30  # the scans were matched, and changed little
 
 
 def test_with_late_observations_every_goal_frame_is_the_environments():
     # two control periods late, exact senses otherwise: each of the ten goal frames the policy is
     # shown is the environment's own frame of the same step, within the matches' error
     cfg = EnvConfig(sensor_noise=SensorNoiseConfig("none", latency_steps=2), end_on_base_collision=False)
-    layout = ObservationLayout.from_env_config(cfg)
-    seen: list[np.ndarray] = []
-    controller = GoalSeekingController(cfg)
-    agent = ScanMatchedPolicy(lambda obs: seen.append(obs) or controller.act(obs), cfg)
-    env = NamoEnv(OFFICE, cfg)
-    try:
-        obs, info = env.reset(seed=2)
-        agent.reset(env.world, None)
-        for _ in range(30):
-            action = agent.act(obs, info)
-            shown, truth = layout.split(seen[-1][None])[2].reshape(-1, 3), layout.split(obs[None])[2].reshape(-1, 3)
-            for a, b in zip(shown, truth):
-                (ax, ay), (bx, by) = goal_in_robot_frame(a), goal_in_robot_frame(b)
-                assert math.hypot(ax - bx, ay - by) < 0.2
-            obs, _, terminated, truncated, info = env.step(action)
-            if terminated or truncated:
-                break
-    finally:
-        env.close()
+    for shown, truth in shown_and_true_goals(cfg, seed=2, steps=30, agent_out=[]):
+        for a, b in zip(shown, truth):
+            (ax, ay), (bx, by) = goal_in_robot_frame(a), goal_in_robot_frame(b)
+            assert math.hypot(ax - bx, ay - by) < 0.2
 
 
 def test_scan_match_stacks_last_and_its_settings_are_checked():

@@ -81,6 +81,8 @@ SCAN_MATCH_SUFFIX = "+scan-match"
 BARE_SUFFIX = "+bare"
 _DEPLOY = re.compile(r"^(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?(\+track)?(\+scan-match)?$")
 _ORDER = "POLICY[+global-plan|+scan-plan][+rescue][+shield][+track][+scan-match]"
+#: the suffixes an agent argument stacks, outermost (last written) first
+_STACKED = (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX)
 
 
 def deploy_stack(spec: str) -> str:
@@ -156,8 +158,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         spec = spec[:-len(BARE_SUFFIX)]  # the network alone, whatever its artefact deploys it with
         if "+" in spec:
             raise ValueError(f"{label}: +bare is the network alone, without any other suffix")
-    elif not any(spec.endswith(s) for s in (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX,
-                                            SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX)):
+    elif not any(spec.endswith(s) for s in _STACKED):
         spec += deploy_stack(spec)  # an artefact named alone drives as it is shipped
     plain = spec.split("+", 1)[0]
     planner = canonical(plain) is not None
@@ -166,25 +167,14 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
             raise ValueError(f"{label}: {plain} plans on the true map; only map-less planners take suffixes")
         load_policy = lambda name, _load=load_policy: make_planner(name, env_config) \
             if canonical(name) is not None else _load(name)  # noqa: E731
-    scan_match = spec.endswith(SCAN_MATCH_SUFFIX)
-    if scan_match:
-        spec = spec[:-len(SCAN_MATCH_SUFFIX)]
-    track = spec.endswith(TRACK_SUFFIX)
-    if track:
-        spec = spec[:-len(TRACK_SUFFIX)]
-    shield = spec.endswith(SHIELD_SUFFIX)
-    if shield:
-        spec = spec[:-len(SHIELD_SUFFIX)]
-    rescue = spec.endswith(RESCUE_SUFFIX)
-    if rescue:
-        spec = spec[:-len(RESCUE_SUFFIX)]
-    scan_plan = spec.endswith(SCAN_PLAN_SUFFIX)
-    if scan_plan:
-        spec = spec[:-len(SCAN_PLAN_SUFFIX)]
-    if spec.endswith(GLOBAL_PLAN_SUFFIX):
-        spec, global_plan = spec[:-len(GLOBAL_PLAN_SUFFIX)], True
-    for suffix in (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX,
-                   BARE_SUFFIX):
+    given = {}
+    for suffix in _STACKED:  # peeled from the end, outermost first
+        given[suffix] = spec.endswith(suffix)
+        if given[suffix]:
+            spec = spec[:-len(suffix)]
+    scan_match, track, shield, rescue, scan_plan = (given[s] for s in _STACKED[:-1])
+    global_plan = global_plan or given[GLOBAL_PLAN_SUFFIX]
+    for suffix in (*_STACKED, BARE_SUFFIX):
         if suffix in spec:
             raise ValueError(f"{label}: suffixes stack in the order {_ORDER}, each once")
     if scan_plan and global_plan:

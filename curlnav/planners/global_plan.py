@@ -9,11 +9,11 @@ the oracle's A* path on the static map (``curlnav eval POLICY+global-plan``).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from curlnav.layout import goal_frame
 from curlnav.planners.oracle import GridPlanner
 from curlnav.sim import EnvConfig, StartGoal, World
 
@@ -101,11 +101,7 @@ class GlobalPlanAgent:
         """``observation`` with its goal block describing the waypoint ahead of ``pose`` (the
         frames before the first step all the same, as the environment fills them on reset)."""
         x, y, yaw = pose
-        wx, wy = self.plan.waypoint(x, y)
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = c * (wx - x) + s * (wy - y), -s * (wx - x) + c * (wy - y)
-        frame = np.array([math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy),
-                          math.atan2(dy, dx)], dtype=np.float32)
+        frame = goal_frame(x, y, yaw, *self.plan.waypoint(x, y))
         frames = self.env_config.goal_frames
         if self._goals is None:
             self._goals = np.repeat(frame[None, :], frames, axis=0)

@@ -34,7 +34,7 @@ import numpy as np
 
 from curlnav.planners import TRACK_SUFFIX
 from curlnav.planners.local import odometry
-from curlnav.planners.scan_filter import _KEY, _NEIGHBOURS, to_frame
+from curlnav.planners.scan_filter import _NEIGHBOURS, cell_keys, to_frame
 from curlnav.planners.stage import FrontStage
 from curlnav.sim import EnvConfig
 
@@ -83,8 +83,7 @@ class LabelFilteredPolicy(FrontStage):
         movable = (labels > 0.5) & returned
         r = ranges.astype(np.float64)
         points = to_frame(np.stack([r * self.beam_cos, r * self.beam_sin], axis=1), pose)
-        cell = self.config.cell_m
-        keys = np.floor(points[:, 0] / cell).astype(np.int64) * _KEY + np.floor(points[:, 1] / cell).astype(np.int64)
+        keys = cell_keys(points, self.config.cell_m)
         self._cells.append((np.unique((keys[movable][:, None] + _NEIGHBOURS[None, :]).ravel()),
                             np.unique(keys[returned & ~movable])))
         mine = keys[movable]

@@ -68,6 +68,12 @@ class ScanFilterConfig:
                 raise ValueError(f"scan filter: {name} must be a positive number, got {value!r}")
 
 
+def cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """The cell of ``cell_m`` (m) a side of each ``(n, 2)`` point (m), as one int64 key
+    (``ix * _KEY + iy``; a cell's 8 neighbours are its key plus ``_NEIGHBOURS``)."""
+    return np.floor(points[:, 0] / cell_m).astype(np.int64) * _KEY + np.floor(points[:, 1] / cell_m).astype(np.int64)
+
+
 def to_frame(points: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
     """``(n, 2)`` points (m) of the frame at ``pose`` (x, y, yaw: m, rad) in the frame ``pose`` is in."""
     x, y, yaw = pose
@@ -106,8 +112,7 @@ class ScanMemory:
 
     def keys(self, points: np.ndarray) -> np.ndarray:
         """The voting cell of each ``(n, 2)`` odometry-frame point (m), as one int64 key."""
-        cell = self.config.cell_m
-        return np.floor(points[:, 0] / cell).astype(np.int64) * _KEY + np.floor(points[:, 1] / cell).astype(np.int64)
+        return cell_keys(points, self.config.cell_m)
 
     def supported(self, ranges: np.ndarray, static: np.ndarray) -> np.ndarray:
         """``(beams,)`` bool: static returns with a static return of a beam within ``window_beams``

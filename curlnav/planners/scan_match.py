@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from curlnav.layout import goal_frame
 from curlnav.planners import SCAN_MATCH_SUFFIX
 from curlnav.planners.local import goal_in_robot_frame, odometry
 from curlnav.planners.stage import FrontStage
@@ -253,15 +254,13 @@ class ScanMatchedPolicy(FrontStage):
     def observation(self, observation: np.ndarray, info: dict) -> np.ndarray:
         """``observation`` with its goal frames seen from the estimate (``update`` called)."""
         obs = np.asarray(observation, dtype=np.float32)
-        ranges, labels, goal_frame = self.layout.newest_frame(obs)
+        ranges, labels, goal_shown = self.layout.newest_frame(obs)
         wheels_now = odometry(info)
         seen = self.update(ranges, labels, wheels_now)
         # the goal (or a plan's waypoint) in the odometry frame: where the observation puts it,
         # from the wheel pose the scan was measured at, as the environment and the node compute it
-        goal = compose(self.poses[0], (*goal_in_robot_frame(goal_frame), 0.0))
-        gx, gy, _ = relative(seen, goal)
-        frame = np.array([math.copysign(math.log1p(abs(gx)), gx), math.copysign(math.log1p(abs(gy)), gy),
-                          math.atan2(gy, gx)], dtype=np.float32)
+        goal = compose(self.poses[0], (*goal_in_robot_frame(goal_shown), 0.0))
+        frame = goal_frame(*seen, goal[0], goal[1])
         count = self.layout.goal_frames
         self._frames = (np.repeat(frame[None], count, 0) if self._frames is None
                         else np.vstack([self._frames[1:], frame[None]]))

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from curlnav.layout import goal_frame as layout_goal_frame
 from curlnav.planners.global_plan import GlobalPlan, WaypointConfig
 
 #: A scan of more ranges is refused as malformed (work per message bounded; 2-D scanners give
@@ -291,10 +292,7 @@ def goal_frame(x: float, y: float, yaw: float, gx: float, gy: float) -> np.ndarr
     ``ODOM_BOUND_M``); ``ValueError`` rather than a non-finite frame."""
     if not all(math.isfinite(v) and abs(v) <= 2 * ODOM_BOUND_M for v in (x, y, gx, gy)) or not math.isfinite(yaw):
         raise ValueError(f"goal frame of ({gx:g}, {gy:g}) from ({x:g}, {y:g}, {yaw:g}): beyond the bounds")
-    c, s = math.cos(yaw), math.sin(yaw)
-    dx, dy = c * (gx - x) + s * (gy - y), -s * (gx - x) + c * (gy - y)
-    return np.array([math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy),
-                     math.atan2(dy, dx)], dtype=np.float32)
+    return layout_goal_frame(x, y, yaw, gx, gy)
 
 
 class _GivenPath:

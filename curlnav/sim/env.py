@@ -44,6 +44,7 @@ import gymnasium as gym
 import numpy as np
 from scipy import ndimage
 
+from curlnav.layout import goal_frame
 from curlnav.worlds.builtin import get_world
 from curlnav.worlds.pairs import PairSampler, check_pairs_possible, pair_key  # noqa: F401  (pair_key: public here too)
 from curlnav.worlds.world import StartGoal, World
@@ -315,11 +316,7 @@ class NamoEnv(gym.Env):
         return seen_ranges, seen_labels, self._goal_frame(*estimate)
 
     def _goal_frame(self, x: float, y: float, yaw: float) -> np.ndarray:
-        dxw, dyw = self.pair.gx - x, self.pair.gy - y
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = c * dxw + s * dyw, -s * dxw + c * dyw
-        return np.array([math.copysign(math.log1p(abs(dx)), dx), math.copysign(math.log1p(abs(dy)), dy),
-                         math.atan2(dy, dx)], dtype=np.float32)
+        return goal_frame(x, y, yaw, self.pair.gx, self.pair.gy)
 
     def _observation(self) -> np.ndarray:
         return np.concatenate([self._range_stack.ravel(), self._label_stack.ravel(), self._goal_stack.ravel()])
