@@ -106,6 +106,7 @@ def test_a_transition_whose_frame_was_overwritten_is_not_stored_with_another_wri
 @pytest.mark.slow
 def test_a_real_replay_shows_its_drops_on_its_http_status_and_metrics(tmp_path):
     """The replay as a process behind a router: an actor's stream whose frames it forgot."""
+    from curlnav.bus.transport import reliable_publisher
     from curlnav.run.launch import LocalCluster
 
     cluster = LocalCluster(tmp_path / "run", SMALL, actors=1, run="drops")
@@ -118,14 +119,20 @@ def test_a_real_replay_shows_its_drops_on_its_http_status_and_metrics(tmp_path):
             f"http://127.0.0.1:{int(port_file.read_text())}/healthz") and f"http://127.0.0.1:{port_file.read_text()}",
             timeout=120)
         session = cluster.bus_session("actor", ident="actor-0")
-        publisher = session.declare_publisher(Topology("drops").transitions("actor-0"))
+        # as the actor publishes (reliable, BLOCK): a 200 kB batch under the default congestion
+        # control (DROP) is dropped when the session's queue is full, as on a loaded 2-core machine
+        publisher = reliable_publisher(session, Topology("drops").transitions("actor-0"))
         # a put before the router has the replay's subscription is dropped on the way: wait for it
         wait_for("the replay's subscription to reach this session", lambda: publisher.matching_status.matching,
                  timeout=60)
         for payload in forgotten_frames_batches():
             publisher.put(payload)
-        wait_for("the two batches accepted and inserted", lambda: (h := http_json_or_none(f"{url}/healthz"))
-                 and h["accepted"] == 6 and h["waiting"] == 0, timeout=60)
+        seen: list = []  # every health read, for the message if the batches never come
+        try:
+            wait_for("the two batches accepted and inserted", lambda: (h := http_json_or_none(f"{url}/healthz"))
+                     and not seen.append(h) and h["accepted"] == 6 and h["waiting"] == 0, timeout=60)
+        except AssertionError as err:
+            raise AssertionError(f"{err}; the replay's last health: {seen[-1:]}") from None
         status = http_json_or_none(f"{url}/status")
         assert status is not None and status["accepted"] == 6 and status["size"] == 5, status
         assert status["dropped"] == 1 and status["dropped/unknown_frame"] == 1, status
