@@ -181,3 +181,39 @@ def test_the_global_plan_flag_keeps_an_artefacts_shipped_helpers_and_says_so_in_
     assert label == f"{artefact}+bare+global-plan" and isinstance(agent, GlobalPlanAgent)
     _, agent = make_agent(str(artefact / "metadata.json"), cfg, load)
     assert isinstance(agent, ShieldedPolicy), "the artefact named by its metadata file ships the same"
+
+
+def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_bad_ones_are_refused(tmp_path):
+    """``metadata.json`` ``deploy_settings.rescue``: the rescue it drives behind takes over after the
+    artefact's own stall count (named alone, with the suffix, and in the ROS 2 node); other fields
+    keep their defaults; a policy without settings has the defaults; a wrong key or value is
+    refused in one line naming the file."""
+    import json
+
+    from curlnav.planners import rescue_settings
+    from curlnav.ros2.commands import deployed
+    from curlnav.ros2.node import ScanLayout
+
+    cfg = evaluation_config()
+    artefact = tmp_path / "policy"
+    artefact.mkdir()
+    meta = artefact / "metadata.json"
+    meta.write_text(json.dumps({"deploy": "+rescue+shield", "deploy_settings": {"rescue": {"stall_steps": 10}}}))
+    load = lambda spec: GoalSeeker()  # noqa: E731
+    for spec in (str(artefact), f"{artefact}+rescue"):
+        _, agent = make_agent(spec, cfg, load)
+        rescue = agent.policy if isinstance(agent, ShieldedPolicy) else agent
+        assert isinstance(rescue, RescuedPolicy), spec
+        assert rescue.config == RescueConfig(stall_steps=10), spec
+    node_agent = deployed(lambda obs: np.zeros(3), ScanLayout(), rescue=True, rescue_config=rescue_settings(str(artefact)))
+    assert isinstance(node_agent, RescuedPolicy) and node_agent.config.stall_steps == 10
+    assert make_agent("dwa+rescue", cfg, load)[1].config == RescueConfig()
+    meta.write_text(json.dumps({"deploy": "+rescue+shield"}))
+    assert rescue_settings(str(artefact)) is None and make_agent(str(artefact), cfg, load)[1].policy.config == RescueConfig()
+    for settings, message in (({"rescue": {"stall_step": 10}}, "deploy_settings.rescue must be an object of"),
+                              ({"shield": {}}, "at most the key 'rescue'"),
+                              ({"rescue": {"stall_steps": 0}}, "stall_steps must be a whole number")):
+        meta.write_text(json.dumps({"deploy": "+rescue+shield", "deploy_settings": settings}))
+        with pytest.raises(ValueError, match=message) as err:
+            make_agent(str(artefact), cfg, load)
+        assert str(meta) in str(err.value)

@@ -30,7 +30,7 @@ from pathlib import Path
 __all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_MATCH_SUFFIX",
            "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "TRACK_SUFFIX", "agents_help", "canonical", "deploy_notice",
            "deploy_stack", "global_plan", "label_filter", "local", "make_agent", "make_planner", "oracle", "register",
-           "rescue", "scan_map", "scan_match", "shield"]
+           "rescue", "rescue_settings", "scan_map", "scan_match", "shield"]
 
 
 @dataclass(frozen=True)
@@ -101,6 +101,39 @@ def deploy_stack(spec: str) -> str:
         raise ValueError(f"{meta}: deploy must be suffixes in the order {_ORDER[6:]}, "
                          f"got {deploy!r}")
     return deploy
+
+
+def rescue_settings(spec: str):
+    """The ``RescueConfig`` a policy artefact's rescue takes: its ``metadata.json``'s
+    ``deploy_settings.rescue`` (``{"stall_steps": 10}``; fields not given keep their defaults),
+    chosen for that policy on its validation worlds; None (the defaults) when it names none or
+    ``spec`` (suffixes allowed) is no artefact folder. Unknown or out-of-range fields are refused
+    in one line (``ValueError``). It applies wherever the artefact drives behind ``+rescue``: named
+    alone, with the suffix, in ``curlnav policy run`` and in ``curlnav ros2 run``."""
+    from curlnav.planners.rescue import RescueConfig
+
+    path = Path(spec.split("+", 1)[0])
+    meta = path if path.name == "metadata.json" else path / "metadata.json"
+    if not meta.is_file():
+        return None
+    try:
+        settings = json.loads(meta.read_text()).get("deploy_settings", {})
+    except (OSError, ValueError, AttributeError):
+        return None  # the policy loader reports a broken metadata.json itself
+    if not isinstance(settings, dict) or not set(settings) <= {"rescue"}:
+        raise ValueError(f"{meta}: deploy_settings must be an object with at most the key 'rescue', "
+                         f"got {settings!r}")
+    rescue = settings.get("rescue")
+    if rescue is None:
+        return None
+    fields = set(RescueConfig.__dataclass_fields__)
+    if not isinstance(rescue, dict) or not set(rescue) <= fields:
+        raise ValueError(f"{meta}: deploy_settings.rescue must be an object of {', '.join(sorted(fields))}, "
+                         f"got {rescue!r}")
+    try:
+        return RescueConfig(**rescue)
+    except ValueError as exc:
+        raise ValueError(f"{meta}: deploy_settings.{exc}") from None
 
 
 def deploy_notice(spec: str, bare_hint: str) -> str:
@@ -197,7 +230,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     if rescue:
         from curlnav.planners.rescue import RescuedPolicy
 
-        agent = RescuedPolicy(agent, env_config, label=label)
+        agent = RescuedPolicy(agent, env_config, rescue_settings(plain) if not planner else None, label=label)
     if shield:
         from curlnav.planners.shield import ShieldedPolicy
 

@@ -131,12 +131,13 @@ def _agent(name: str, robot: str = "husky"):
 
 
 def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shield: bool = False,
-             rescue: bool = False, track: bool = False, scan_match: bool = False):
+             rescue: bool = False, track: bool = False, scan_match: bool = False, rescue_config=None):
     """``agent`` (a policy or a map-less planner, as ``_agent`` gives it) behind a plan on its own scans
     (``scan_plan``), the rescue by ``dwa+scan-plan`` while it stalls (``rescue``), the safety
     shield (``shield``), the label vote in front of them (``track``) and laser odometry in front
     of all (``scan_match``), all built for what the node feeds it: the scan, frames and command
-    scale of ``layout`` on robot profile ``robot``."""
+    scale of ``layout`` on robot profile ``robot``; ``rescue_config``: the artefact's rescue settings
+    (``curlnav.planners.rescue_settings``; None: the defaults)."""
     if not (scan_plan or shield or rescue or track or scan_match):
         return agent
     import dataclasses
@@ -159,7 +160,7 @@ def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shiel
     if rescue:
         from curlnav.planners.rescue import RescuedPolicy
 
-        agent = RescuedPolicy(agent, env)
+        agent = RescuedPolicy(agent, env, rescue_config)
     if shield:
         from curlnav.planners.shield import ShieldedPolicy
 
@@ -198,8 +199,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             args.rescue, args.shield, args.track = "+rescue" in stack, "+shield" in stack, "+track" in stack
             args.scan_match = "+scan-match" in stack
             print(deploy_notice(args.agent, "--bare: the network alone"))
+    from curlnav.planners import rescue_settings
+
     policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue, args.track,
-                      args.scan_match)
+                      args.scan_match, rescue_settings(args.agent))
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,
