@@ -183,14 +183,15 @@ def test_the_global_plan_flag_keeps_an_artefacts_shipped_helpers_and_says_so_in_
     assert isinstance(agent, ShieldedPolicy), "the artefact named by its metadata file ships the same"
 
 
-def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_bad_ones_are_refused(tmp_path):
+def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_bad_ones_are_refused(tmp_path,
+                                                                                                 monkeypatch):
     """``metadata.json`` ``deploy_settings.rescue``: the rescue it drives behind takes over after the
     artefact's own stall count (named alone, with the suffix, and in the ROS 2 node); other fields
     keep their defaults; a policy without settings has the defaults; a wrong key or value is
     refused in one line naming the file."""
     import json
 
-    from curlnav.planners import rescue_settings
+    from curlnav.planners import deploy_notice, rescue_settings
     from curlnav.ros2.commands import deployed
     from curlnav.ros2.node import ScanLayout
 
@@ -207,7 +208,14 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
         assert rescue.config == RescueConfig(stall_steps=10), spec
     node_agent = deployed(lambda obs: np.zeros(3), ScanLayout(), rescue=True, rescue_config=rescue_settings(str(artefact)))
     assert isinstance(node_agent, RescuedPolicy) and node_agent.config.stall_steps == 10
-    assert make_agent("dwa+rescue", cfg, load)[1].config == RescueConfig()
+    assert rescue_settings(str(meta)) == RescueConfig(stall_steps=10), "named by its metadata file"
+    assert "its rescue: stall_steps 10 (deploy_settings)" in deploy_notice(str(artefact), "+bare")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "dwa").mkdir()
+    (tmp_path / "dwa" / "metadata.json").write_text(meta.read_text())
+    assert make_agent("dwa+rescue", cfg, load)[1].config == RescueConfig(), "a planner's name is no artefact"
+    meta.write_text("{not json")
+    assert rescue_settings(str(artefact)) is None, "a broken file is the policy loader's to report"
     meta.write_text(json.dumps({"deploy": "+rescue+shield"}))
     assert rescue_settings(str(artefact)) is None and make_agent(str(artefact), cfg, load)[1].policy.config == RescueConfig()
     for settings, message in (({"rescue": {"stall_step": 10}}, "deploy_settings.rescue must be an object of"),

@@ -140,7 +140,18 @@ def deploy_notice(spec: str, bare_hint: str) -> str:
     """The line that says an artefact named alone drives with its shipped helpers (``deploy_stack``),
     "" when it ships none or ``spec`` carries suffixes; ``bare_hint`` names how to drop them."""
     stack = deploy_stack(spec) if "+" not in spec else ""
-    return f"{spec}: driven as its artefact ships it, {spec}{stack} (metadata.json deploy; {bare_hint})" if stack else ""
+    if not stack:
+        return ""
+    settings = rescue_settings(spec) if RESCUE_SUFFIX in stack else None
+    own = ""
+    if settings is not None:
+        from curlnav.planners.rescue import RescueConfig
+
+        default = RescueConfig()
+        changed = [f"{k} {getattr(settings, k)}" for k in RescueConfig.__dataclass_fields__
+                   if getattr(settings, k) != getattr(default, k)]
+        own = f"; its rescue: {', '.join(changed)} (deploy_settings)" if changed else ""
+    return f"{spec}: driven as its artefact ships it, {spec}{stack} (metadata.json deploy{own}; {bare_hint})"
 
 
 for _planner in (

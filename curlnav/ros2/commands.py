@@ -202,7 +202,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from curlnav.planners import rescue_settings
 
     policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue, args.track,
-                      args.scan_match, rescue_settings(args.agent))
+                      args.scan_match, rescue_settings(args.agent) if args.rescue else None)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,
