@@ -85,18 +85,30 @@ _ORDER = "POLICY[+global-plan|+scan-plan][+rescue][+shield][+track][+scan-match]
 _STACKED = (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX)
 
 
+def _shipped_metadata(folder: str) -> tuple[Path, dict] | None:
+    """``(path, contents)`` of the ``metadata.json`` of an artefact ``folder`` (or the file itself);
+    None when there is none, or it is unreadable or no JSON object (the policy loader reports a
+    broken metadata.json itself)."""
+    path = Path(folder)
+    meta = path if path.name == "metadata.json" else path / "metadata.json"
+    if not meta.is_file():
+        return None
+    try:
+        contents = json.loads(meta.read_text())
+    except (OSError, ValueError):
+        return None
+    return (meta, contents) if isinstance(contents, dict) else None
+
+
 def deploy_stack(spec: str) -> str:
     """The helpers a policy artefact folder is shipped with: its ``metadata.json``'s ``deploy``
     (suffixes in their order, e.g. ``"+rescue+shield"``), "" when it names none or ``spec`` is no
     artefact folder. A malformed one is refused in one line (``ValueError``)."""
-    path = Path(spec)
-    meta = path if path.name == "metadata.json" else path / "metadata.json"  # the folder, or its metadata
-    if not meta.is_file():
+    shipped = _shipped_metadata(spec)
+    if shipped is None:
         return ""
-    try:
-        deploy = json.loads(meta.read_text()).get("deploy", "")
-    except (OSError, ValueError, AttributeError):
-        return ""  # the policy loader reports a broken metadata.json itself
+    meta, contents = shipped
+    deploy = contents.get("deploy", "")
     if not isinstance(deploy, str) or not _DEPLOY.match(deploy):
         raise ValueError(f"{meta}: deploy must be suffixes in the order {_ORDER[6:]}, "
                          f"got {deploy!r}")
@@ -112,14 +124,11 @@ def rescue_settings(spec: str):
     alone, with the suffix, in ``curlnav policy run`` and in ``curlnav ros2 run``."""
     from curlnav.planners.rescue import RescueConfig
 
-    path = Path(spec.split("+", 1)[0])
-    meta = path if path.name == "metadata.json" else path / "metadata.json"
-    if not meta.is_file():
+    shipped = _shipped_metadata(spec.split("+", 1)[0])
+    if shipped is None:
         return None
-    try:
-        settings = json.loads(meta.read_text()).get("deploy_settings", {})
-    except (OSError, ValueError, AttributeError):
-        return None  # the policy loader reports a broken metadata.json itself
+    meta, contents = shipped
+    settings = contents.get("deploy_settings", {})
     if not isinstance(settings, dict) or not set(settings) <= {"rescue"}:
         raise ValueError(f"{meta}: deploy_settings must be an object with at most the key 'rescue', "
                          f"got {settings!r}")

@@ -36,7 +36,6 @@ swinging) take no part in the match.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -145,7 +144,8 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
         return None
     tree = cKDTree(points)
     x, y, yaw = guess
-    for iteration in range(config.iterations + 1):  # the last pass scores the pose it ends at
+    last = config.iterations  # the pass that only scores the pose it ends at
+    for iteration in range(config.iterations + 1):
         c, s = math.cos(yaw), math.sin(yaw)
         moved = np.stack([x + c * current[:, 0] - s * current[:, 1], y + s * current[:, 0] + c * current[:, 1]], axis=1)
         distance, index = tree.query(moved, distance_upper_bound=config.pair_m)
@@ -158,7 +158,7 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
         jacobian = np.stack([n[:, 0], n[:, 1], n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1]], axis=1)
         weight = 1.0 / (1.0 + (residual / config.robust_m) ** 2)  # Cauchy: a pair on the wrong wall counts little
         hessian = jacobian.T @ (jacobian * weight[:, None])
-        if iteration == config.iterations:
+        if iteration == last:
             break
         try:
             step = np.linalg.solve(hessian + 1e-9 * np.eye(3), -jacobian.T @ (weight * residual))
@@ -166,7 +166,7 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
             return None
         x, y, yaw = x + step[0], y + step[1], yaw + step[2]
         if abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-5:
-            config = dataclasses.replace(config, iterations=iteration + 1)  # converged: score this pose next
+            last = iteration + 1  # converged: score this pose next
     rms = float(np.sqrt(np.sum(weight * residual ** 2) / np.sum(weight)))
     if rms > config.max_rms_m:
         return None
