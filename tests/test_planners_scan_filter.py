@@ -230,3 +230,97 @@ def test_a_scan_with_nothing_near_gives_no_obstacle_and_keeps_what_it_cannot_cle
     memory = ScanMemory(ANGLES, MAX_RANGE)
     assert memory.update(np.full(len(ANGLES), MAX_RANGE), np.zeros(len(ANGLES)), (0.0, 0.0, 0.0)).shape == (0, 2)
     assert memory.update(np.full(len(ANGLES), 6.0), np.zeros(len(ANGLES)), (0.0, 0.0, 0.0)).shape == (241, 2)
+
+
+def cast_with_ball(pose, ball: tuple[float, float], radius: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """``cast(pose)`` with a ball (a disc of ``radius`` m at ``ball``, map frame) in the room:
+    exact ranges (m) and the segmenter's exact labels (1.0 on the beams that end on the ball)."""
+    x, y, yaw = pose
+    walls = cast(pose)
+    d = np.stack([np.cos(yaw + ANGLES), np.sin(yaw + ANGLES)], axis=1)
+    to_ball = np.array([ball[0] - x, ball[1] - y])
+    along = d @ to_ball
+    miss2 = to_ball @ to_ball - along ** 2
+    with np.errstate(invalid="ignore"):
+        t = along - np.sqrt(radius ** 2 - miss2)
+    on_ball = (miss2 <= radius ** 2) & (t > 0) & (t < walls)
+    return np.where(on_ball, t, walls), on_ball.astype(np.float64)
+
+
+def test_a_ball_the_segmenter_misses_for_a_moment_is_no_obstacle_while_it_is_pushed():
+    """A robot pushing a ball down the room: in one scan the segmenter labels the whole ball static
+    (a missed object, as ``corrupt_scan`` draws them). The shield and the planners must not take it
+    for a wall, in that scan or in the memory of the scans after it; the walls stay (every wall
+    beam within reach is still covered)."""
+    rng = np.random.default_rng(5)
+    poses = [(1.5 + 0.15 * k, 3.5, 0.0) for k in range(14)]  # 5 Hz, 0.75 m/s toward the doorway's wall
+    memory = ScanMemory(ANGLES, MAX_RANGE)
+    missed_at = 6
+    for k, pose in enumerate(poses):
+        ball = (pose[0] + 0.75, pose[1])  # pushed: 0.75 m ahead of the base's centre
+        r, labels = cast_with_ball(pose, ball)
+        r = np.clip(r + rng.normal(0, 0.03, len(r)) * (r < MAX_RANGE), 0, MAX_RANGE)
+        if k == missed_at:
+            assert labels.sum() >= 5
+            labels[:] = 0.0  # the ball's run of beams labelled static
+        points = memory.update(r, labels, pose)
+        if k >= missed_at:  # the missed scan and the memory after it
+            on_ball = np.hypot(*(to_map(points, pose) - np.array(ball)).T) < 0.25 + 0.1
+            assert not on_ball.any(), (k, to_map(points, pose)[on_ball])
+
+
+def test_a_wall_a_pushed_ball_runs_along_stays_an_obstacle():
+    """A ball pushed along a wall (its surface 2 cm from the wall's face): the movable returns of
+    the ball next to the static ones of the wall must not vote the wall away."""
+    rng = np.random.default_rng(6)
+    poses = [(1.5 + 0.15 * k, 0.75, 0.0) for k in range(10)]
+    memory = ScanMemory(ANGLES, MAX_RANGE)
+    for pose in poses:
+        ball = (pose[0] + 0.75, 0.27)  # its surface 0.02 m from the wall y = 0
+        exact, labels = cast_with_ball(pose, ball)
+        r = np.clip(exact + rng.normal(0, 0.03, len(exact)) * (exact < MAX_RANGE), 0, MAX_RANGE)
+        points = memory.update(r, labels, pose)
+    in_map = to_map(points, poses[-1])
+    walls = cast(poses[-1])
+    visible = (exact == walls) & (walls <= memory.config.range_m) & (labels < 0.5)  # wall beams the ball does not hide
+    assert visible.sum() >= 20
+    hits = to_map(np.stack([walls[visible] * np.cos(ANGLES[visible]), walls[visible] * np.sin(ANGLES[visible])], 1),
+                  poses[-1])
+    d = np.hypot(hits[:, None, 0] - in_map[None, :, 0], hits[:, None, 1] - in_map[None, :, 1]).min(axis=1)
+    assert (d <= 0.1).all(), hits[d > 0.1]
+    # and the wall's own returns beside the ball, each of them, as measured in the newest scan
+    beside = visible & (np.hypot(*(to_map(np.stack([walls * np.cos(ANGLES), walls * np.sin(ANGLES)], 1), poses[-1])
+                                   - np.array(ball)).T) < 0.6)
+    assert beside.sum() >= 3
+    measured = np.stack([r[beside] * np.cos(ANGLES[beside]), r[beside] * np.sin(ANGLES[beside])], 1)
+    kept = np.hypot(measured[:, None, 0] - points[None, :, 0], measured[:, None, 1] - points[None, :, 1]).min(axis=1)
+    assert (kept < 1e-9).all(), measured[kept >= 1e-9]
+
+
+def test_the_rescues_scan_map_keeps_no_wall_where_a_ball_was_missed_and_keeps_a_wall_mislabelled_movable():
+    """The rescue plans on a map of its own scans (``curlnav.planners.scan_map``). A ball the
+    segmenter missed in two scans of ten must not become an occupied cell it plans round (it would
+    route the robot away from the ball it should push); a wall it labelled movable in two scans of
+    ten stays occupied."""
+    from curlnav.planners.scan_map import ScanMap, ScanMapConfig
+
+    pose = (3.0, 1.5, 0.0)
+    ball = (4.5, 2.2)  # ahead on the left, not hiding the wall straight ahead
+    scan_map = ScanMap((6.0, 3.5), 14.0, ScanMapConfig(), ANGLES, MAX_RANGE)
+    rng = np.random.default_rng(7)
+    exact, on_ball = cast_with_ball(pose, ball)
+    wall = (exact >= 2.9) & (exact < 3.2) & (np.abs(ANGLES) < 0.2)  # the wall at x = 6, straight ahead
+    for k in range(10):
+        r = np.clip(exact + rng.normal(0, 0.03, len(exact)) * (exact < MAX_RANGE), 0, MAX_RANGE)
+        labels = on_ball.copy()
+        if k in (3, 7):
+            labels[on_ball > 0] = 0.0  # the ball missed
+            labels[wall] = 1.0  # and the wall labelled movable
+        scan_map.add_scan(r, labels, pose)
+    occupied = scan_map.occupied
+    iy, ix, _ = scan_map.cell_index(np.array([ball]) + np.array([[-0.25, 0.0]]))  # the ball's face
+    near_ball = occupied[max(iy[0] - 3, 0):iy[0] + 4, max(ix[0] - 1, 0):ix[0] + 4]
+    assert not near_ball.any()
+    assert wall.sum() >= 5
+    iy, ix, _ = scan_map.cell_index(np.array([[6.0, 1.5]]))
+    assert occupied[iy[0] - 1:iy[0] + 2, ix[0] - 1:ix[0] + 2].any()

@@ -23,10 +23,12 @@ one missing beam opens a wall. ``ScanMemory`` does the same for ``tare-l`` and `
   memory fills only what the newest scan missed, so range noise does not thicken the walls).
   A beam that returns nothing clears nothing (Nav2's ``inf_is_valid: false``): a dropout must
   not open a wall. A beam labelled movable marks nothing but clears what it passes;
-- **label voting**: a return counts as static only where the last ``scans`` scans labelled its
-  cell static at least as often as movable. A segmenter errs on whole objects
-  at a time: a wall it labels movable for a moment stays remembered, and a ball it misses for a
-  moment does not become a wall the planners go round (they push balls).
+- **label voting**: a return counts as static only where the last ``scans`` scans (for the
+  newest scan's returns: the scans before it) labelled its cell of ``label_cell_m`` (or a
+  neighbouring one: a ball's returns move with range noise and as it is pushed, 0.2 m a step at
+  full speed) static at least as often as movable. A segmenter errs on whole objects at a time: a wall it labels
+  movable for a moment stays remembered, and a ball it misses for a moment does not become a wall
+  the planners go round, or the shield stops at while it is pushed (they push balls).
 
 On clean scans every return of the newest scan is kept (a lone return of a thin object a step
 later), and the memory adds what the newest scan cannot see: the space behind the robot, and
@@ -58,11 +60,14 @@ class ScanFilterConfig:
     support_beams: float = 2.5  # ... or this many beam spacings at the return's range (oblique walls)
     clear_margin_m: float = 0.2  # a newest beam reaching this far beyond a remembered return clears it
     range_m: float = 2.0  # returns further than this are not remembered (the nearer ones are what a path can hit first)
+    #: labels are voted on in cells this size and their 8 neighbours (odometry frame): a ball pushed at
+    #: full speed moves 0.2 m a control step
+    label_cell_m: float = 0.15
 
     def __post_init__(self) -> None:
         if not (isinstance(self.scans, int) and isinstance(self.votes, int) and 1 <= self.votes <= self.scans):
             raise ValueError(f"scan filter: votes ({self.votes!r}) must be a whole number 1..scans ({self.scans!r})")
-        for name in ("cell_m", "support_m", "support_beams", "clear_margin_m", "range_m"):
+        for name in ("cell_m", "support_m", "support_beams", "clear_margin_m", "range_m", "label_cell_m"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"scan filter: {name} must be a positive number, got {value!r}")
@@ -103,8 +108,9 @@ class ScanMemory:
         self._spacing = float(np.abs(np.diff(self.beam_angles)).mean()) if len(self.beam_angles) > 1 else math.pi
         self._cos, self._sin = np.cos(self.beam_angles), np.sin(self.beam_angles)
         # per scan: its static returns within range_m (odometry frame, m), their cells, which had
-        # spatial support, and the cells of its movable returns within range_m
-        self._scans: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = deque(maxlen=self.config.scans)
+        # spatial support, and the label cells (label_cell_m) of its static and of its movable returns within range_m
+        self._scans: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = \
+            deque(maxlen=self.config.scans)
 
     def reset(self) -> None:
         """Forget every scan (a new episode or goal: the odometry may have restarted)."""
@@ -153,12 +159,13 @@ class ScanMemory:
         keys = self.keys(points)
         movable = returned & ~static & (ranges <= cfg.range_m)
         support = self.supported(ranges, static) | (static & ~self.spikes(ranges))
-        self._scans.append((points, keys, support[near], self.keys(to_frame(local[movable], pose))))
+        self._scans.append((points, keys, support[near], cell_keys(points, cfg.label_cell_m),
+                            cell_keys(to_frame(local[movable], pose), cfg.label_cell_m)))
 
         def counter(key_sets, neighbours=_NEIGHBOURS):
             """votes(keys): in how many of the remembered scans each cell (or a neighbour) was hit."""
             spread = [np.unique((k[:, None] + neighbours[None, :]).ravel()) for k in key_sets]
-            cells, counts = np.unique(np.concatenate(spread), return_counts=True)
+            cells, counts = np.unique(np.concatenate([np.zeros(0, np.int64), *spread]), return_counts=True)
 
             def votes(k: np.ndarray) -> np.ndarray:
                 if len(cells) == 0:
@@ -167,28 +174,34 @@ class ScanMemory:
                 return np.where(cells[at] == k, counts[at], 0)
             return votes
 
-        votes = counter([k for _, k, _, _ in self._scans])
-        # labels are voted on in the cell itself: a wall touching a ball stays static
-        static_votes = counter([k for _, k, _, _ in self._scans], _NEIGHBOURS[4:5])
-        movable_votes = counter([m for _, _, _, m in self._scans], _NEIGHBOURS[4:5])
+        votes = counter([k for _, k, _, _, _ in self._scans])
+        # labels are voted on in coarser cells and their neighbours, both ways (a ball's returns move
+        # with range noise and as it is pushed); the newest scan's own labels are what is voted on, so
+        # its returns are judged by the scans before it: a wall touching a ball, static in every scan,
+        # stays static; a ball the segmenter missed in this scan, movable round there before, is no
+        # obstacle; a return nothing was seen near before is static
+        def label_votes(scans) -> tuple:
+            return counter([s for _, _, _, s, _ in scans]), counter([m for _, _, _, _, m in scans])
 
-        def static_cell(k: np.ndarray) -> np.ndarray:
+        def static_cell(points: np.ndarray, scans) -> np.ndarray:
+            static_votes, movable_votes = label_votes(scans)
+            k = cell_keys(points, cfg.label_cell_m)
             return static_votes(k) >= movable_votes(k)
 
         # the newest scan: supported returns at once, the others once their cell is voted for;
         # not where the segmenter said movable more often than static
         all_keys = self.keys(to_frame(local, pose))
-        taken = static & (support | (votes(all_keys) >= cfg.votes)) & static_cell(all_keys)
+        taken = static & (support | (votes(all_keys) >= cfg.votes)) & static_cell(to_frame(local, pose), list(self._scans)[:-1])
         newest = local[taken]
         if len(self._scans) == 1:
             return newest
         # remembered returns: confirmed (supported in their scan or voted for), not in a cell the
         # newest scan marks; one per cell, the newest
         older = list(self._scans)[-2::-1]
-        old_points = np.concatenate([p for p, _, _, _ in older])
-        old_keys = np.concatenate([k for _, k, _, _ in older])
-        confirmed = np.concatenate([c for _, _, c, _ in older]) | (votes(old_keys) >= cfg.votes)
-        keep = confirmed & static_cell(old_keys) & ~np.isin(old_keys, keys[taken[near]])
+        old_points = np.concatenate([p for p, _, _, _, _ in older])
+        old_keys = np.concatenate([k for _, k, _, _, _ in older])
+        confirmed = np.concatenate([c for _, _, c, _, _ in older]) | (votes(old_keys) >= cfg.votes)
+        keep = confirmed & static_cell(old_points, self._scans) & ~np.isin(old_keys, keys[taken[near]])
         _, first = np.unique(old_keys[keep], return_index=True)
         kept = from_frame(old_points[keep][np.sort(first)], pose)
         # cleared: a newest beam in the same direction returns clear_margin_m beyond it
