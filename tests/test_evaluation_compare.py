@@ -150,21 +150,26 @@ def test_an_agent_scores_the_same_whatever_its_place_in_the_eval_list():
 
 
 @pytest.mark.slow  # more than 5 s
-def test_the_flagship_as_shipped_drives_namo_worlds_it_never_saw(capsys):
+@pytest.mark.parametrize("senses", ["none", "realistic"])
+def test_the_flagship_as_shipped_drives_namo_worlds_it_never_saw(capsys, senses):
     """``policies/namo-robust`` is the README's flagship, named alone: behind the rescue (with its
-    own settings) and the shield its metadata ships, on the three NAMO floors of a held-out seed
-    (300, never trained or tuned on) it reaches the goal without touching a wall (seeded
-    evaluation: the same 12 trials every time; the full figures, real maps included, are in its
-    README; the real maps are not in the repository, so no test drives them)."""
+    own settings), the shield and the laser odometry its metadata ships, on the three NAMO floors
+    of a held-out seed (300, never trained or tuned on) it reaches the goal without touching a
+    wall, with exact senses and with a robot's (``realistic``: noisy ranges and labels, latency,
+    drifting odometry; seeded evaluation: the same 12 trials every time; the full figures, real
+    maps included, are in its README; the real maps are not in the repository, so no test drives
+    them)."""
     shipped = Path(__file__).resolve().parent.parent / "policies" / "namo-robust"
     assert main(["eval", str(shipped), "--world", "namo-office:300", "--world", "namo-indoor:300",
-                 "--world", "namo-auditorium:300", "--pairs", "2", "--seeds", "2"]) == 0
+                 "--world", "namo-auditorium:300", "--pairs", "2", "--seeds", "2", "--sensor-noise", senses]) == 0
     out = capsys.readouterr().out
-    assert "driven as its artefact ships it" in out and "its rescue: stall_steps 10, max_steps 50" in out, out[-2000:]
+    assert "driven as its artefact ships it" in out and "+scan-match" in out \
+        and "its rescue: stall_steps 10, max_steps 50" in out, out[-2000:]
     line = next(x for x in out.splitlines() if " on all: " in x)
     success = int(line.split("success ")[1].split("%")[0])
     events = float(line.split("(")[1].split(" contact events")[0])
-    assert success >= 80 and events <= 0.1, line  # 100 % here; the network alone 67 %
+    # here: 100 % and 92 %, no contact; the network alone 67 % and 75 %
+    assert success >= 80 and events <= 0.1, line
 
 
 def test_the_clean_senses_policy_drives_namo_worlds_it_never_saw(capsys):
