@@ -256,17 +256,31 @@ def test_a_ball_the_segmenter_misses_for_a_moment_is_no_obstacle_while_it_is_pus
     poses = [(1.5 + 0.15 * k, 3.5, 0.0) for k in range(14)]  # 5 Hz, 0.75 m/s toward the doorway's wall
     memory = ScanMemory(ANGLES, MAX_RANGE)
     missed_at = 6
+    balls = []
     for k, pose in enumerate(poses):
         ball = (pose[0] + 0.75, pose[1])  # pushed: 0.75 m ahead of the base's centre
-        r, labels = cast_with_ball(pose, ball)
-        r = np.clip(r + rng.normal(0, 0.03, len(r)) * (r < MAX_RANGE), 0, MAX_RANGE)
+        balls.append(ball)
+        exact, labels = cast_with_ball(pose, ball)
+        r = np.clip(exact + rng.normal(0, 0.03, len(exact)) * (exact < MAX_RANGE), 0, MAX_RANGE)
         if k == missed_at:
             assert labels.sum() >= 5
             labels[:] = 0.0  # the ball's run of beams labelled static
         points = memory.update(r, labels, pose)
-        if k >= missed_at:  # the missed scan and the memory after it
-            on_ball = np.hypot(*(to_map(points, pose) - np.array(ball)).T) < 0.25 + 0.1
-            assert not on_ball.any(), (k, to_map(points, pose)[on_ball])
+        if k >= missed_at:  # the missed scan, and the memory after it: nowhere the ball has been since,
+            # outside the base (a point the base has driven over is ignored by the shield and the planners)
+            in_map = to_map(points, pose)
+            outside = (np.abs(points[:, 0]) > CFG.robot.base_length / 2) | (np.abs(points[:, 1]) > CFG.robot.base_width / 2)
+            for where in balls[missed_at:]:
+                on_ball = outside & (np.hypot(*(in_map - np.array(where)).T) < 0.25 + 0.1)
+                assert not on_ball.any(), (k, where, in_map[on_ball])
+    # the walls stay: every wall beam within the memory's reach that the ball does not hide is covered
+    walls = cast(poses[-1])
+    visible = (exact == walls) & (walls <= memory.config.range_m)
+    assert visible.sum() >= 10
+    hits = to_map(np.stack([walls[visible] * np.cos(ANGLES[visible]), walls[visible] * np.sin(ANGLES[visible])], 1),
+                  poses[-1])
+    d = np.hypot(hits[:, None, 0] - in_map[None, :, 0], hits[:, None, 1] - in_map[None, :, 1]).min(axis=1)
+    assert (d <= 0.1).all(), hits[d > 0.1]
 
 
 def test_a_wall_a_pushed_ball_runs_along_stays_an_obstacle():

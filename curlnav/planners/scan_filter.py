@@ -24,14 +24,16 @@ one missing beam opens a wall. ``ScanMemory`` does the same for ``tare-l`` and `
   A beam that returns nothing clears nothing (Nav2's ``inf_is_valid: false``): a dropout must
   not open a wall. A beam labelled movable marks nothing but clears what it passes;
 - **label voting**: a return counts as static only where the last ``scans`` scans (for the
-  newest scan's returns: the scans before it) labelled its cell of ``label_cell_m`` (or a
+  newest scan's returns: the ``scans - 1`` before it) labelled its cell of ``label_cell_m`` (or a
   neighbouring one: a ball's returns move with range noise and as it is pushed, 0.2 m a step at
   full speed) static at least as often as movable. A segmenter errs on whole objects at a time: a wall it labels
   movable for a moment stays remembered, and a ball it misses for a moment does not become a wall
   the planners go round, or the shield stops at while it is pushed (they push balls).
 
 On clean scans every return of the newest scan is kept (a lone return of a thin object a step
-later), and the memory adds what the newest scan cannot see: the space behind the robot, and
+later), except a static one within about 0.3 m of where a ball was seen in the scans before it,
+until it has been seen static as often (up to ``scans - 1`` scans: a wall revealed beside a ball
+the robot passes); and the memory adds what the newest scan cannot see: the space behind the robot, and
 walls hidden behind a movable object for a moment. Odometry is used only over ``scans`` control
 periods (1 s at 5 Hz), so its drift does not matter.
 """

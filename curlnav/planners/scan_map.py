@@ -12,8 +12,9 @@ observation and odometry.
   adds ``hit`` to its cell's score; each cell a beam passes through on its way to a return (up to
   ``clear_range_m``; a beam that returned nothing clears nothing) loses ``miss``; scores stay in
   ``[score_min, score_max]``; a cell is occupied above ``occupied`` (hit in two scans). Movable
-  returns (label 1) clear and mark nothing: a NAMO policy pushes them; each takes ``movable`` from
-  its own cell, so that a ball the segmenter missed in a scan or two does not become a wall. A scan that arrives
+  returns (label 1) clear and mark nothing: a NAMO policy pushes them; each scan takes ``movable``
+  once from every cell a movable return ends in, so that a ball the segmenter missed in a scan or
+  two does not become a wall. A scan that arrives
   ``latency_steps`` late is laid down from the odometry pose of then.
 - ``ScanMapPlan``: A* (``curlnav.planners.oracle.astar``, unknown cells free) on the grid with
   every cell nearer than the robot's half-width plus ``margin_m`` to an occupied one blocked (no
@@ -59,7 +60,7 @@ class ScanMapConfig:
     score_min: float = -2.0
     score_max: float = 5.0
     occupied: float = 1.5  # a cell above this score is occupied: hit in two scans (a spurious return is not)
-    movable: float = 1.0  # score taken by a movable return in its cell (a ball the segmenter missed once is no wall)
+    movable: float = 1.0  # score taken, once a scan, from each cell a movable return ends in (a ball the segmenter missed once is no wall)
     clear_range_m: float = 4.0  # beams clear the cells they pass up to this range
     margin_m: float = 0.05  # added to the half-width: cells nearer an occupied one are blocked for the plan
     inflation_m: float = 0.6  # from an occupied cell, within which a step costs more
