@@ -225,3 +225,29 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
         with pytest.raises(ValueError, match=message) as err:
             make_agent(str(artefact), cfg, load)
         assert str(meta) in str(err.value)
+
+
+def test_behind_a_global_plan_the_rescue_follows_the_plan():
+    """``POLICY+global-plan+rescue``: the fallback is ``dwa`` steering for the waypoint ahead on the
+    same A* path (``move_base``'s pairing), not a plan on its own scans to the final goal. A policy
+    that never moves, behind a global plan round a U of walls, is driven round it by the rescue
+    alone, without a contact; and ``make_agent`` builds that fallback for the flag and the suffix."""
+    from curlnav.planners.global_plan import GlobalPlanAgent
+    from curlnav.planners.rescue import global_plan_fallback
+
+    cfg = evaluation_config()
+    world = u_trap_world()
+    still = lambda observation: np.zeros(3, np.float32)  # noqa: E731
+    fallback = global_plan_fallback(cfg)
+    rescued = RescuedPolicy(GlobalPlanAgent(still, cfg), cfg, RescueConfig(stall_steps=2, max_steps=1000), fallback=fallback)
+    result = run(rescued, world, cfg)
+    assert result.success_rate == 1.0 and result.collisions_per_episode == 0
+    assert rescued.rescue_steps > 20
+    driven = np.array(fallback.plan.path)  # the plan the fallback followed goes round the U's arm
+    assert (np.abs(driven[:, 1] - 5.0) > 3.0).any()
+    for spec, flag in (("p+global-plan+rescue+shield", False), ("p+rescue+shield", True)):
+        _, agent = make_agent(spec, cfg, lambda s: GoalSeeker(), global_plan=flag)
+        assert isinstance(agent.policy.fallback, GlobalPlanAgent)
+        assert isinstance(agent.policy.fallback.policy, DynamicWindowPlanner)
+    _, agent = make_agent("p+rescue+shield", cfg, lambda s: GoalSeeker())
+    assert isinstance(agent.policy.fallback, ScanMapPlanAgent), "without a global plan: dwa on its own scans"

@@ -250,7 +250,12 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     if rescue:
         from curlnav.planners.rescue import RescuedPolicy
 
-        agent = RescuedPolicy(agent, env_config, rescue_settings(plain) if not planner else None, label=label)
+        from curlnav.planners.rescue import RescueConfig, global_plan_fallback
+
+        settings = rescue_settings(plain) if not planner else None
+        # behind a global plan the fallback follows the plan's waypoints, not a plan on its own scans
+        fallback = global_plan_fallback(env_config, (settings or RescueConfig()).reverse) if global_plan else None
+        agent = RescuedPolicy(agent, env_config, settings, fallback=fallback, label=label)
     if shield:
         from curlnav.planners.shield import ShieldedPolicy
 

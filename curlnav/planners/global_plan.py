@@ -93,6 +93,9 @@ class GlobalPlanAgent:
             self._planners = {key: GridPlanner(world, self.env_config.robot.base_width / 2)}
         self.plan = GlobalPlan(self._planners[key], (pair.x, pair.y), (pair.gx, pair.gy), self.config)
         self._goals = None
+        inner = getattr(self.policy, "reset", None)
+        if callable(inner):
+            inner(world, pair)
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         raise TypeError("GlobalPlanAgent needs the pose: call act(observation, info) after reset(world, pair)")
@@ -112,4 +115,13 @@ class GlobalPlanAgent:
         return out
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
-        return self.policy(self.observation(observation, info["pose"]))
+        shown = self.observation(observation, info["pose"])
+        inner = getattr(self.policy, "act", None)  # a planner (dwa) needs the odometry too
+        return self.policy(shown) if inner is None else inner(shown, info)
+
+    def commanded(self, action: np.ndarray) -> None:
+        """The command the robot was sent this step, passed on to the agent behind the plan
+        (``DynamicWindowPlanner.commanded``) when it takes it."""
+        inner = getattr(self.policy, "commanded", None)
+        if callable(inner):
+            inner(action)

@@ -18,7 +18,8 @@ The fallback by default is ``dwa`` following A* on the scan map (``dwa+scan-plan
 free, the robot's own scans marking and clearing cells), the map-less analogue of ``move_base``,
 the BARN Challenge's baseline stack; on a robot that can reverse its DWA samples backing up too
 (``RescueConfig.reverse``). It sees only what the policy's robot has: scan, labels, goal and
-odometry. While the policy drives, the fallback is told each command sent (``commanded``), so
+odometry. Behind a global plan (``POLICY+global-plan+rescue``) it is ``dwa`` steering for the
+waypoint ahead on the plan instead (``global_plan_fallback``), as ``move_base`` pairs them. While the policy drives, the fallback is told each command sent (``commanded``), so
 that its dynamic window starts from the robot's real speed when it takes over.
 """
 
@@ -66,6 +67,17 @@ def default_fallback(env_config: EnvConfig, reverse: bool = True):
     from curlnav.planners.scan_map import ScanMapPlanAgent
 
     return ScanMapPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=reverse)), env_config, label="dwa")
+
+
+def global_plan_fallback(env_config: EnvConfig, reverse: bool = True):
+    """The fallback behind a global plan (``POLICY+global-plan+rescue``): ``dwa`` steering for the
+    waypoint ahead on the same A* path the policy follows (``GlobalPlanAgent``), as ``move_base``
+    pairs its global planner with DWA, instead of ``dwa`` on a plan over its own scans to the final
+    goal, which ignores the map the global plan was made on."""
+    from curlnav.planners.global_plan import GlobalPlanAgent
+    from curlnav.planners.local import DwaConfig, DynamicWindowPlanner
+
+    return GlobalPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=reverse)), env_config, label="dwa")
 
 
 class RescuedPolicy:
