@@ -19,8 +19,9 @@ free, the robot's own scans marking and clearing cells), the map-less analogue o
 the BARN Challenge's baseline stack; on a robot that can reverse its DWA samples backing up too
 (``RescueConfig.reverse``). It sees only what the policy's robot has: scan, labels, goal and
 odometry. Behind a global plan (``POLICY+global-plan+rescue``) it is ``dwa`` steering for the
-waypoint ahead on the plan instead (``global_plan_fallback``), as ``move_base`` pairs them. While the policy drives, the fallback is told each command sent (``commanded``), so
-that its dynamic window starts from the robot's real speed when it takes over.
+waypoint ahead on the plan instead (``global_plan_fallback``), as ``move_base`` pairs them.
+While the policy drives, the fallback is told each command sent (``commanded``), so that its
+dynamic window starts from the robot's real speed when it takes over.
 """
 
 from __future__ import annotations

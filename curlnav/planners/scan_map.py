@@ -60,7 +60,8 @@ class ScanMapConfig:
     score_min: float = -2.0
     score_max: float = 5.0
     occupied: float = 1.5  # a cell above this score is occupied: hit in two scans (a spurious return is not)
-    movable: float = 1.0  # score taken, once a scan, from each cell a movable return ends in (a ball the segmenter missed once is no wall)
+    #: score taken, once a scan, from each cell a movable return ends in (a ball the segmenter missed once is no wall)
+    movable: float = 1.0
     clear_range_m: float = 4.0  # beams clear the cells they pass up to this range
     margin_m: float = 0.05  # added to the half-width: cells nearer an occupied one are blocked for the plan
     inflation_m: float = 0.6  # from an occupied cell, within which a step costs more
