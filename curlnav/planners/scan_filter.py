@@ -192,8 +192,9 @@ class ScanMemory:
 
         # the newest scan: supported returns at once, the others once their cell is voted for;
         # not where the segmenter said movable more often than static
-        all_keys = self.keys(to_frame(local, pose))
-        taken = static & (support | (votes(all_keys) >= cfg.votes)) & static_cell(to_frame(local, pose), list(self._scans)[:-1])
+        everywhere = to_frame(local, pose)
+        all_keys = self.keys(everywhere)
+        taken = static & (support | (votes(all_keys) >= cfg.votes)) & static_cell(everywhere, list(self._scans)[:-1])
         newest = local[taken]
         if len(self._scans) == 1:
             return newest

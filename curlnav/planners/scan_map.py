@@ -111,6 +111,12 @@ class ScanMap:
         inside = (ij >= 0).all(axis=1) & (ij < self.cells).all(axis=1)
         return ij[:, 1], ij[:, 0], inside
 
+    def flat_cells(self, points: np.ndarray) -> np.ndarray:
+        """The distinct flat indices (into ``score.ravel()``) of the cells holding map-frame points
+        ``(n, 2)`` (m); points off the grid are left out."""
+        iy, ix, inside = self.cell_index(points)
+        return np.unique(iy[inside] * self.cells + ix[inside])
+
     def centre_of(self, iy: int, ix: int) -> tuple[float, float]:
         return (float(self.origin[0] + (ix + 0.5) * self.resolution), float(self.origin[1] + (iy + 0.5) * self.resolution))
 
@@ -129,23 +135,12 @@ class ScanMap:
         along = np.where(along <= reach[:, None], along, np.nan)
         pts = np.stack([x + along * direction[:, 0:1], y + along * direction[:, 1:2]], axis=-1).reshape(-1, 2)
         pts = pts[np.isfinite(pts).all(axis=1)]
-        iy, ix, inside = self.cell_index(pts)
-        flat = np.unique(iy[inside] * self.cells + ix[inside])
-        self.score.ravel()[flat] -= cfg.miss
-        # marking: static returns
-        hits = returned & (np.asarray(labels) < 0.5)
-        if hits.any():
-            pts = np.stack([x + r[hits] * direction[hits, 0], y + r[hits] * direction[hits, 1]], axis=1)
-            iy, ix, inside = self.cell_index(pts)
-            flat = np.unique(iy[inside] * self.cells + ix[inside])
-            self.score.ravel()[flat] += cfg.hit
-        # unmarking: movable returns (the segmenter's vote against a wall in that cell)
-        pushable = returned & (np.asarray(labels) >= 0.5)
-        if pushable.any():
-            pts = np.stack([x + r[pushable] * direction[pushable, 0], y + r[pushable] * direction[pushable, 1]], axis=1)
-            iy, ix, inside = self.cell_index(pts)
-            flat = np.unique(iy[inside] * self.cells + ix[inside])
-            self.score.ravel()[flat] -= cfg.movable
+        self.score.ravel()[self.flat_cells(pts)] -= cfg.miss
+        labels = np.asarray(labels)
+        ends = np.stack([x + r * direction[:, 0], y + r * direction[:, 1]], axis=1)  # where each beam returned
+        # marking: static returns; unmarking: movable ones (the segmenter's vote against a wall in that cell)
+        self.score.ravel()[self.flat_cells(ends[returned & (labels < 0.5)])] += cfg.hit
+        self.score.ravel()[self.flat_cells(ends[returned & (labels >= 0.5)])] -= cfg.movable
         np.clip(self.score, cfg.score_min, cfg.score_max, out=self.score)
 
     @property
