@@ -56,6 +56,34 @@ def u_trap_world():
     return World(name="u-trap", occupancy=grid, resolution=0.1, pairs=(pair,))
 
 
+
+class GoalSeeker:
+    """A policy with no sense of obstacles: full speed at the goal of its observation, turning
+    toward it (``[v, w, 0]``, fractions); counts its calls."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        from curlnav.planners.local import goal_in_robot_frame
+
+        self.calls += 1
+        gx, gy = goal_in_robot_frame(observation[-3:])
+        bearing = math.atan2(gy, gx)
+        return np.array([1.0 if abs(bearing) < 0.5 else 0.2, float(np.clip(2.0 * bearing, -1, 1)), 0.0], np.float32)
+
+
+def run_pairs(agent, world, cfg):
+    """``evaluate`` ``agent`` on every pair of ``world`` (a ``World``) in an environment of its own."""
+    from curlnav.evaluation.protocol import evaluate
+    from curlnav.sim import NamoEnv
+
+    env = NamoEnv(world, cfg)
+    try:
+        return evaluate(agent, world, list(world.pairs), cfg, env=env)
+    finally:
+        env.close()
+
 # -- waiting ---------------------------------------------------------------------------------------
 def wait_for(what: str, check, timeout: float = 120.0, procs=(), every: float = 0.5):
     """Poll ``check()`` every ``every`` s until it returns a truthy value (returned). An OSError

@@ -4,34 +4,19 @@ overridden."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
-from conftest import u_trap_world
+from conftest import GoalSeeker, u_trap_world
+from conftest import run_pairs as run
 
-from curlnav.evaluation.protocol import evaluate, evaluation_config
+from curlnav.evaluation.protocol import evaluation_config
 from curlnav.layout import ObservationLayout
 from curlnav.planners import make_agent
-from curlnav.planners.local import DynamicWindowPlanner, goal_in_robot_frame
+from curlnav.planners.local import DynamicWindowPlanner
 from curlnav.planners.rescue import RescueConfig, RescuedPolicy
 from curlnav.planners.scan_map import ScanMapPlanAgent
 from curlnav.planners.shield import ShieldedPolicy
 from curlnav.sim import NamoEnv
-
-
-class GoalSeeker:
-    """A policy with no sense of obstacles: full speed at the goal of its observation, turning
-    toward it (``[v, w, 0]``, fractions); counts its calls."""
-
-    def __init__(self) -> None:
-        self.calls = 0
-
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        self.calls += 1
-        gx, gy = goal_in_robot_frame(observation[-3:])
-        bearing = math.atan2(gy, gx)
-        return np.array([1.0 if abs(bearing) < 0.5 else 0.2, float(np.clip(2.0 * bearing, -1, 1)), 0.0], np.float32)
 
 
 class CautiousSeeker(GoalSeeker):
@@ -49,14 +34,6 @@ class CautiousSeeker(GoalSeeker):
         if ranges[self.ahead].min() < 1.0:
             action[0] = 0.0
         return action
-
-
-def run(agent, world, cfg):
-    env = NamoEnv(world, cfg)
-    try:
-        return evaluate(agent, world, list(world.pairs), cfg, env=env)
-    finally:
-        env.close()
 
 
 def test_a_policy_stalled_in_a_u_trap_is_rescued_round_it_and_drives_the_rest_itself():
@@ -228,26 +205,29 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
 
 
 def test_behind_a_global_plan_the_rescue_follows_the_plan():
-    """``POLICY+global-plan+rescue``: the fallback is ``dwa`` steering for the waypoint ahead on the
-    same A* path (``move_base``'s pairing), not a plan on its own scans to the final goal. A policy
-    that never moves, behind a global plan round a U of walls, is driven round it by the rescue
-    alone, without a contact; and ``make_agent`` builds that fallback for the flag and the suffix."""
+    """``POLICY+global-plan+rescue``: the fallback is the plan's path tracker (regulated pure
+    pursuit of the same A* path on the same map, ``StaticMapPlanner``), not a plan on its own scans
+    to the final goal. A policy that never moves, behind a global plan round a U of walls, is
+    driven round it by the rescue alone, without a contact, along the path the policy's waypoints
+    come from; and ``make_agent`` builds that fallback for the flag and the suffix."""
     from curlnav.planners.global_plan import GlobalPlanAgent
+    from curlnav.planners.oracle import StaticMapPlanner
     from curlnav.planners.rescue import global_plan_fallback
 
     cfg = evaluation_config()
     world = u_trap_world()
     still = lambda observation: np.zeros(3, np.float32)  # noqa: E731
     fallback = global_plan_fallback(cfg)
-    rescued = RescuedPolicy(GlobalPlanAgent(still, cfg), cfg, RescueConfig(stall_steps=2, max_steps=1000), fallback=fallback)
+    planned = GlobalPlanAgent(still, cfg)
+    rescued = RescuedPolicy(planned, cfg, RescueConfig(stall_steps=2, max_steps=1000), fallback=fallback)
     result = run(rescued, world, cfg)
     assert result.success_rate == 1.0 and result.collisions_per_episode == 0
     assert rescued.rescue_steps > 20
-    driven = np.array(fallback.plan.path)  # the plan the fallback followed goes round the U's arm
+    driven = np.array(fallback.path)  # the path the fallback tracked goes round the U's arm ...
     assert (np.abs(driven[:, 1] - 5.0) > 3.0).any()
+    assert np.array_equal(driven, planned.plan.path), "... and is the plan the policy's waypoints come from"
     for spec, flag in (("p+global-plan+rescue+shield", False), ("p+rescue+shield", True)):
         _, agent = make_agent(spec, cfg, lambda s: GoalSeeker(), global_plan=flag)
-        assert isinstance(agent.policy.fallback, GlobalPlanAgent)
-        assert isinstance(agent.policy.fallback.policy, DynamicWindowPlanner)
+        assert isinstance(agent.policy.fallback, StaticMapPlanner)
     _, agent = make_agent("p+rescue+shield", cfg, lambda s: GoalSeeker())
     assert isinstance(agent.policy.fallback, ScanMapPlanAgent), "without a global plan: dwa on its own scans"

@@ -193,7 +193,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     ``+global-plan``, or any policy when ``global_plan`` is set, follows waypoints on the oracle's
     A* path (``GlobalPlanAgent``; label ``PATH + global plan``); with ``+scan-plan``, waypoints on
     an A* path on a map of its own scans (``curlnav.planners.scan_map``; not with a global plan);
-    with ``+rescue``, ``dwa+scan-plan`` (behind a global plan: ``dwa`` on its waypoints) drives while
+    with ``+rescue``, ``dwa+scan-plan`` (behind a global plan: pure pursuit of the plan) drives while
     the policy stalls (``curlnav.planners.rescue``);
     with ``+shield``, every command goes through the safety shield (``curlnav.planners.shield``);
     with ``+track``, all of them see movable labels voted over the last scans
@@ -249,11 +249,11 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         if label != agent.label and GLOBAL_PLAN_SUFFIX not in label:
             label += GLOBAL_PLAN_SUFFIX  # the --global-plan flag: said in the label
     if rescue:
-        from curlnav.planners.rescue import RescueConfig, RescuedPolicy, global_plan_fallback
+        from curlnav.planners.rescue import RescuedPolicy, global_plan_fallback
 
         settings = rescue_settings(plain) if not planner else None
-        # behind a global plan the fallback follows the plan's waypoints, not a plan on its own scans
-        fallback = global_plan_fallback(env_config, (settings or RescueConfig()).reverse) if global_plan else None
+        # behind a global plan the fallback tracks the plan (pure pursuit), not a plan on its own scans
+        fallback = global_plan_fallback(env_config) if global_plan else None
         agent = RescuedPolicy(agent, env_config, settings, fallback=fallback, label=label)
     if shield:
         from curlnav.planners.shield import ShieldedPolicy

@@ -9,12 +9,13 @@ the oracle's A* path on the static map (``curlnav eval POLICY+global-plan``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from curlnav.layout import goal_frame
-from curlnav.planners.oracle import GridPlanner
+from curlnav.planners.oracle import GridPlanner, PlannerConfig, StaticMapPlanner
 from curlnav.sim import EnvConfig, StartGoal, World
 
 
@@ -25,6 +26,29 @@ class WaypointConfig:
     distance_m: float = 3.0  # the waypoint lies this far ahead along the path (the final goal when nearer)
     replan_deviation_m: float = 2.0  # plan again from the robot's place when it is this far off the path
     line_of_sight: bool = True  # pull the waypoint back until the straight line to it keeps off walls (no corner cutting)
+    #: a tight spot: where the path passes nearer a wall than the robot's half-width plus this (a
+    #: doorway narrower than the robot's width plus twice this, a corner the path cuts close);
+    #: 0: none is tight
+    passage_margin_m: float = 0.1
+    #: from this far before a tight spot on the path (m along it) until past it, the plan's path
+    #: tracker drives (``GlobalPlanAgent``), not the policy
+    passage_approach_m: float = 2.0
+    #: the tracker's pure-pursuit lookahead (m) and the heading error beyond which it turns in
+    #: place (rad): short and small, so that it follows the path into the passage lined up
+    passage_lookahead_m: float = 0.4
+    passage_turn_rad: float = math.radians(20.0)
+
+    def __post_init__(self) -> None:
+        for name in ("distance_m", "replan_deviation_m", "passage_margin_m", "passage_approach_m",
+                     "passage_lookahead_m", "passage_turn_rad"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value >= 0 and (value > 0 or name in ("passage_margin_m", "passage_approach_m"))):
+                kind = "non-negative" if name in ("passage_margin_m", "passage_approach_m") else "positive"
+                raise ValueError(f"waypoints: {name} must be a {kind} "
+                                 f"number, got {value!r}")
+        if not isinstance(self.line_of_sight, bool):
+            raise ValueError(f"waypoints: line_of_sight must be true or false, got {self.line_of_sight!r}")
 
 
 class GlobalPlan:
@@ -33,9 +57,12 @@ class GlobalPlan:
     it strays more than ``replan_deviation_m`` (pushed round by a door, a detour round a ball)."""
 
     def __init__(self, planner: GridPlanner, start: tuple[float, float], goal: tuple[float, float],
-                 config: WaypointConfig | None = None) -> None:
+                 config: WaypointConfig | None = None, tight: np.ndarray | None = None) -> None:
+        """``tight``: which of the planner world's cells (bool, the world's grid) are tight (free for
+        the robot, nearer a wall than its half-width plus ``passage_margin_m``), or None."""
         self.planner, self.goal = planner, (float(goal[0]), float(goal[1]))
         self.config = config or WaypointConfig()
+        self._tight_cells = tight
         self._set(planner.plan(start, goal))
 
     def _set(self, path: np.ndarray | None) -> None:
@@ -43,6 +70,25 @@ class GlobalPlan:
         self._index = 0
         if path is not None:
             self._along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+            self._tight = np.array([self._is_tight(x, y) for x, y in path], dtype=bool)
+
+    def _is_tight(self, x: float, y: float) -> bool:
+        if self._tight_cells is None:
+            return False
+        world = self.planner.world
+        rows, cols = self._tight_cells.shape
+        iy, ix = world.cell_of(float(x), float(y))
+        return bool(self._tight_cells[min(max(iy, 0), rows - 1), min(max(ix, 0), cols - 1)])
+
+    def near_passage(self, x: float, y: float) -> bool:
+        """Whether the robot at ``(x, y)`` (m) stands on a tight cell or within
+        ``passage_approach_m`` before one on the path (as of the last ``waypoint`` call)."""
+        if self.path is None or self._tight_cells is None:
+            return False
+        if self._is_tight(x, y):
+            return True
+        end = int(np.searchsorted(self._along, self._along[self._index] + self.config.passage_approach_m, side="right"))
+        return bool(self._tight[self._index:end].any())
 
     def waypoint(self, x: float, y: float) -> tuple[float, float]:
         """The point ``distance_m`` ahead along the path of the path point nearest ``(x, y)``
@@ -75,7 +121,16 @@ class GlobalPlanAgent:
     """A policy (``obs -> action``) behind a global plan: its observation's goal block (the last
     ``goal_frames`` frames, as ``NamoEnv`` builds them) is rewritten each step to describe the
     ``GlobalPlan`` waypoint instead of the final goal. The plan is the oracle's A* path on the
-    static map (the inflated ``GridPlanner``), made at ``reset``."""
+    static map (the inflated ``GridPlanner``), made at ``reset``.
+
+    Through a tight spot (``WaypointConfig.passage_margin_m``: where the path passes nearer a wall
+    than the robot's half-width plus that margin, as through a doorway the robot fits with less than
+    the margin to spare on either side) and for ``passage_approach_m`` before it, the plan's path
+    tracker drives instead (``StaticMapPlanner``: regulated pure pursuit of the A* path on the
+    same map and pose, turning in place where the path lies behind it). A policy steering for a
+    waypoint in such a doorway's mouth drives at it as it is headed and wedges its corner on the
+    jamb, where neither the shield nor a rescue can turn it; the tracker lines up first, as the
+    path does. ``passage_steps`` counts the steps it drove in the current episode."""
 
     def __init__(self, policy, env_config: EnvConfig | None = None, config: WaypointConfig | None = None,
                  label: str = "policy") -> None:
@@ -83,16 +138,29 @@ class GlobalPlanAgent:
         self.env_config = env_config or EnvConfig()
         self.config = config or WaypointConfig()
         self.label = f"{label} + global plan"
-        self._planners: dict[int, GridPlanner] = {}
+        self._planners: dict[int, tuple[GridPlanner, np.ndarray | None]] = {}  # the grid and its tight cells
         self.plan: GlobalPlan | None = None
         self._goals: np.ndarray | None = None  # (goal_frames, 3)
+        self.tracker = (StaticMapPlanner(self.env_config, PlannerConfig(
+            lookahead_m=self.config.passage_lookahead_m, turn_in_place_rad=self.config.passage_turn_rad))
+            if self.config.passage_margin_m > 0 else None)
+        self.passage_steps = 0
 
     def reset(self, world: World, pair: StartGoal) -> None:
         key = id(world)
-        if key not in self._planners or self._planners[key].world is not world:
-            self._planners = {key: GridPlanner(world, self.env_config.robot.base_width / 2)}
-        self.plan = GlobalPlan(self._planners[key], (pair.x, pair.y), (pair.gx, pair.gy), self.config)
+        if key not in self._planners or self._planners[key][0].world is not world:
+            half_width = self.env_config.robot.base_width / 2
+            planner, tight = GridPlanner(world, half_width), None
+            if self.tracker is not None:  # free for the robot, but not with the margin to spare
+                wide = GridPlanner(world, half_width, PlannerConfig(clearance_margin_m=self.config.passage_margin_m))
+                tight = wide.blocked & ~planner.blocked
+            self._planners = {key: (planner, tight)}
+        planner, tight = self._planners[key]
+        self.plan = GlobalPlan(planner, (pair.x, pair.y), (pair.gx, pair.gy), self.config, tight)
         self._goals = None
+        self.passage_steps = 0
+        if self.tracker is not None:
+            self.tracker.reset(world, pair)
         inner = getattr(self.policy, "reset", None)
         if callable(inner):
             inner(world, pair)
@@ -117,7 +185,11 @@ class GlobalPlanAgent:
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
         shown = self.observation(observation, info["pose"])
         inner = getattr(self.policy, "act", None)  # a planner (dwa) needs the odometry too
-        return self.policy(shown) if inner is None else inner(shown, info)
+        own = self.policy(shown) if inner is None else inner(shown, info)
+        if self.tracker is not None and self.plan.near_passage(*info["pose"][:2]):
+            self.passage_steps += 1
+            return self.tracker.act(observation, info)
+        return own
 
     def commanded(self, action: np.ndarray) -> None:
         """The command the robot was sent this step, passed on to the agent behind the plan

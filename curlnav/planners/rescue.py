@@ -18,8 +18,8 @@ The fallback by default is ``dwa`` following A* on the scan map (``dwa+scan-plan
 free, the robot's own scans marking and clearing cells), the map-less analogue of ``move_base``,
 the BARN Challenge's baseline stack; on a robot that can reverse its DWA samples backing up too
 (``RescueConfig.reverse``). It sees only what the policy's robot has: scan, labels, goal and
-odometry. Behind a global plan (``POLICY+global-plan+rescue``) it is ``dwa`` steering for the
-waypoint ahead on the plan instead (``global_plan_fallback``), as ``move_base`` pairs them.
+odometry. Behind a global plan (``POLICY+global-plan+rescue``), where the stack has the map and a
+localised pose, it is regulated pure pursuit of the same plan instead (``global_plan_fallback``).
 While the policy drives, the fallback is told each command sent (``commanded``), so that its
 dynamic window starts from the robot's real speed when it takes over.
 """
@@ -70,15 +70,18 @@ def default_fallback(env_config: EnvConfig, reverse: bool = True):
     return ScanMapPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=reverse)), env_config, label="dwa")
 
 
-def global_plan_fallback(env_config: EnvConfig, reverse: bool = True):
-    """The fallback behind a global plan (``POLICY+global-plan+rescue``): ``dwa`` steering for the
-    waypoint ahead on the same A* path the policy follows (``GlobalPlanAgent``), as ``move_base``
-    pairs its global planner with DWA, instead of ``dwa`` on a plan over its own scans to the final
-    goal, which ignores the map the global plan was made on."""
-    from curlnav.planners.global_plan import GlobalPlanAgent
-    from curlnav.planners.local import DwaConfig, DynamicWindowPlanner
+def global_plan_fallback(env_config: EnvConfig):
+    """The fallback behind a global plan (``POLICY+global-plan+rescue``): regulated pure pursuit of
+    the same A* path on the same static map the policy's waypoints come from, on the same pose
+    (``StaticMapPlanner``, the ``oracle``'s follower: it turns in place where the path lies behind
+    it and caps its speed by the scan's static returns), as a navigation stack pairs its global
+    planner with a path-tracking controller (Nav2's regulated pure pursuit). A stack behind a
+    global plan has the map and a localised pose; ``dwa`` steering for the waypoint ahead (session
+    8) stood still where the policy had wedged the robot in a doorway's mouth at an angle: its
+    sampled arcs all come within its margin of the jambs, and it never turns in place."""
+    from curlnav.planners.oracle import StaticMapPlanner
 
-    return GlobalPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=reverse)), env_config, label="dwa")
+    return StaticMapPlanner(env_config)
 
 
 class RescuedPolicy:

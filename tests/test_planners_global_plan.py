@@ -1,0 +1,72 @@
+"""A policy behind a global plan (``curlnav.planners.global_plan``): through a doorway the robot fits
+by a few centimetres the plan's path tracker lines it up and drives it through, where a policy
+steering for a waypoint in the doorway's mouth wedges its corner on the jamb; the settings refuse
+bad values."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import GoalSeeker, fill, walled_room
+from conftest import run_pairs as drive
+
+from curlnav.evaluation.protocol import evaluation_config
+from curlnav.planners.global_plan import GlobalPlanAgent, WaypointConfig
+from curlnav.planners.shield import ShieldedPolicy
+from curlnav.sim import StartGoal, World
+
+RES = 0.05  # m, the door world's cells
+
+
+def tight_door_world() -> World:
+    """A 12 m x 8 m room cut in two at x = 6 m by a wall with one doorway 0.85 m wide (y 3.55-4.40 m):
+    the Husky (0.67 m wide) fits with 9 cm to spare on either side. The start lies 1.5 m before
+    the wall and 1 m off the doorway's axis, facing the wall; the goal beyond it."""
+    grid = walled_room(12.0, 8.0, RES)
+    fill(grid, 6.0, 0.0, 6.3, 3.55, RES)
+    fill(grid, 6.0, 4.40, 6.3, 8.0, RES)
+    return World(name="tight-door", occupancy=grid, resolution=RES,
+                 pairs=(StartGoal("through-the-door", 4.5, 3.0, 0.0, 10.0, 4.0),))
+
+
+def test_the_doorway_is_tight_and_a_policy_steering_for_the_plans_waypoints_wedges_in_its_mouth():
+    """The premise: without the tracker (``passage_margin_m=0``) the policy, behind the plan and
+    the shield, drives at the doorway's mouth as it is headed and stops there, wedged, for the
+    rest of the episode; without the shield it scrapes the jamb instead."""
+    cfg = evaluation_config()
+    world = tight_door_world()
+    off = WaypointConfig(passage_margin_m=0.0)
+    shielded = drive(ShieldedPolicy(GlobalPlanAgent(GoalSeeker(), cfg, off), cfg), world, cfg)
+    assert shielded.success_rate == 0.0 and shielded.collisions_per_episode == 0, shielded.line()
+    bare = drive(GlobalPlanAgent(GoalSeeker(), cfg, off), world, cfg)
+    assert bare.success_rate == 0.0 and bare.collisions_per_episode > 0, bare.line()
+
+
+def test_through_a_tight_doorway_the_plans_tracker_lines_the_robot_up_and_drives_it_through():
+    """With the defaults the path tracker takes over before the doorway, turns the robot onto the
+    path and drives it through without a contact, behind the shield; the policy drives the rest."""
+    cfg = evaluation_config()
+    world = tight_door_world()
+    agent = GlobalPlanAgent(GoalSeeker(), cfg)
+    result = drive(ShieldedPolicy(agent, cfg), world, cfg)
+    assert result.success_rate == 1.0 and result.collisions_per_episode == 0, result.line()
+    steps = round(result.mean_episode_time_s / cfg.control_period)
+    assert 0 < agent.passage_steps < steps - 10, f"the tracker drove the doorway, the policy the rooms: " \
+                                                  f"{agent.passage_steps} of {steps} steps"
+
+
+def test_a_plan_that_keeps_off_the_walls_leaves_the_policy_in_charge():
+    """An open room, the path metres from every wall: the tracker never drives."""
+    cfg = evaluation_config()
+    world = World(name="open", occupancy=walled_room(12.0, 8.0, RES), resolution=RES,
+                  pairs=(StartGoal("across", 2.0, 4.0, 0.5, 10.0, 4.0),))
+    agent = GlobalPlanAgent(GoalSeeker(), cfg)
+    result = drive(agent, world, cfg)
+    assert result.success_rate == 1.0 and agent.passage_steps == 0
+
+
+@pytest.mark.parametrize("field, value", [("passage_margin_m", -0.1), ("passage_approach_m", float("nan")),
+                                          ("passage_lookahead_m", 0.0), ("passage_turn_rad", "fast"),
+                                          ("distance_m", 0), ("line_of_sight", 1)])
+def test_bad_waypoint_settings_are_refused_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        WaypointConfig(**{field: value})
