@@ -5,6 +5,7 @@ bad values."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from conftest import GoalSeeker, fill, walled_room
 from conftest import run_pairs as drive
@@ -34,6 +35,10 @@ def test_the_doorway_is_tight_and_a_policy_steering_for_the_plans_waypoints_wedg
     rest of the episode; without the shield it scrapes the jamb instead."""
     cfg = evaluation_config()
     world = tight_door_world()
+    planned = GlobalPlanAgent(GoalSeeker(), cfg)
+    planned.reset(world, world.pairs[0])
+    doorway = planned.plan.path[planned.plan.tight]
+    assert len(doorway) and np.all((doorway[:, 0] > 5.5) & (doorway[:, 0] < 6.8)), "the doorway, and only it, is tight"
     off = WaypointConfig(passage_margin_m=0.0)
     shielded = drive(ShieldedPolicy(GlobalPlanAgent(GoalSeeker(), cfg, off), cfg), world, cfg)
     assert shielded.success_rate == 0.0 and shielded.collisions_per_episode == 0, shielded.line()
@@ -47,8 +52,20 @@ def test_through_a_tight_doorway_the_plans_tracker_lines_the_robot_up_and_drives
     cfg = evaluation_config()
     world = tight_door_world()
     agent = GlobalPlanAgent(GoalSeeker(), cfg)
-    result = drive(ShieldedPolicy(agent, cfg), world, cfg)
+    shielded = ShieldedPolicy(agent, cfg)
+    inner_act, places = agent.act, []
+
+    def act(observation, info):
+        command = inner_act(observation, info)
+        places.append((info["pose"][0], agent.tracking))
+        return command
+
+    agent.act = act
+    result = drive(shielded, world, cfg)
     assert result.success_rate == 1.0 and result.collisions_per_episode == 0, result.line()
+    half_length = cfg.robot.base_length / 2
+    in_doorway = [tracking for x, tracking in places if 6.0 - half_length < x < 6.3 + half_length]
+    assert in_doorway and all(in_doorway), "the tracker drives while any part of the base is in the doorway"
     steps = round(result.mean_episode_time_s / cfg.control_period)
     assert 0 < agent.passage_steps < steps - 10, f"the tracker drove the doorway, the policy the rooms: " \
                                                   f"{agent.passage_steps} of {steps} steps"
@@ -65,8 +82,10 @@ def test_a_plan_that_keeps_off_the_walls_leaves_the_policy_in_charge():
 
 
 @pytest.mark.parametrize("field, value", [("passage_margin_m", -0.1), ("passage_approach_m", float("nan")),
-                                          ("passage_lookahead_m", 0.0), ("passage_turn_rad", "fast"),
-                                          ("distance_m", 0), ("line_of_sight", 1)])
+                                          ("passage_exit_m", True), ("passage_lookahead_m", 0.0),
+                                          ("passage_turn_rad", "fast"), ("distance_m", 0),
+                                          ("replan_deviation_m", float("inf")), ("line_of_sight", 1)])
 def test_bad_waypoint_settings_are_refused_naming_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         WaypointConfig(**{field: value})
+    WaypointConfig(passage_margin_m=0.0, passage_approach_m=0.0, passage_exit_m=0.0)  # off: allowed

@@ -206,28 +206,27 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
 
 def test_behind_a_global_plan_the_rescue_follows_the_plan():
     """``POLICY+global-plan+rescue``: the fallback is the plan's path tracker (regulated pure
-    pursuit of the same A* path on the same map, ``StaticMapPlanner``), not a plan on its own scans
-    to the final goal. A policy that never moves, behind a global plan round a U of walls, is
-    driven round it by the rescue alone, without a contact, along the path the policy's waypoints
-    come from; and ``make_agent`` builds that fallback for the flag and the suffix."""
+    pursuit of the very A* path the policy's waypoints come from, ``GlobalPlanAgent.track``), not a
+    plan on its own scans to the final goal. A policy that never moves, behind a global plan round
+    a U of walls, is driven round it by the rescue alone, without a contact, along the plan; and
+    ``make_agent`` builds that fallback for the flag and the suffix."""
     from curlnav.planners.global_plan import GlobalPlanAgent
-    from curlnav.planners.oracle import StaticMapPlanner
-    from curlnav.planners.rescue import global_plan_fallback
+    from curlnav.planners.rescue import PlanTracker, global_plan_fallback
 
     cfg = evaluation_config()
     world = u_trap_world()
     still = lambda observation: np.zeros(3, np.float32)  # noqa: E731
-    fallback = global_plan_fallback(cfg)
     planned = GlobalPlanAgent(still, cfg)
-    rescued = RescuedPolicy(planned, cfg, RescueConfig(stall_steps=2, max_steps=1000), fallback=fallback)
+    rescued = RescuedPolicy(planned, cfg, RescueConfig(stall_steps=2, max_steps=1000), fallback=global_plan_fallback(planned))
     result = run(rescued, world, cfg)
     assert result.success_rate == 1.0 and result.collisions_per_episode == 0
     assert rescued.rescue_steps > 20
-    driven = np.array(fallback.path)  # the path the fallback tracked goes round the U's arm ...
+    driven = np.array(planned.tracker.path)  # the path the rescue tracked goes round the U's arm ...
     assert (np.abs(driven[:, 1] - 5.0) > 3.0).any()
-    assert np.array_equal(driven, planned.plan.path), "... and is the plan the policy's waypoints come from"
+    assert planned.tracker.path is planned.plan.path, "... and is the plan the policy's waypoints come from"
     for spec, flag in (("p+global-plan+rescue+shield", False), ("p+rescue+shield", True)):
         _, agent = make_agent(spec, cfg, lambda s: GoalSeeker(), global_plan=flag)
-        assert isinstance(agent.policy.fallback, StaticMapPlanner)
+        assert isinstance(agent.policy.fallback, PlanTracker)
+        assert agent.policy.fallback.planned is agent.policy.policy, "the tracker of the plan the policy follows"
     _, agent = make_agent("p+rescue+shield", cfg, lambda s: GoalSeeker())
     assert isinstance(agent.policy.fallback, ScanMapPlanAgent), "without a global plan: dwa on its own scans"

@@ -253,7 +253,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
 
         settings = rescue_settings(plain) if not planner else None
         # behind a global plan the fallback tracks the plan (pure pursuit), not a plan on its own scans
-        fallback = global_plan_fallback(env_config) if global_plan else None
+        fallback = global_plan_fallback(agent) if global_plan else None
         agent = RescuedPolicy(agent, env_config, settings, fallback=fallback, label=label)
     if shield:
         from curlnav.planners.shield import ShieldedPolicy

@@ -2,8 +2,9 @@
 global planner, Nav2's planner server): the policy's goal input is a waypoint
 ``WaypointConfig.distance_m`` ahead on an A* path, advanced as the robot goes.
 
-``GlobalPlan`` needs only a planner (``plan(start, goal) -> path``), a path and a pose, so the ROS 2
-node (``curlnav.ros2.node``) follows a ``/plan`` with it too; ``GlobalPlanAgent`` puts a policy behind
+``GlobalPlan`` needs only a planner (``plan(start, goal) -> path``), a path and a pose (and the
+planner's ``world`` where tight cells are given), so the ROS 2 node (``curlnav.ros2.node``) follows a
+``/plan`` with it too (without tight cells: the node has no map and no tracker); ``GlobalPlanAgent`` puts a policy behind
 the oracle's A* path on the static map (``curlnav eval POLICY+global-plan``).
 """
 
@@ -30,21 +31,23 @@ class WaypointConfig:
     #: doorway narrower than the robot's width plus twice this, a corner the path cuts close);
     #: 0: none is tight
     passage_margin_m: float = 0.1
-    #: from this far before a tight spot on the path (m along it) until past it, the plan's path
-    #: tracker drives (``GlobalPlanAgent``), not the policy
+    #: from this far before a tight spot on the path (m along it) until this far past it, the
+    #: plan's path tracker drives (``GlobalPlanAgent``), not the policy: past it by the robot's
+    #: half-length and a margin, so that its rear is out of the doorway before the policy turns
     passage_approach_m: float = 2.0
+    passage_exit_m: float = 0.7
     #: the tracker's pure-pursuit lookahead (m) and the heading error beyond which it turns in
     #: place (rad): short and small, so that it follows the path into the passage lined up
     passage_lookahead_m: float = 0.4
     passage_turn_rad: float = math.radians(20.0)
 
     def __post_init__(self) -> None:
-        for name in ("distance_m", "replan_deviation_m", "passage_margin_m", "passage_approach_m",
-                     "passage_lookahead_m", "passage_turn_rad"):
+        optional = ("passage_margin_m", "passage_approach_m", "passage_exit_m")  # 0 allowed
+        for name in ("distance_m", "replan_deviation_m", *optional, "passage_lookahead_m", "passage_turn_rad"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                    and value >= 0 and (value > 0 or name in ("passage_margin_m", "passage_approach_m"))):
-                kind = "non-negative" if name in ("passage_margin_m", "passage_approach_m") else "positive"
+                    and value >= 0 and (value > 0 or name in optional)):
+                kind = "non-negative" if name in optional else "positive"
                 raise ValueError(f"waypoints: {name} must be a {kind} "
                                  f"number, got {value!r}")
         if not isinstance(self.line_of_sight, bool):
@@ -80,15 +83,28 @@ class GlobalPlan:
         iy, ix = world.cell_of(float(x), float(y))
         return bool(self._tight_cells[min(max(iy, 0), rows - 1), min(max(ix, 0), cols - 1)])
 
+    @property
+    def index(self) -> int:
+        """The path point nearest the robot at the last ``waypoint`` call."""
+        return self._index
+
+    @property
+    def tight(self) -> np.ndarray:
+        """``(n,)`` which of the path's points are tight (all False without a path or tight cells)."""
+        return self._tight if self.path is not None else np.zeros(0, dtype=bool)
+
     def near_passage(self, x: float, y: float) -> bool:
-        """Whether the robot at ``(x, y)`` (m) stands on a tight cell or within
-        ``passage_approach_m`` before one on the path (as of the last ``waypoint`` call)."""
+        """Whether the robot at ``(x, y)`` (m) stands on a tight cell, or a tight point of the path
+        lies between ``passage_exit_m`` behind and ``passage_approach_m`` ahead of its place on
+        the path (as of the last ``waypoint`` call)."""
         if self.path is None or self._tight_cells is None:
             return False
         if self._is_tight(x, y):
             return True
-        end = int(np.searchsorted(self._along, self._along[self._index] + self.config.passage_approach_m, side="right"))
-        return bool(self._tight[self._index:end].any())
+        here = self._along[self._index]
+        start = int(np.searchsorted(self._along, here - self.config.passage_exit_m, side="left"))
+        end = int(np.searchsorted(self._along, here + self.config.passage_approach_m, side="right"))
+        return bool(self._tight[start:end].any())
 
     def waypoint(self, x: float, y: float) -> tuple[float, float]:
         """The point ``distance_m`` ahead along the path of the path point nearest ``(x, y)``
@@ -130,7 +146,12 @@ class GlobalPlanAgent:
     same map and pose, turning in place where the path lies behind it). A policy steering for a
     waypoint in such a doorway's mouth drives at it as it is headed and wedges its corner on the
     jamb, where neither the shield nor a rescue can turn it; the tracker lines up first, as the
-    path does. ``passage_steps`` counts the steps it drove in the current episode."""
+    path does (``passage_tracker``: a short lookahead, turning in place sooner). Both it and
+    ``tracker`` (the oracle's settings: what a rescue in front drives, ``track``,
+    ``curlnav.planners.rescue.global_plan_fallback``) follow the plan itself, from the robot's place
+    on it. ``passage_steps`` counts the steps the tight spots' command was chosen over the policy's
+    in the current episode (a rescue in front may still have sent its own); ``tracking`` says
+    whether the last step's was."""
 
     def __init__(self, policy, env_config: EnvConfig | None = None, config: WaypointConfig | None = None,
                  label: str = "policy") -> None:
@@ -141,17 +162,22 @@ class GlobalPlanAgent:
         self._planners: dict[int, tuple[GridPlanner, np.ndarray | None]] = {}  # the grid and its tight cells
         self.plan: GlobalPlan | None = None
         self._goals: np.ndarray | None = None  # (goal_frames, 3)
-        self.tracker = (StaticMapPlanner(self.env_config, PlannerConfig(
-            lookahead_m=self.config.passage_lookahead_m, turn_in_place_rad=self.config.passage_turn_rad))
-            if self.config.passage_margin_m > 0 else None)
+        # the plan's path trackers: one a rescue in front may drive (the oracle's settings), one
+        # for tight spots (a short lookahead, turning in place sooner: lined up with the path)
+        self.tracker = StaticMapPlanner(self.env_config, PlannerConfig(replan_deviation_m=self.config.replan_deviation_m))
+        self.passage_tracker = StaticMapPlanner(self.env_config, PlannerConfig(
+            lookahead_m=self.config.passage_lookahead_m, turn_in_place_rad=self.config.passage_turn_rad,
+            replan_deviation_m=self.config.replan_deviation_m))
         self.passage_steps = 0
+        self.tracking = False  # whether the last act gave the tracker's command for a tight spot
+        self._episode: tuple[World, StartGoal, GridPlanner] | None = None
 
     def reset(self, world: World, pair: StartGoal) -> None:
         key = id(world)
         if key not in self._planners or self._planners[key][0].world is not world:
             half_width = self.env_config.robot.base_width / 2
             planner, tight = GridPlanner(world, half_width), None
-            if self.tracker is not None:  # free for the robot, but not with the margin to spare
+            if self.config.passage_margin_m > 0:  # free for the robot, but not with the margin to spare
                 wide = GridPlanner(world, half_width, PlannerConfig(clearance_margin_m=self.config.passage_margin_m))
                 tight = wide.blocked & ~planner.blocked
             self._planners = {key: (planner, tight)}
@@ -159,8 +185,8 @@ class GlobalPlanAgent:
         self.plan = GlobalPlan(planner, (pair.x, pair.y), (pair.gx, pair.gy), self.config, tight)
         self._goals = None
         self.passage_steps = 0
-        if self.tracker is not None:
-            self.tracker.reset(world, pair)
+        self.tracking = False
+        self._episode = (world, pair, planner)
         inner = getattr(self.policy, "reset", None)
         if callable(inner):
             inner(world, pair)
@@ -186,10 +212,22 @@ class GlobalPlanAgent:
         shown = self.observation(observation, info["pose"])
         inner = getattr(self.policy, "act", None)  # a planner (dwa) needs the odometry too
         own = self.policy(shown) if inner is None else inner(shown, info)
-        if self.tracker is not None and self.plan.near_passage(*info["pose"][:2]):
+        self.tracking = self.plan.near_passage(*info["pose"][:2])
+        if self.tracking:
             self.passage_steps += 1
-            return self.tracker.act(observation, info)
+            return self.track(observation, info, passage=True)
         return own
+
+    def track(self, observation: np.ndarray, info: dict, passage: bool = False) -> np.ndarray:
+        """A tracker's command for this step (``passage``: the tight spots' one), on the plan as it
+        stands (its path and the robot's place on it): regulated pure pursuit of the same path the
+        policy's waypoints come from."""
+        if self._episode is None:
+            raise RuntimeError("GlobalPlanAgent.track before reset(world, pair)")
+        world, pair, planner = self._episode
+        tracker = self.passage_tracker if passage else self.tracker
+        tracker.follow(world, pair, planner, self.plan.path, self.plan.index)
+        return tracker.act(observation, info)
 
     def commanded(self, action: np.ndarray) -> None:
         """The command the robot was sent this step, passed on to the agent behind the plan

@@ -235,6 +235,17 @@ class StaticMapPlanner:
         self._last_turn = 1.0
         self._set_path(self.planner_for(world).plan((pair.x, pair.y), (pair.gx, pair.gy)))
 
+    def follow(self, world: World, pair: StartGoal, planner: GridPlanner, path: np.ndarray | None, index: int) -> None:
+        """Track another agent's plan instead of planning its own: ``path`` (``(n, 2)`` map points,
+        m, made by ``planner`` on ``world`` for ``pair``) from its point ``index`` on (call before
+        each ``act``). A path the tracker planned again on its own is replaced by the given one."""
+        self.world, self.pair = world, pair
+        self._planners = {id(world): planner}
+        if self.path is not path:
+            self._set_path(path)
+        if path is not None:
+            self._index = min(max(int(index), 0), len(path) - 1)
+
     def _set_path(self, path: np.ndarray | None) -> None:
         self.path = path
         self._index = 0

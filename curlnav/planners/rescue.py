@@ -70,18 +70,32 @@ def default_fallback(env_config: EnvConfig, reverse: bool = True):
     return ScanMapPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=reverse)), env_config, label="dwa")
 
 
-def global_plan_fallback(env_config: EnvConfig):
-    """The fallback behind a global plan (``POLICY+global-plan+rescue``): regulated pure pursuit of
-    the same A* path on the same static map the policy's waypoints come from, on the same pose
-    (``StaticMapPlanner``, the ``oracle``'s follower: it turns in place where the path lies behind
-    it and caps its speed by the scan's static returns), as a navigation stack pairs its global
-    planner with a path-tracking controller (Nav2's regulated pure pursuit). A stack behind a
-    global plan has the map and a localised pose; ``dwa`` steering for the waypoint ahead (session
-    8) stood still where the policy had wedged the robot in a doorway's mouth at an angle: its
-    sampled arcs all come within its margin of the jambs, and it never turns in place."""
-    from curlnav.planners.oracle import StaticMapPlanner
+def global_plan_fallback(planned):
+    """The fallback behind a global plan (``POLICY+global-plan+rescue``): the plan's path tracker,
+    regulated pure pursuit of the very A* path the policy's waypoints come from (``planned``: the
+    ``GlobalPlanAgent``; ``GlobalPlanAgent.track``, a ``StaticMapPlanner`` on the same map and pose),
+    as a navigation stack pairs its global planner with a path-tracking controller (Nav2's
+    regulated pure pursuit). It turns in place where the path lies behind the robot. A stack
+    behind a global plan has the map and a localised pose; ``dwa`` steering for the waypoint ahead
+    (session 8) stood still where the policy had wedged the robot in a doorway's mouth at an
+    angle: its sampled arcs all came within its margin of the jambs, and it never turns in place."""
+    return PlanTracker(planned)
 
-    return StaticMapPlanner(env_config)
+
+class PlanTracker:
+    """A rescue's fallback that drives a ``GlobalPlanAgent``'s tracker on its plan (the agent
+    resets both: ``reset`` here does nothing)."""
+
+    label = "plan tracker"
+
+    def __init__(self, planned) -> None:
+        self.planned = planned
+
+    def reset(self, world: World | None, pair: StartGoal | None) -> None:
+        pass  # the GlobalPlanAgent behind the rescue plans anew at its own reset
+
+    def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        return self.planned.track(observation, info)
 
 
 class RescuedPolicy:
