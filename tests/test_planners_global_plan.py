@@ -13,7 +13,7 @@ from conftest import run_pairs as drive
 from curlnav.evaluation.protocol import evaluation_config
 from curlnav.planners.global_plan import GlobalPlanAgent, WaypointConfig
 from curlnav.planners.shield import ShieldedPolicy
-from curlnav.sim import StartGoal, World
+from curlnav.sim import NamoEnv, StartGoal, World
 
 RES = 0.05  # m, the door world's cells
 
@@ -69,6 +69,28 @@ def test_through_a_tight_doorway_the_plans_tracker_lines_the_robot_up_and_drives
     steps = round(result.mean_episode_time_s / cfg.control_period)
     assert 0 < agent.passage_steps < steps - 10, f"the tracker drove the doorway, the policy the rooms: " \
                                                   f"{agent.passage_steps} of {steps} steps"
+
+
+def test_a_tracker_taking_over_far_along_the_plan_tracks_it_from_where_the_robot_stands():
+    """The trackers do nothing while the policy drives. One that takes over 4 m along the plan,
+    the robot facing on along it, drives on along the plan, on the plan's own path: it does not
+    aim back at the plan's start (and turn round), nor plan a path of its own."""
+    cfg = evaluation_config()
+    world = tight_door_world()
+    agent = GlobalPlanAgent(GoalSeeker(), cfg)
+    agent.reset(world, StartGoal("far", 1.0, 3.0, 0.0, 10.0, 4.0))
+    env = NamoEnv(world, cfg)
+    try:  # the robot 4 m on, 1.2 m before the doorway, facing it
+        observation, info = env.reset(seed=0, options={"world": world, "pair": StartGoal("on", 4.8, 3.95, 0.0, 10.0, 4.0)})
+    finally:
+        env.close()
+    agent.observation(observation, info["pose"])  # the policy's step: the robot's place on the plan
+    assert agent.plan.index > 0
+    for passage in (True, False):
+        command = agent.track(observation, info, passage=passage)
+        tracker = agent.passage_tracker if passage else agent.tracker
+        assert tracker.path is agent.plan.path
+        assert command[0] > 0.1 and abs(command[1]) < 0.5, f"on along the plan, not round: {command}"
 
 
 def test_a_plan_that_keeps_off_the_walls_leaves_the_policy_in_charge():

@@ -31,10 +31,11 @@ class WaypointConfig:
     #: doorway narrower than the robot's width plus twice this, a corner the path cuts close);
     #: 0: none is tight
     passage_margin_m: float = 0.1
-    #: from this far before a tight spot on the path (m along it) until this far past it, the
-    #: plan's path tracker drives (``GlobalPlanAgent``), not the policy: past it by the robot's
-    #: half-length and a margin, so that its rear is out of the doorway before the policy turns
+    #: from this far before a tight spot on the path (m along it) ...
     passage_approach_m: float = 2.0
+    #: ... until this far past it the plan's path tracker drives (``GlobalPlanAgent``), not the
+    #: policy: the Husky's half-length (0.495 m) and a margin, so that its rear is out of the
+    #: doorway before the policy turns (a longer robot needs more)
     passage_exit_m: float = 0.7
     #: the tracker's pure-pursuit lookahead (m) and the heading error beyond which it turns in
     #: place (rad): short and small, so that it follows the path into the passage lined up
@@ -141,17 +142,18 @@ class GlobalPlanAgent:
 
     Through a tight spot (``WaypointConfig.passage_margin_m``: where the path passes nearer a wall
     than the robot's half-width plus that margin, as through a doorway the robot fits with less than
-    the margin to spare on either side) and for ``passage_approach_m`` before it, the plan's path
-    tracker drives instead (``StaticMapPlanner``: regulated pure pursuit of the A* path on the
-    same map and pose, turning in place where the path lies behind it). A policy steering for a
-    waypoint in such a doorway's mouth drives at it as it is headed and wedges its corner on the
-    jamb, where neither the shield nor a rescue can turn it; the tracker lines up first, as the
-    path does (``passage_tracker``: a short lookahead, turning in place sooner). Both it and
-    ``tracker`` (the oracle's settings: what a rescue in front drives, ``track``,
-    ``curlnav.planners.rescue.global_plan_fallback``) follow the plan itself, from the robot's place
-    on it. ``passage_steps`` counts the steps the tight spots' command was chosen over the policy's
-    in the current episode (a rescue in front may still have sent its own); ``tracking`` says
-    whether the last step's was."""
+    the margin to spare on either side), from ``passage_approach_m`` before it until
+    ``passage_exit_m`` past it, the plan's path tracker drives instead (``passage_tracker``, a
+    ``StaticMapPlanner``: regulated pure pursuit of the A* path on the same map and pose, with a
+    short lookahead, turning in place where the path lies more than 20 degrees off). A policy
+    steering for a waypoint in such a doorway's mouth drives at it as it is headed and wedges its
+    corner on the jamb, where neither the shield nor a rescue can turn it; the tracker lines up
+    first, as the path does. ``tracker`` (the oracle's settings but the plan's re-plan distance) is
+    what a rescue in front drives (``track``,
+    ``curlnav.planners.rescue.global_plan_fallback``); both follow the plan itself, from the robot's
+    place on it. ``passage_steps`` counts the steps the tight spots' command was chosen over the
+    policy's in the current episode (a rescue in front may still have sent its own, from
+    ``tracker``); ``tracking`` says whether the last step's was."""
 
     def __init__(self, policy, env_config: EnvConfig | None = None, config: WaypointConfig | None = None,
                  label: str = "policy") -> None:
@@ -187,6 +189,8 @@ class GlobalPlanAgent:
         self.passage_steps = 0
         self.tracking = False
         self._episode = (world, pair, planner)
+        for tracker in (self.tracker, self.passage_tracker):
+            tracker.clear()
         inner = getattr(self.policy, "reset", None)
         if callable(inner):
             inner(world, pair)

@@ -235,6 +235,12 @@ class StaticMapPlanner:
         self._last_turn = 1.0
         self._set_path(self.planner_for(world).plan((pair.x, pair.y), (pair.gx, pair.gy)))
 
+    def clear(self) -> None:
+        """Forget the episode (its path, place on it and side of the last turn in place), as
+        ``reset`` does, without planning: a tracker of another agent's plan between episodes."""
+        self._set_path(None)
+        self._last_turn = 1.0
+
     def follow(self, world: World, pair: StartGoal, planner: GridPlanner, path: np.ndarray | None, index: int) -> None:
         """Track another agent's plan instead of planning its own: ``path`` (``(n, 2)`` map points,
         m, made by ``planner`` on ``world`` for ``pair``) from its point ``index`` on (call before

@@ -83,8 +83,9 @@ def global_plan_fallback(planned):
 
 
 class PlanTracker:
-    """A rescue's fallback that drives a ``GlobalPlanAgent``'s tracker on its plan (the agent
-    resets both: ``reset`` here does nothing)."""
+    """A rescue's fallback that drives a ``GlobalPlanAgent``'s trackers on its plan (the agent
+    resets them: ``reset`` here does nothing). Where the map has no path to the goal, it stands
+    still, as the plan's policy steers for the goal itself."""
 
     label = "plan tracker"
 
@@ -95,6 +96,8 @@ class PlanTracker:
         pass  # the GlobalPlanAgent behind the rescue plans anew at its own reset
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        """The plan's tracker's command (the oracle's settings, near a tight spot too: handing a
+        rescue there the tight spots' tracker scored 166 of 180 on validation against 168)."""
         return self.planned.track(observation, info)
 
 
