@@ -56,7 +56,6 @@ def u_trap_world():
     return World(name="u-trap", occupancy=grid, resolution=0.1, pairs=(pair,))
 
 
-
 class GoalSeeker:
     """A policy with no sense of obstacles: full speed at the goal of its observation, turning
     toward it (``[v, w, 0]``, fractions); counts its calls."""
@@ -83,6 +82,7 @@ def run_pairs(agent, world, cfg):
         return evaluate(agent, world, list(world.pairs), cfg, env=env)
     finally:
         env.close()
+
 
 # -- waiting ---------------------------------------------------------------------------------------
 def wait_for(what: str, check, timeout: float = 120.0, procs=(), every: float = 0.5):

@@ -18,6 +18,7 @@ import numpy as np
 from curlnav.layout import goal_frame
 from curlnav.planners.oracle import GridPlanner, PlannerConfig, StaticMapPlanner
 from curlnav.sim import EnvConfig, StartGoal, World
+from curlnav.worlds.pairs import clearance_map
 
 
 @dataclass(frozen=True)
@@ -74,15 +75,19 @@ class GlobalPlan:
         self._index = 0
         if path is not None:
             self._along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
-            self._tight = np.array([self._is_tight(x, y) for x, y in path], dtype=bool)
+            self._tight = self._tight_at(path)
 
-    def _is_tight(self, x: float, y: float) -> bool:
+    def _tight_at(self, points: np.ndarray) -> np.ndarray:
+        """``(n,)`` whether each of ``points`` (``(n, 2)``, m) lies on a tight cell (off the grid:
+        its nearest edge cell)."""
         if self._tight_cells is None:
-            return False
+            return np.zeros(len(points), dtype=bool)
         world = self.planner.world
+        u, v = world.grid_from_map(points[:, 0], points[:, 1])
         rows, cols = self._tight_cells.shape
-        iy, ix = world.cell_of(float(x), float(y))
-        return bool(self._tight_cells[min(max(iy, 0), rows - 1), min(max(ix, 0), cols - 1)])
+        iy = np.clip(np.floor(v / world.resolution).astype(int), 0, rows - 1)
+        ix = np.clip(np.floor(u / world.resolution).astype(int), 0, cols - 1)
+        return self._tight_cells[iy, ix]
 
     @property
     def index(self) -> int:
@@ -100,7 +105,7 @@ class GlobalPlan:
         the path (as of the last ``waypoint`` call)."""
         if self.path is None or self._tight_cells is None:
             return False
-        if self._is_tight(x, y):
+        if self._tight_at(np.array([[x, y]], dtype=np.float64))[0]:
             return True
         here = self._along[self._index]
         start = int(np.searchsorted(self._along, here - self.config.passage_exit_m, side="left"))
@@ -178,10 +183,10 @@ class GlobalPlanAgent:
         key = id(world)
         if key not in self._planners or self._planners[key][0].world is not world:
             half_width = self.env_config.robot.base_width / 2
-            planner, tight = GridPlanner(world, half_width), None
+            clearance = clearance_map(world)
+            planner, tight = GridPlanner(world, half_width, clearance=clearance), None
             if self.config.passage_margin_m > 0:  # free for the robot, but not with the margin to spare
-                wide = GridPlanner(world, half_width, PlannerConfig(clearance_margin_m=self.config.passage_margin_m))
-                tight = wide.blocked & ~planner.blocked
+                tight = ~planner.blocked & (clearance <= half_width + self.config.passage_margin_m)
             self._planners = {key: (planner, tight)}
         planner, tight = self._planners[key]
         self.plan = GlobalPlan(planner, (pair.x, pair.y), (pair.gx, pair.gy), self.config, tight)

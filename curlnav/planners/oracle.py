@@ -134,10 +134,12 @@ class GridPlanner:
     """Paths on one world's static grid for a robot of half-width ``half_width`` (m); see the
     module docstring. Points are map-frame metres."""
 
-    def __init__(self, world: World, half_width: float, config: PlannerConfig | None = None) -> None:
+    def __init__(self, world: World, half_width: float, config: PlannerConfig | None = None,
+                 clearance: np.ndarray | None = None) -> None:
+        """``clearance``: the world's ``clearance_map``, where the caller has it already."""
         cfg = config or PlannerConfig()
         self.world = world
-        clearance = clearance_map(world)
+        clearance = clearance_map(world) if clearance is None else clearance
         lethal = half_width + cfg.clearance_margin_m
         self.blocked = clearance <= lethal
         span = max(cfg.inflation_m - lethal, 1e-6)
