@@ -111,3 +111,27 @@ def test_bad_waypoint_settings_are_refused_naming_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         WaypointConfig(**{field: value})
     WaypointConfig(passage_margin_m=0.0, passage_approach_m=0.0, passage_exit_m=0.0)  # off: allowed
+
+
+def test_a_robot_in_a_pocket_far_from_any_free_cell_gets_a_waypoint_and_the_plan_is_not_redone_each_step():
+    """A robot pushed deep into clutter, more than ``replan_deviation_m`` from every cell the planner
+    counts free, strays from the path at every step: the plan is made again from the nearest free
+    cell once, and the waypoint is still given (it recursed without end before, ending the
+    evaluation with a RecursionError), and not made again until the robot has moved."""
+    from curlnav.planners.global_plan import GlobalPlan
+    from curlnav.planners.oracle import GridPlanner
+
+    grid = walled_room(20.0, 10.0, RES)
+    fill(grid, 2.0, 2.0, 8.0, 8.0, RES)  # a 6 m block: its middle lies 3 m from the nearest free cell
+    world = World(name="pocket", occupancy=grid, resolution=RES)
+    planner = GridPlanner(world, 0.335)
+    plan = GlobalPlan(planner, (12.0, 5.0), (17.0, 5.0))
+    plans = []
+    plan_once = planner.plan
+    planner.plan = lambda start, goal: plans.append(start) or plan_once(start, goal)
+    for step in range(5):
+        wx, wy = plan.waypoint(5.0, 5.0 + 0.01 * step)  # in the block, 3 m from the nearest free cell
+        assert np.isfinite([wx, wy]).all()
+    assert len(plans) == 1
+    plan.waypoint(5.0, 6.0)  # moved 1 m: planned again from here
+    assert len(plans) == 2

@@ -67,6 +67,7 @@ class GlobalPlan:
         the robot, nearer a wall than its half-width plus ``passage_margin_m``), or None."""
         self.planner, self.goal = planner, (float(goal[0]), float(goal[1]))
         self.config = config or WaypointConfig()
+        self._replanned_from: tuple[float, float] | None = None  # m, where the path was last planned again
         self._tight_cells = tight
         self._set(planner.plan(start, goal))
 
@@ -125,7 +126,12 @@ class GlobalPlan:
         ahead = self.path[self._index:max(window, self._index + 1)]
         d = np.hypot(ahead[:, 0] - x, ahead[:, 1] - y)
         k = int(np.argmin(d))
-        if d[k] > cfg.replan_deviation_m:
+        if d[k] > cfg.replan_deviation_m and (self._replanned_from is None or math.hypot(
+                x - self._replanned_from[0], y - self._replanned_from[1]) > cfg.replan_deviation_m / 4):
+            # once per place: a robot in a pocket of the map that no free cell within
+            # replan_deviation_m of it reaches gets a path starting further off (the planner starts
+            # at the nearest free cell), planned again only once it has moved
+            self._replanned_from = (x, y)
             path = self.planner.plan((x, y), self.goal)
             if path is not None:
                 self._set(path)
