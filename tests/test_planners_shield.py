@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import u_trap_world
+from conftest import run_pairs, u_trap_world
 
 from curlnav.evaluation.protocol import evaluate, evaluation_config
 from curlnav.planners import make_agent
@@ -81,7 +81,8 @@ def test_a_command_with_room_passes_the_shield_unchanged_and_one_into_a_wall_is_
     assert shield.interventions == 1
 
 
-@pytest.mark.parametrize("bad", [{"horizon_s": 0}, {"margin_m": -0.1}, {"v_samples": 1}, {"stuck_steps": -1},
+@pytest.mark.parametrize("bad", [{"horizon_s": 0}, {"margin_m": -0.1}, {"turn_margin_m": -0.01}, {"v_samples": 1},
+                                 {"stuck_steps": -1},
                                  {"step_s": 2.0}, {"no_such": 1}])
 def test_bad_shield_settings_are_refused_by_name(bad):
     with pytest.raises(ValueError, match="shield"):
@@ -261,3 +262,81 @@ def test_a_reverse_command_is_refused_for_a_forward_only_robot_and_taken_within_
             env.step([-0.6, 0.0, 0.0])
     finally:
         env.close()
+
+
+class TurnThenDrive:
+    """A path tracker's manner (``StaticMapPlanner``): a turn on the spot while the goal lies more
+    than 20 degrees off, else full speed at it (``[v, w, 0]``, fractions)."""
+
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        gx, gy = goal_in_robot_frame(observation[-3:])
+        bearing = math.atan2(gy, gx)
+        if abs(bearing) > math.radians(20.0):
+            return np.array([0.0, math.copysign(1.0, bearing), 0.0], np.float32)
+        return np.array([1.0, float(np.clip(2.0 * bearing, -1, 1)), 0.0], np.float32)
+
+
+def test_a_base_wedged_at_a_post_turns_out_on_the_spot_behind_the_shield():
+    """A post stands 10 cm ahead of the Husky's front right corner, the goal to its left: the
+    turn on the spot sweeps that corner past the post at about 3 cm. Behind a global plan
+    (``static_map``) the shield's turn margin (``turn_margin_m``) lets the turn through and the
+    robot reaches the goal without a contact; holding turns to the 5 cm margin of driving (the
+    shield before, and map-less), it stands at the post all episode (session 10: six of the
+    validation worlds' failures behind a global plan)."""
+    from conftest import fill, walled_room
+
+    from curlnav.sim import StartGoal, World
+
+    res = 0.05
+    grid = walled_room(8.0, 8.0, res)
+    fill(grid, 3.6, 2.75, 3.7, 2.85, res)  # the post, ahead and right of the base at (3, 3) heading +x
+    pair = StartGoal("wedged", 3.0, 3.0, 0.0, 3.0, 6.5)
+    world = World(name="post", occupancy=grid, resolution=res, pairs=(pair,))
+    cfg = evaluation_config()
+    turned = run_pairs(ShieldedPolicy(TurnThenDrive(), cfg, static_map=True), world, cfg)
+    assert turned.success_rate == 1.0 and turned.collisions_per_episode == 0
+    for held in (ShieldedPolicy(TurnThenDrive(), cfg, ShieldConfig(turn_margin_m=0.05), static_map=True),
+                 ShieldedPolicy(TurnThenDrive(), cfg)):
+        result = run_pairs(held, world, cfg)
+        assert result.success_rate == 0.0 and result.collisions_per_episode == 0
+
+
+def test_behind_a_global_plan_the_shield_keeps_the_rear_off_a_wall_the_lidar_cannot_see():
+    """The base starts 3 cm in front of a wall at its back, the goal behind it to the left: the
+    turn on the spot swings a rear corner into that wall, in the LiDAR's blind 120 degrees. The
+    map-less shield lets the turn through and the base hits the wall; checking the map's walls round
+    the localised pose as well (``static_map``, as behind a global plan), it does not, and the robot
+    still reaches the goal."""
+    from conftest import fill, walled_room
+
+    from curlnav.sim import StartGoal, World
+
+    res = 0.05
+    grid = walled_room(8.0, 8.0, res)
+    fill(grid, 2.375, 2.0, 2.475, 4.0, res)  # 2 m of wall across the base's back, 3 cm behind it
+    pair = StartGoal("backed", 3.0, 3.0, 0.0, 1.5, 5.5)
+    world = World(name="backed", occupancy=grid, resolution=res, pairs=(pair,))
+    cfg = evaluation_config()
+    blind = run_pairs(ShieldedPolicy(TurnThenDrive(), cfg), world, cfg)
+    assert blind.collisions_per_episode > 0
+    mapped = run_pairs(ShieldedPolicy(TurnThenDrive(), cfg, static_map=True), world, cfg)
+    assert mapped.success_rate == 1.0 and mapped.collisions_per_episode == 0
+
+
+def test_the_wall_outline_lies_on_the_faces_of_the_walls_that_face_free_space():
+    """``wall_outline``: every point is on an occupied cell's outline next to a free cell, and every
+    free cell's face against a wall has its points (independent truth: the cells' edges)."""
+    from curlnav.planners.shield import wall_outline
+    from curlnav.sim import World
+
+    grid = np.zeros((6, 8), dtype=bool)
+    grid[2:4, 3:5] = True  # a 0.2 m post in the middle of a free map of 0.1 m cells
+    world = World(name="post", occupancy=grid, resolution=0.1, origin=(1.0, -2.0))
+    points = wall_outline(world)
+    steps = np.round(np.arange(0.0, 0.21, 0.05), 6)  # half a cell apart along each face
+    faces = [(0.3, 0.2 + t) for t in steps] + [(0.5, 0.2 + t) for t in steps] \
+        + [(0.3 + t, 0.2) for t in steps] + [(0.3 + t, 0.4) for t in steps]
+    expected = {(round(1.0 + x, 6), round(-2.0 + y, 6)) for x, y in faces}
+    assert {tuple(p) for p in np.round(points, 6)} >= expected
+    for x, y in points:
+        assert 1.3 - 1e-6 <= x <= 1.5 + 1e-6 and -1.8 - 1e-6 <= y <= -1.6 + 1e-6

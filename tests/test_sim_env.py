@@ -244,3 +244,22 @@ def test_unknown_world_and_pair_raise_clear_errors(make_env):
         env.reset(options={"pair": "p9"})
     with pytest.raises(ValueError, match="unknown reset options"):
         env.reset(options={"wrld": "open-room"})
+
+
+def test_an_impulse_from_the_solver_cannot_launch_the_base_faster_than_twice_its_top_speed(make_env):
+    """A door squeezed between the base and its jamb once handed the base 90 m/s (Bullet's own cap
+    is 100 m/s) and it flew through a floor's outer wall (session 10). The same kick, given here
+    as an 80 m/s joint velocity, carries the base at most twice its top speed for the control
+    period, not metres."""
+    import pybullet as pb
+
+    from curlnav.sim.scene import JOINT_X
+
+    env = make_env(room_world(pairs=(StartGoal("middle", 5.0, 5.0, 0.0, 9.0, 5.0),), size=40.0))
+    env.reset(seed=0)
+    robot = env.config.robot
+    x0 = env.scene.robot_pose()[0]
+    pb.resetJointState(env.scene.robot, JOINT_X, x0, targetVelocity=80.0, physicsClientId=env.scene.client)
+    env.step([0.0, 0.0, 0.0])
+    moved = env.scene.robot_pose()[0] - x0
+    assert 0.0 < moved <= 2.0 * robot.max_linear_speed * env.config.control_period + 1e-6

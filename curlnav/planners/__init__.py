@@ -258,7 +258,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     if shield:
         from curlnav.planners.shield import ShieldedPolicy
 
-        agent = ShieldedPolicy(agent, env_config, label=label)
+        agent = ShieldedPolicy(agent, env_config, label=label, static_map=global_plan)  # the plan's map too
     if track:
         from curlnav.planners.label_filter import LabelFilteredPolicy
 

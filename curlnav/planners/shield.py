@@ -14,7 +14,13 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
   held one control period; the rest is the room needed to stop or turn away next step) and the
   footprint (the base's rectangle) is checked at every ``step_s`` along it;
 - a command whose footprint keeps at least ``margin_m`` from every point (or, already nearer
-  than that, does not come nearer) passes unchanged. Otherwise the admissible command nearest to
+  than that, does not come nearer) passes unchanged. Behind a global plan (``static_map``) a turn
+  on the spot (``v = 0``) needs only ``turn_margin_m`` (1.5 cm): a base wedged at an angle, a post
+  a few centimetres ahead of its corner, gets out only by turning past it (the plan's trackers
+  turn on the spot), and the sweep of a turn on the spot is known to the centimetre, with no
+  speed to stop from. Map-less it stays at ``margin_m``: there the scan memory alone says where the
+  walls are, and on the validation floors the smaller margin bought nothing and added contacts
+  under ``harsh`` senses (docs/results/2026-11-27-namo-robust, session 10). Otherwise the admissible command nearest to
   the policy's (``v`` and ``w`` fractions, ``w`` weighted by ``turn_weight``) out of a grid of
   ``v_samples`` x ``w_samples`` replaces it, and when none is admissible the one that keeps the
   most clearance does. The arm value is passed through;
@@ -29,7 +35,11 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
 
 The shield uses what the policy's own robot has: the observation (scan, labels, goal) and
 odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). Movable
-points (label 1) are not obstacles to it: the NAMO policies push them.
+points (label 1) are not obstacles to it: the NAMO policies push them. Behind a global plan
+(``static_map``), where the stack has the map and a localised pose (``info["pose"]``, as the plan
+has), the walls of the map round the base are checked too (``wall_outline``): the LiDAR does not
+see the 120 degrees behind the base, where a turn on the spot swings its rear corners, nor a post
+thinner than the gap between two beams.
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from curlnav.planners import SHIELD_SUFFIX
 from curlnav.planners.local import ScanAgent, footprint_clearance
@@ -53,6 +64,10 @@ class ShieldConfig:
     horizon_s: float = 0.6  # how far ahead each command's arc is checked
     step_s: float = 0.05  # footprint checks along it, this far apart in time
     margin_m: float = 0.05  # a command is admissible when its footprint keeps this far from every point
+    #: behind a global plan (``ShieldedPolicy(static_map=True)``), a turn on the spot (``v = 0``) is
+    #: admissible when the footprint keeps this far: the rotation is what frees a base wedged at an
+    #: angle, and its sweep is known to the centimetre (map-less: ``margin_m``)
+    turn_margin_m: float = 0.015
     v_samples: int = 9  # linear speed fractions 0..1 of the replacement grid
     w_samples: int = 17  # turn rate fractions -1..1 of the replacement grid
     turn_weight: float = 0.5  # how much a change of turn rate counts against a change of speed
@@ -66,9 +81,9 @@ class ShieldConfig:
     reverse_recovery: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("horizon_s", "step_s", "margin_m", "turn_weight", "ignore_beyond_m"):
+        for name in ("horizon_s", "step_s", "margin_m", "turn_margin_m", "turn_weight", "ignore_beyond_m"):
             value = getattr(self, name)
-            zero_ok = name in ("margin_m", "turn_weight")
+            zero_ok = name in ("margin_m", "turn_margin_m", "turn_weight")
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
                     and value >= 0 and (value > 0 or zero_ok)):
                 kind = "non-negative" if zero_ok else "positive"
@@ -100,6 +115,22 @@ class ShieldConfig:
         return cls(**values)
 
 
+def wall_outline(world: World) -> np.ndarray:
+    """``(n, 2)`` map-frame points (m) on the outline of the map's walls: the corners and edge
+    midpoints of every occupied cell with a free cell beside it (half a cell apart: a footprint's
+    distance to them overstates its distance to the wall by under a centimetre at 5 cm cells)."""
+    occupied = np.asarray(world.occupancy, dtype=bool)
+    padded = np.pad(occupied, 1, constant_values=True)  # beyond the map: no free cell to face
+    free_beside = ~(padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:])
+    rows, cols = np.nonzero(occupied & free_beside)
+    res = world.resolution
+    offsets = np.array([[0, 0], [0.5, 0], [1, 0], [1, 0.5], [1, 1], [0.5, 1], [0, 1], [0, 0.5]]) * res
+    u = (cols[:, None] * res + offsets[None, :, 0]).ravel()
+    v = (rows[:, None] * res + offsets[None, :, 1]).ravel()
+    x, y = world.map_from_grid(u, v)
+    return np.unique(np.round(np.stack([x, y], axis=1), 6), axis=0)
+
+
 class ShieldedPolicy(ScanAgent):
     """``policy`` (``obs -> [v, w, L]``, or an ``EpisodeAgent`` such as a policy behind a global
     plan) behind the safety shield (module docstring):
@@ -108,9 +139,13 @@ class ShieldedPolicy(ScanAgent):
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
                  config: ShieldConfig | None = None, label: str | None = None,
-                 scan_filter: ScanFilterConfig | None = ScanFilterConfig()) -> None:
+                 scan_filter: ScanFilterConfig | None = ScanFilterConfig(), static_map: bool = False) -> None:
+        """``static_map``: also check the walls of the world's map round ``info["pose"]`` (module
+        docstring; only a stack that has the map and a localised pose: behind a global plan)."""
         super().__init__(env_config, scan_filter)
         self.policy = policy
+        self.static_map = static_map
+        self._walls: tuple[World, cKDTree] | None = None  # the map's wall outline, for static_map
         self.config = config or ShieldConfig()
         self.label = label or f"{getattr(policy, 'label', 'policy')}{SHIELD_SUFFIX}"
         cfg = self.config
@@ -129,6 +164,8 @@ class ShieldedPolicy(ScanAgent):
 
     def reset(self, world: World | None, pair: StartGoal | None) -> None:
         super().reset(world, pair)
+        if self.static_map and world is not None and (self._walls is None or self._walls[0] is not world):
+            self._walls = (world, cKDTree(wall_outline(world)))
         inner = getattr(self.policy, "reset", None)
         if callable(inner):
             inner(world, pair)
@@ -140,11 +177,28 @@ class ShieldedPolicy(ScanAgent):
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
         points, _, _ = self.sense(observation, info)
+        if self.static_map:
+            points = np.concatenate([points, self.map_points(info["pose"])])
         inner = getattr(self.policy, "act", None)
         proposed = self.policy(observation) if inner is None else inner(observation, info)
         proposed = np.asarray(proposed, dtype=np.float32).reshape(-1)
         self.steps += 1
         return self.check(proposed, points)
+
+    def map_points(self, pose: tuple[float, float, float]) -> np.ndarray:
+        """``(n, 2)`` robot-frame points (m) of the map's wall outline that a command can reach
+        from ``pose`` (map frame: x, y m, yaw rad) within the horizon."""
+        if self._walls is None:
+            raise RuntimeError("ShieldedPolicy(static_map=True) needs reset(world, pair) first")
+        world, tree = self._walls
+        x, y, yaw = pose
+        robot = self.env_config.robot
+        reach = robot.max_linear_speed * self.config.horizon_s + math.hypot(self.half_length, self.half_width) \
+            + self.config.margin_m
+        near = tree.data[tree.query_ball_point([x, y], min(self.config.ignore_beyond_m, reach))]
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = near[:, 0] - x, near[:, 1] - y
+        return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1).reshape(-1, 2)
 
     def check(self, proposed: np.ndarray, points: np.ndarray) -> np.ndarray:
         """``proposed`` ``[v, w, L]`` (fractions) if its arc is admissible against ``points``
@@ -158,7 +212,10 @@ class ShieldedPolicy(ScanAgent):
         near = points[(d < min(cfg.ignore_beyond_m, reach)) & ~inside] if len(points) else points
         now = float(footprint_clearance(near, np.zeros(1), np.zeros(1), np.zeros(1), self.half_length,
                                         self.half_width)[0])
-        need = min(cfg.margin_m, now)  # already nearer than the margin: do not come nearer
+        turn_margin = cfg.turn_margin_m if self.static_map else cfg.margin_m
+
+        def need(v):  # already nearer than the margin: do not come nearer
+            return np.minimum(np.where(np.asarray(v) == 0.0, turn_margin, cfg.margin_m), now)
         if not np.isfinite(proposed[:2]).all():
             self.interventions += 1
             out = proposed.copy()
@@ -169,14 +226,14 @@ class ShieldedPolicy(ScanAgent):
         mine = footprint_clearance(near, np.array([v0 * robot.max_linear_speed]),
                                    np.array([w0 * robot.max_angular_speed]), self._times,
                                    self.half_length, self.half_width)[0]
-        if mine >= need and not self._recovering:
+        if mine >= need(v0) and not self._recovering:
             self._stuck = 0
             return proposed
         self.interventions += 1
         grid = self._grid
         vs, ws = grid[:, 0] * robot.max_linear_speed, grid[:, 1] * robot.max_angular_speed
         clearance = footprint_clearance(near, vs, ws, self._times, self.half_length, self.half_width)
-        admissible = clearance >= need
+        admissible = clearance >= need(grid[:, 0])
         if self._recovering or not admissible.any():
             # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
             # clearance of now): the command that ends with the most room round the base, backing
@@ -187,7 +244,7 @@ class ShieldedPolicy(ScanAgent):
                 clearance = np.concatenate([clearance, footprint_clearance(near, rv, rw, self._times, self.half_length,
                                                                            self.half_width)])
                 vs, ws = np.concatenate([vs, rv]), np.concatenate([ws, rw])
-                admissible = clearance >= need
+                admissible = clearance >= need(grid[:, 0])
             room = footprint_clearance(near, vs, ws, self._times[-1:], self.half_length, self.half_width)
             best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
                 else int(np.argmax(clearance))
