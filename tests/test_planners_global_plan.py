@@ -117,7 +117,8 @@ def test_a_robot_in_a_pocket_far_from_any_free_cell_gets_a_waypoint_and_the_plan
     """A robot pushed deep into clutter, more than ``replan_deviation_m`` from every cell the planner
     counts free, strays from the path at every step: the plan is made again from the nearest free
     cell once, and the waypoint is still given (it recursed without end before, ending the
-    evaluation with a RecursionError), and not made again until the robot has moved."""
+    evaluation with a RecursionError), and not made again until the robot has moved, or has been
+    back on the path."""
     from curlnav.planners.global_plan import GlobalPlan
     from curlnav.planners.oracle import GridPlanner
 
@@ -135,3 +136,6 @@ def test_a_robot_in_a_pocket_far_from_any_free_cell_gets_a_waypoint_and_the_plan
     assert len(plans) == 1
     plan.waypoint(5.0, 6.0)  # moved 1 m: planned again from here
     assert len(plans) == 2
+    plan.waypoint(*plan.path[len(plan.path) // 2])  # back on the path ...
+    plan.waypoint(5.0, 6.0)  # ... and pushed off it again where it was: planned again
+    assert len(plans) == 3

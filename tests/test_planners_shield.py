@@ -324,19 +324,25 @@ def test_behind_a_global_plan_the_shield_keeps_the_rear_off_a_wall_the_lidar_can
 
 
 def test_the_wall_outline_lies_on_the_faces_of_the_walls_that_face_free_space():
-    """``wall_outline``: every point is on an occupied cell's outline next to a free cell, and every
-    free cell's face against a wall has its points (independent truth: the cells' edges)."""
-    from curlnav.planners.shield import wall_outline
+    """``wall_outline``: points every 2 cm (at most ``WALL_POINT_SPACING_M``) along each face between
+    a wall cell and a free one, and along the grid's edge (the simulator's boundary walls); none
+    elsewhere (independent truth: the faces of a 0.2 m post on a free map of 0.1 m cells)."""
+    from curlnav.planners.shield import WALL_POINT_SPACING_M, wall_outline
     from curlnav.sim import World
 
     grid = np.zeros((6, 8), dtype=bool)
-    grid[2:4, 3:5] = True  # a 0.2 m post in the middle of a free map of 0.1 m cells
+    grid[2:4, 3:5] = True  # the post: x 0.3-0.5 m, y 0.2-0.4 m of the grid
     world = World(name="post", occupancy=grid, resolution=0.1, origin=(1.0, -2.0))
-    points = wall_outline(world)
-    steps = np.round(np.arange(0.0, 0.21, 0.05), 6)  # half a cell apart along each face
-    faces = [(0.3, 0.2 + t) for t in steps] + [(0.5, 0.2 + t) for t in steps] \
-        + [(0.3 + t, 0.2) for t in steps] + [(0.3 + t, 0.4) for t in steps]
-    expected = {(round(1.0 + x, 6), round(-2.0 + y, 6)) for x, y in faces}
-    assert {tuple(p) for p in np.round(points, 6)} >= expected
-    for x, y in points:
-        assert 1.3 - 1e-6 <= x <= 1.5 + 1e-6 and -1.8 - 1e-6 <= y <= -1.6 + 1e-6
+    points = np.round(wall_outline(world) - [1.0, -2.0], 6)
+    steps = np.round(np.arange(0.0, 0.2 + 1e-9, 0.02), 6)
+    faces = {(0.3, 0.2 + t) for t in steps} | {(0.5, 0.2 + t) for t in steps} \
+        | {(0.3 + t, 0.2) for t in steps} | {(0.3 + t, 0.4) for t in steps}
+    faces = {(round(x, 6), round(y, 6)) for x, y in faces}
+    on_post = {tuple(p) for p in points if 0.3 - 1e-6 <= p[0] <= 0.5 + 1e-6 and 0.2 - 1e-6 <= p[1] <= 0.4 + 1e-6}
+    assert on_post == faces  # the post's four faces, every 2 cm, nothing inside it
+    rest = np.array([p for p in points if tuple(p) not in faces])
+    on_edge = np.isclose(rest[:, 0], 0.0) | np.isclose(rest[:, 0], 0.8) | np.isclose(rest[:, 1], 0.0) \
+        | np.isclose(rest[:, 1], 0.6)
+    assert on_edge.all() and len(rest) == 2 * (41 + 31) - 4  # the map's edge, every 2 cm
+    assert WALL_POINT_SPACING_M <= 0.02
+

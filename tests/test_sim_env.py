@@ -263,3 +263,19 @@ def test_an_impulse_from_the_solver_cannot_launch_the_base_faster_than_twice_its
     env.step([0.0, 0.0, 0.0])
     moved = env.scene.robot_pose()[0] - x0
     assert 0.0 < moved <= 2.0 * robot.max_linear_speed * env.config.control_period + 1e-6
+
+
+def test_a_robot_that_turns_slowly_still_drives_at_its_top_speed_under_the_joint_cap(make_env):
+    """Bullet keeps one joint velocity cap per body: were it set from the turn rate (0.3 rad/s
+    here), the base could not reach its 1 m/s. Full speed for 1 s covers about 1 m."""
+    import dataclasses
+
+    cfg = EnvConfig()
+    slow_turner = dataclasses.replace(cfg.robot, max_angular_speed=0.3, arm_speed=0.2)
+    env = make_env(room_world(pairs=(StartGoal("middle", 5.0, 5.0, 0.0, 9.0, 5.0),), size=40.0),
+                   robot=slow_turner)
+    env.reset(seed=0)
+    x0 = env.scene.robot_pose()[0]
+    for _ in range(5):
+        env.step([1.0, 0.0, 0.0])
+    assert env.scene.robot_pose()[0] - x0 == pytest.approx(1.0, abs=0.08)

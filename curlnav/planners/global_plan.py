@@ -126,8 +126,10 @@ class GlobalPlan:
         ahead = self.path[self._index:max(window, self._index + 1)]
         d = np.hypot(ahead[:, 0] - x, ahead[:, 1] - y)
         k = int(np.argmin(d))
-        if d[k] > cfg.replan_deviation_m and (self._replanned_from is None or math.hypot(
-                x - self._replanned_from[0], y - self._replanned_from[1]) > cfg.replan_deviation_m / 4):
+        if d[k] <= cfg.replan_deviation_m:
+            self._replanned_from = None
+        elif self._replanned_from is None or math.hypot(
+                x - self._replanned_from[0], y - self._replanned_from[1]) > cfg.replan_deviation_m / 4:
             # once per place: a robot in a pocket of the map that no free cell within
             # replan_deviation_m of it reaches gets a path starting further off (the planner starts
             # at the nearest free cell), planned again only once it has moved

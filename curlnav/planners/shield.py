@@ -14,16 +14,17 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
   held one control period; the rest is the room needed to stop or turn away next step) and the
   footprint (the base's rectangle) is checked at every ``step_s`` along it;
 - a command whose footprint keeps at least ``margin_m`` from every point (or, already nearer
-  than that, does not come nearer) passes unchanged. Behind a global plan (``static_map``) a turn
-  on the spot (``v = 0``) needs only ``turn_margin_m`` (1.5 cm): a base wedged at an angle, a post
-  a few centimetres ahead of its corner, gets out only by turning past it (the plan's trackers
-  turn on the spot), and the sweep of a turn on the spot is known to the centimetre, with no
-  speed to stop from. Map-less it stays at ``margin_m``: there the scan memory alone says where the
-  walls are, and on the validation floors the smaller margin bought nothing and added contacts
-  under ``harsh`` senses (docs/results/2026-11-27-namo-robust, session 10). Otherwise the admissible command nearest to
+  than that, does not come nearer) passes unchanged. Otherwise the admissible command nearest to
   the policy's (``v`` and ``w`` fractions, ``w`` weighted by ``turn_weight``) out of a grid of
   ``v_samples`` x ``w_samples`` replaces it, and when none is admissible the one that keeps the
   most clearance does. The arm value is passed through;
+- behind a global plan (``static_map``) a turn on the spot (``v = 0``) needs only
+  ``turn_margin_m`` (1.5 cm): a base wedged at an angle, a post a few centimetres ahead of its
+  corner, gets out only by turning past it (the plan's trackers turn on the spot), and the sweep
+  of a turn on the spot is known to the centimetre, with no speed to stop from. Map-less, turns
+  keep ``margin_m``: there the scan memory alone says where the walls are, and on the validation
+  floors the smaller margin bought nothing and added contacts under ``harsh`` senses
+  (docs/results/2026-11-27-namo-robust, session 10);
 - a policy that keeps asking for a blocked command is stuck behind it (it cannot back out: its
   speed is 0..1 of the top speed, forward). After ``stuck_steps`` replacements in a row that
   barely move the base, the shield drives ``recovery_steps`` steps itself, each the admissible
@@ -37,9 +38,10 @@ The shield uses what the policy's own robot has: the observation (scan, labels, 
 odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). Movable
 points (label 1) are not obstacles to it: the NAMO policies push them. Behind a global plan
 (``static_map``), where the stack has the map and a localised pose (``info["pose"]``, as the plan
-has), the walls of the map round the base are checked too (``wall_outline``): the LiDAR does not
-see the 120 degrees behind the base, where a turn on the spot swings its rear corners, nor a post
-thinner than the gap between two beams.
+has: in the simulator the true pose, whatever the senses' noise), the walls of the map round the
+base are checked too (``wall_outline``): the LiDAR does not see the 120 degrees behind the base,
+where a turn on the spot swings its rear corners, nor a post thinner than the gap between two
+beams.
 """
 
 from __future__ import annotations
@@ -115,20 +117,35 @@ class ShieldConfig:
         return cls(**values)
 
 
+#: the largest gap (m) between two points of ``wall_outline`` along a wall's face: a footprint's
+#: distance to the points overstates its distance to the face by at most half of it
+WALL_POINT_SPACING_M = 0.02
+
+
 def wall_outline(world: World) -> np.ndarray:
-    """``(n, 2)`` map-frame points (m) on the outline of the map's walls: the corners and edge
-    midpoints of every occupied cell with a free cell beside it (half a cell apart: a footprint's
-    distance to them overstates its distance to the wall by under a centimetre at 5 cm cells)."""
-    occupied = np.asarray(world.occupancy, dtype=bool)
-    padded = np.pad(occupied, 1, constant_values=True)  # beyond the map: no free cell to face
-    free_beside = ~(padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:])
-    rows, cols = np.nonzero(occupied & free_beside)
+    """``(n, 2)`` map-frame points (m) along every face between an occupied cell and a free one,
+    at most ``WALL_POINT_SPACING_M`` apart, ends included; beyond the grid counts as wall (the
+    simulator's boundary walls), so a free cell on the grid's edge has its outer face too."""
+    occupied = np.pad(np.asarray(world.occupancy, dtype=bool), 1, constant_values=True)
     res = world.resolution
-    offsets = np.array([[0, 0], [0.5, 0], [1, 0], [1, 0.5], [1, 1], [0.5, 1], [0, 1], [0, 0.5]]) * res
-    u = (cols[:, None] * res + offsets[None, :, 0]).ravel()
-    v = (rows[:, None] * res + offsets[None, :, 1]).ravel()
-    x, y = world.map_from_grid(u, v)
-    return np.unique(np.round(np.stack([x, y], axis=1), 6), axis=0)
+    pieces = max(1, math.ceil(res / WALL_POINT_SPACING_M - 1e-9))
+    t = np.linspace(0.0, 1.0, pieces + 1)
+    points = []
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):  # the neighbour's side: right, left, up, down
+        neighbour = np.roll(occupied, (-dr, -dc), axis=(0, 1))  # what wraps round is the pad: wall
+        face = occupied & ~neighbour
+        rows, cols = np.nonzero(face)
+        rows, cols = rows - 1, cols - 1  # grid cells (-1 and the size: the pad beyond the grid)
+        if dc:  # a vertical face at the cell's right (dc = 1) or left edge
+            u = np.repeat((cols + (dc > 0)) * res, len(t))
+            v = ((rows[:, None] + t[None, :]) * res).ravel()
+        else:  # a horizontal face at the cell's top (dr = 1) or bottom edge
+            u = ((cols[:, None] + t[None, :]) * res).ravel()
+            v = np.repeat((rows + (dr > 0)) * res, len(t))
+        points.append(np.stack([u, v], axis=1))
+    grid = np.concatenate(points) if points else np.zeros((0, 2))
+    x, y = world.map_from_grid(grid[:, 0], grid[:, 1])
+    return np.unique(np.round(np.stack([x, y], axis=1), 6), axis=0).reshape(-1, 2)
 
 
 class ShieldedPolicy(ScanAgent):
@@ -164,7 +181,9 @@ class ShieldedPolicy(ScanAgent):
 
     def reset(self, world: World | None, pair: StartGoal | None) -> None:
         super().reset(world, pair)
-        if self.static_map and world is not None and (self._walls is None or self._walls[0] is not world):
+        if self.static_map and world is None:
+            self._walls = None  # map_points refuses until a world is given
+        elif self.static_map and (self._walls is None or self._walls[0] is not world):
             self._walls = (world, cKDTree(wall_outline(world)))
         inner = getattr(self.policy, "reset", None)
         if callable(inner):

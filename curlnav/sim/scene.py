@@ -225,13 +225,14 @@ class Scene:
             pb.setCollisionFilterGroupMask(self.robot, link, GROUP_ROBOT, GROUP_ALL, physicsClientId=c)
             pb.changeDynamics(self.robot, link, linearDamping=0, angularDamping=0, lateralFriction=0.5,
                               physicsClientId=c)
-        # The base's joints may not outrun twice the robot's top speeds: Bullet's own cap (100 m/s)
-        # let a door squeezed between the base and its jamb launch the robot at 90 m/s through the
-        # outer wall of a floor (session 10, slam-floor:90). Commands never ask for more than the top speeds.
+        # No joint of the robot may outrun twice its fastest top speed: Bullet's own cap (100 m/s or
+        # rad/s) let a door squeezed between the base and its jamb launch the robot at 90 m/s through
+        # the outer wall of a floor (session 10, slam-floor:90). Bullet keeps one such cap per body,
+        # not per joint, so it is the largest of the base's speeds (m/s, rad/s) and the arm's;
+        # commands never ask for more than the top speeds.
         r = cfg.robot
-        fastest = max(r.max_linear_speed, r.max_reverse_speed)
-        for joint, top in ((JOINT_X, fastest), (JOINT_Y, fastest), (JOINT_YAW, r.max_angular_speed)):
-            pb.changeDynamics(self.robot, joint, maxJointVelocity=2.0 * top, physicsClientId=c)
+        fastest = max(r.max_linear_speed, r.max_reverse_speed, r.max_angular_speed, r.arm_speed)
+        pb.changeDynamics(self.robot, JOINT_X, maxJointVelocity=2.0 * fastest, physicsClientId=c)
         # Joints start with default velocity motors; ours are set each physics step.
         self._initial_state = pb.saveState(physicsClientId=c)
 
