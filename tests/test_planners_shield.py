@@ -346,3 +346,25 @@ def test_the_wall_outline_lies_on_the_faces_of_the_walls_that_face_free_space():
     assert on_edge.all() and len(rest) == 2 * (41 + 31) - 4  # the map's edge, every 2 cm
     assert WALL_POINT_SPACING_M <= 0.02
 
+
+
+def test_behind_a_global_plan_a_wall_the_base_touches_is_not_pressed_further():
+    """A post 1 cm inside the base's right side by its front corner (the base touches it): as a
+    scan return it counts as noise inside the base and a turn to the right, which swings the front
+    into it, passes; as a wall of the map (behind a global plan) the clearance is signed, the turn
+    into it is replaced by one that does not press deeper, and the turn away passes unchanged."""
+    cfg = evaluation_config()
+    shield = ShieldedPolicy(TurnThenDrive(), cfg, static_map=True)
+    post = np.array([[0.40, -0.325]])  # robot frame: 1 cm inside the right side (half-width 0.335)
+    right, left = np.array([0.0, -1.0, 0.0], np.float32), np.array([0.0, 1.0, 0.0], np.float32)
+    assert np.array_equal(shield.check(right, post), right)  # a scan return inside the base: ignored
+    replaced = shield.check(right, np.zeros((0, 2)), walls=post)
+    assert not np.array_equal(replaced, right)
+    rate = cfg.robot.max_angular_speed
+    depth = footprint_clearance(post, np.zeros(1), np.zeros(1), np.zeros(1), shield.half_length, shield.half_width,
+                                signed=True)[0]
+    assert depth == pytest.approx(-0.01)
+    kept = footprint_clearance(post, np.array([replaced[0] * cfg.robot.max_linear_speed]), np.array([replaced[1] * rate]),
+                               shield._times, shield.half_length, shield.half_width, signed=True)[0]
+    assert kept >= depth - 1e-9
+    assert np.array_equal(shield.check(left, np.zeros((0, 2)), walls=post), left)

@@ -76,11 +76,12 @@ def wrap(angle: float | np.ndarray) -> float | np.ndarray:
 
 
 def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times: np.ndarray,
-                        half_length: float, half_width: float) -> np.ndarray:
+                        half_length: float, half_width: float, signed: bool = False) -> np.ndarray:
     """For each command ``(v[i], w[i])`` (m/s, rad/s) driven from the origin of the robot frame as a
     constant arc: the least distance (m) from the base's rectangle (``half_length`` x
     ``half_width``, m, centred on the base) to any of ``points`` ``(n, 2)`` (m, robot frame) at the
-    ``times`` (s) along it; 0 where a point lies inside the rectangle, ``inf`` without points."""
+    ``times`` (s) along it; 0 where a point lies inside the rectangle (``signed``: minus its depth
+    inside, the distance to the nearest side), ``inf`` without points."""
     v = np.asarray(v, dtype=np.float64)
     w = np.asarray(w, dtype=np.float64)
     if len(points) == 0:
@@ -95,6 +96,9 @@ def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times:
     py = points[None, None, :, 1] - y[..., None]
     qx, qy = c * px + s * py, -s * px + c * py  # (N, T, n) in each pose's frame
     gap = np.hypot(np.maximum(np.abs(qx) - half_length, 0.0), np.maximum(np.abs(qy) - half_width, 0.0))
+    if signed:
+        depth = np.minimum(half_length - np.abs(qx), half_width - np.abs(qy))  # > 0 inside
+        gap = np.where(depth > 0.0, -depth, gap)
     return gap.min(axis=(1, 2))
 
 

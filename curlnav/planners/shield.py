@@ -196,13 +196,12 @@ class ShieldedPolicy(ScanAgent):
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
         points, _, _ = self.sense(observation, info)
-        if self.static_map:
-            points = np.concatenate([points, self.map_points(info["pose"])])
+        walls = self.map_points(info["pose"]) if self.static_map else None
         inner = getattr(self.policy, "act", None)
         proposed = self.policy(observation) if inner is None else inner(observation, info)
         proposed = np.asarray(proposed, dtype=np.float32).reshape(-1)
         self.steps += 1
-        return self.check(proposed, points)
+        return self.check(proposed, points, walls)
 
     def map_points(self, pose: tuple[float, float, float]) -> np.ndarray:
         """``(n, 2)`` robot-frame points (m) of the map's wall outline that a command can reach
@@ -219,18 +218,28 @@ class ShieldedPolicy(ScanAgent):
         dx, dy = near[:, 0] - x, near[:, 1] - y
         return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1).reshape(-1, 2)
 
-    def check(self, proposed: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def check(self, proposed: np.ndarray, points: np.ndarray, walls: np.ndarray | None = None) -> np.ndarray:
         """``proposed`` ``[v, w, L]`` (fractions) if its arc is admissible against ``points``
-        ``(n, 2)`` (m, robot frame), else its replacement (module docstring)."""
+        ``(n, 2)`` (m, robot frame: the scan's) and ``walls`` (the map's, behind a global plan),
+        else its replacement (module docstring). A scan return inside the base is no obstacle (as
+        dwa's: noise); a wall point inside it is a wall the base touches, and with walls given the
+        clearance is signed (minus the depth inside), so that a command that presses further into
+        it is refused and one that draws away is not."""
         cfg = self.config
         robot = self.env_config.robot
         d = np.hypot(points[:, 0], points[:, 1]) if len(points) else np.zeros(0)
         reach = robot.max_linear_speed * cfg.horizon_s + math.hypot(self.half_length, self.half_width) + cfg.margin_m
         inside = (np.abs(points[:, 0]) <= self.half_length) & (np.abs(points[:, 1]) <= self.half_width) \
-            if len(points) else np.zeros(0, dtype=bool)  # a return inside the base is no obstacle (as dwa's)
+            if len(points) else np.zeros(0, dtype=bool)
         near = points[(d < min(cfg.ignore_beyond_m, reach)) & ~inside] if len(points) else points
-        now = float(footprint_clearance(near, np.zeros(1), np.zeros(1), np.zeros(1), self.half_length,
-                                        self.half_width)[0])
+        signed = walls is not None
+        if signed:
+            near = np.concatenate([near, walls]).reshape(-1, 2)
+
+        def clearance_along(v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
+            """m, each arc's least clearance (signed with walls) at ``times``; v, w in m/s, rad/s."""
+            return footprint_clearance(near, v, w, times, self.half_length, self.half_width, signed=signed)
+        now = float(clearance_along(np.zeros(1), np.zeros(1), np.zeros(1))[0])
         turn_margin = cfg.turn_margin_m if self.static_map else cfg.margin_m
 
         def need(v):  # already nearer than the margin: do not come nearer
@@ -242,16 +251,15 @@ class ShieldedPolicy(ScanAgent):
             return out  # a broken command: stop (counted as an intervention)
         back = robot.reverse_fraction  # 0: forward only
         v0, w0 = float(np.clip(proposed[0], -back, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
-        mine = footprint_clearance(near, np.array([v0 * robot.max_linear_speed]),
-                                   np.array([w0 * robot.max_angular_speed]), self._times,
-                                   self.half_length, self.half_width)[0]
+        mine = clearance_along(np.array([v0 * robot.max_linear_speed]), np.array([w0 * robot.max_angular_speed]),
+                               self._times)[0]
         if mine >= need(v0) and not self._recovering:
             self._stuck = 0
             return proposed
         self.interventions += 1
         grid = self._grid
         vs, ws = grid[:, 0] * robot.max_linear_speed, grid[:, 1] * robot.max_angular_speed
-        clearance = footprint_clearance(near, vs, ws, self._times, self.half_length, self.half_width)
+        clearance = clearance_along(vs, ws, self._times)
         admissible = clearance >= need(grid[:, 0])
         if self._recovering or not admissible.any():
             # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
@@ -260,11 +268,10 @@ class ShieldedPolicy(ScanAgent):
             if back > 0 and cfg.reverse_recovery:
                 grid = np.vstack([grid, self._reverse * [back, 1.0]])
                 rv, rw = grid[len(vs):, 0] * robot.max_linear_speed, grid[len(vs):, 1] * robot.max_angular_speed
-                clearance = np.concatenate([clearance, footprint_clearance(near, rv, rw, self._times, self.half_length,
-                                                                           self.half_width)])
+                clearance = np.concatenate([clearance, clearance_along(rv, rw, self._times)])
                 vs, ws = np.concatenate([vs, rv]), np.concatenate([ws, rw])
                 admissible = clearance >= need(grid[:, 0])
-            room = footprint_clearance(near, vs, ws, self._times[-1:], self.half_length, self.half_width)
+            room = clearance_along(vs, ws, self._times[-1:])
             best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
                 else int(np.argmax(clearance))
             self._recovering = max(self._recovering - 1, 0)
