@@ -368,3 +368,21 @@ def test_behind_a_global_plan_a_wall_the_base_touches_is_not_pressed_further():
                                shield._times, shield.half_length, shield.half_width, signed=True)[0]
     assert kept >= depth - 1e-9
     assert np.array_equal(shield.check(left, np.zeros((0, 2)), walls=post), left)
+
+
+def test_touching_one_wall_keeps_the_margin_from_every_other():
+    """A post 1 cm inside the base's right side by its rear corner, and a wall 7.5 cm ahead of the
+    bumper: creeping ahead presses no deeper into the post but would end at the front wall, so the
+    shield still replaces it (the post the base touches does not lift the 5 cm margin from the
+    rest); without the front wall it passes."""
+    cfg = evaluation_config()
+    shield = ShieldedPolicy(TurnThenDrive(), cfg, static_map=True)
+    post = np.array([[-0.40, -0.325]])
+    ahead = np.stack([np.full(21, shield.half_length + 0.075), np.linspace(-0.5, 0.5, 21)], axis=1)
+    creep = np.array([0.125, 0.0, 0.0], np.float32)  # 0.075 m in 0.6 s: up to the front wall
+    assert np.array_equal(shield.check(creep, np.zeros((0, 2)), walls=post), creep)
+    out = shield.check(creep, ahead, walls=post)
+    rate, speed = cfg.robot.max_angular_speed, cfg.robot.max_linear_speed
+    kept = footprint_clearance(ahead, np.array([out[0] * speed]), np.array([out[1] * rate]), shield._times,
+                               shield.half_length, shield.half_width)[0]
+    assert kept >= shield.config.margin_m - 1e-9

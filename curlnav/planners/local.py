@@ -86,6 +86,10 @@ def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times:
     w = np.asarray(w, dtype=np.float64)
     if len(points) == 0:
         return np.full(v.shape, np.inf)
+    chunk = max(1, 2_000_000 // max(1, v.size * len(times)))  # points at a time: a few tens of MB per array
+    if len(points) > chunk:  # a dense map's walls: thousands of points round the base
+        return np.min([footprint_clearance(points[i:i + chunk], v, w, times, half_length, half_width, signed)
+                       for i in range(0, len(points), chunk)], axis=0)
     th = w[:, None] * times[None, :]  # (N, T)
     straight = np.abs(w) < 1e-6
     safe_w = np.where(straight, 1.0, w)[:, None]

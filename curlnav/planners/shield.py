@@ -222,28 +222,39 @@ class ShieldedPolicy(ScanAgent):
         """``proposed`` ``[v, w, L]`` (fractions) if its arc is admissible against ``points``
         ``(n, 2)`` (m, robot frame: the scan's) and ``walls`` (the map's, behind a global plan),
         else its replacement (module docstring). A scan return inside the base is no obstacle (as
-        dwa's: noise); a wall point inside it is a wall the base touches, and with walls given the
-        clearance is signed (minus the depth inside), so that a command that presses further into
-        it is refused and one that draws away is not."""
+        dwa's: noise); a wall point on or inside its outline is a wall the base touches: a command
+        may not press deeper into those (signed clearance, minus the depth inside), and keeps the
+        margins from every other point."""
         cfg = self.config
         robot = self.env_config.robot
+        hl, hw = self.half_length, self.half_width
         d = np.hypot(points[:, 0], points[:, 1]) if len(points) else np.zeros(0)
-        reach = robot.max_linear_speed * cfg.horizon_s + math.hypot(self.half_length, self.half_width) + cfg.margin_m
-        inside = (np.abs(points[:, 0]) <= self.half_length) & (np.abs(points[:, 1]) <= self.half_width) \
+        reach = robot.max_linear_speed * cfg.horizon_s + math.hypot(hl, hw) + cfg.margin_m
+        inside = (np.abs(points[:, 0]) <= hl) & (np.abs(points[:, 1]) <= hw) \
             if len(points) else np.zeros(0, dtype=bool)
         near = points[(d < min(cfg.ignore_beyond_m, reach)) & ~inside] if len(points) else points
-        signed = walls is not None
-        if signed:
-            near = np.concatenate([near, walls]).reshape(-1, 2)
+        touched = np.zeros((0, 2))
+        if walls is not None and len(walls):
+            on_base = (np.abs(walls[:, 0]) <= hl) & (np.abs(walls[:, 1]) <= hw)
+            near, touched = np.concatenate([near, walls[~on_base]]), walls[on_base]
 
         def clearance_along(v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
-            """m, each arc's least clearance (signed with walls) at ``times``; v, w in m/s, rad/s."""
-            return footprint_clearance(near, v, w, times, self.half_length, self.half_width, signed=signed)
+            """m, each arc's least clearance from the points the base does not touch; v, w in m/s, rad/s."""
+            return footprint_clearance(near, v, w, times, hl, hw)
+
+        def pressed_along(v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
+            """m, each arc's least signed clearance from the walls the base touches (inf: none)."""
+            return footprint_clearance(touched, v, w, times, hl, hw, signed=True)
         now = float(clearance_along(np.zeros(1), np.zeros(1), np.zeros(1))[0])
+        pressed_now = float(pressed_along(np.zeros(1), np.zeros(1), np.zeros(1))[0])
         turn_margin = cfg.turn_margin_m if self.static_map else cfg.margin_m
 
         def need(v):  # already nearer than the margin: do not come nearer
             return np.minimum(np.where(np.asarray(v) == 0.0, turn_margin, cfg.margin_m), now)
+
+        def no_deeper(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+            """Whether each arc presses no deeper into a wall the base touches."""
+            return pressed_along(v, w, self._times) >= pressed_now - 1e-9
         if not np.isfinite(proposed[:2]).all():
             self.interventions += 1
             out = proposed.copy()
@@ -251,16 +262,16 @@ class ShieldedPolicy(ScanAgent):
             return out  # a broken command: stop (counted as an intervention)
         back = robot.reverse_fraction  # 0: forward only
         v0, w0 = float(np.clip(proposed[0], -back, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
-        mine = clearance_along(np.array([v0 * robot.max_linear_speed]), np.array([w0 * robot.max_angular_speed]),
-                               self._times)[0]
-        if mine >= need(v0) and not self._recovering:
+        arc = np.array([v0 * robot.max_linear_speed]), np.array([w0 * robot.max_angular_speed])
+        mine = clearance_along(*arc, self._times)[0]
+        if mine >= need(v0) and no_deeper(*arc)[0] and not self._recovering:
             self._stuck = 0
             return proposed
         self.interventions += 1
         grid = self._grid
         vs, ws = grid[:, 0] * robot.max_linear_speed, grid[:, 1] * robot.max_angular_speed
         clearance = clearance_along(vs, ws, self._times)
-        admissible = clearance >= need(grid[:, 0])
+        admissible = (clearance >= need(grid[:, 0])) & no_deeper(vs, ws)
         if self._recovering or not admissible.any():
             # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
             # clearance of now): the command that ends with the most room round the base, backing
@@ -270,7 +281,7 @@ class ShieldedPolicy(ScanAgent):
                 rv, rw = grid[len(vs):, 0] * robot.max_linear_speed, grid[len(vs):, 1] * robot.max_angular_speed
                 clearance = np.concatenate([clearance, clearance_along(rv, rw, self._times)])
                 vs, ws = np.concatenate([vs, rv]), np.concatenate([ws, rw])
-                admissible = clearance >= need(grid[:, 0])
+                admissible = (clearance >= need(grid[:, 0])) & no_deeper(vs, ws)
             room = clearance_along(vs, ws, self._times[-1:])
             best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
                 else int(np.argmax(clearance))
