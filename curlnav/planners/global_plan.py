@@ -83,12 +83,9 @@ class GlobalPlan:
         its nearest edge cell)."""
         if self._tight_cells is None:
             return np.zeros(len(points), dtype=bool)
-        world = self.planner.world
-        u, v = world.grid_from_map(points[:, 0], points[:, 1])
+        iy, ix = self.planner.world.cells_of(points[:, 0], points[:, 1])
         rows, cols = self._tight_cells.shape
-        iy = np.clip(np.floor(v / world.resolution).astype(int), 0, rows - 1)
-        ix = np.clip(np.floor(u / world.resolution).astype(int), 0, cols - 1)
-        return self._tight_cells[iy, ix]
+        return self._tight_cells[np.clip(iy, 0, rows - 1), np.clip(ix, 0, cols - 1)]
 
     @property
     def index(self) -> int:

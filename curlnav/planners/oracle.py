@@ -173,9 +173,7 @@ class GridPlanner:
         n = max(2, int(math.ceil(np.hypot(*(b - a)) / (0.25 * self.world.resolution))) + 1)
         t = np.linspace(0.0, 1.0, n)[:, None]
         pts = a + t * (b - a)
-        u, v = self.world.grid_from_map(pts[:, 0], pts[:, 1])
-        iy = np.floor(v / self.world.resolution).astype(int)
-        ix = np.floor(u / self.world.resolution).astype(int)
+        iy, ix = self.world.cells_of(pts[:, 0], pts[:, 1])
         rows, cols = self.blocked.shape
         if iy.min() < 0 or ix.min() < 0 or iy.max() >= rows or ix.max() >= cols:
             return False

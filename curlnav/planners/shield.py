@@ -57,6 +57,7 @@ from curlnav.planners import SHIELD_SUFFIX
 from curlnav.planners.local import ScanAgent, footprint_clearance
 from curlnav.planners.scan_filter import ScanFilterConfig
 from curlnav.sim import EnvConfig, StartGoal, World
+from curlnav.sim.geometry import wall_faces
 
 
 @dataclass(frozen=True)
@@ -123,28 +124,19 @@ WALL_POINT_SPACING_M = 0.02
 
 
 def wall_outline(world: World) -> np.ndarray:
-    """``(n, 2)`` map-frame points (m) along every face between an occupied cell and a free one,
-    at most ``WALL_POINT_SPACING_M`` apart, ends included; beyond the grid counts as wall (the
-    simulator's boundary walls), so a free cell on the grid's edge has its outer face too."""
-    occupied = np.pad(np.asarray(world.occupancy, dtype=bool), 1, constant_values=True)
+    """``(n, 2)`` map-frame points (m) along every face between an occupied cell and a free one
+    (``curlnav.sim.geometry.wall_faces``: beyond the grid counts as wall, the simulator's boundary
+    walls, so a free cell on the grid's edge has its outer face too), at most
+    ``WALL_POINT_SPACING_M`` apart, ends included."""
+    horizontal, vertical = wall_faces(world.occupancy)
     res = world.resolution
-    pieces = max(1, math.ceil(res / WALL_POINT_SPACING_M - 1e-9))
-    t = np.linspace(0.0, 1.0, pieces + 1)
-    points = []
-    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):  # the neighbour's side: right, left, up, down
-        neighbour = np.roll(occupied, (-dr, -dc), axis=(0, 1))  # what wraps round is the pad: wall
-        face = occupied & ~neighbour
-        rows, cols = np.nonzero(face)
-        rows, cols = rows - 1, cols - 1  # grid cells (-1 and the size: the pad beyond the grid)
-        if dc:  # a vertical face at the cell's right (dc = 1) or left edge
-            u = np.repeat((cols + (dc > 0)) * res, len(t))
-            v = ((rows[:, None] + t[None, :]) * res).ravel()
-        else:  # a horizontal face at the cell's top (dr = 1) or bottom edge
-            u = ((cols[:, None] + t[None, :]) * res).ravel()
-            v = np.repeat((rows + (dr > 0)) * res, len(t))
-        points.append(np.stack([u, v], axis=1))
-    grid = np.concatenate(points) if points else np.zeros((0, 2))
-    x, y = world.map_from_grid(grid[:, 0], grid[:, 1])
+    t = np.linspace(0.0, 1.0, max(1, math.ceil(res / WALL_POINT_SPACING_M - 1e-9)) + 1)
+    rows, cols = np.nonzero(horizontal)  # along row boundary ``rows``, columns ``cols`` to ``cols + 1``
+    along_rows = np.stack([((cols[:, None] + t) * res).ravel(), np.repeat(rows * res, len(t))], axis=1)
+    rows, cols = np.nonzero(vertical)  # along column boundary ``cols``, rows ``rows`` to ``rows + 1``
+    along_cols = np.stack([np.repeat(cols * res, len(t)), ((rows[:, None] + t) * res).ravel()], axis=1)
+    u, v = np.concatenate([along_rows, along_cols]).T
+    x, y = world.map_from_grid(u, v)
     return np.unique(np.round(np.stack([x, y], axis=1), 6), axis=0).reshape(-1, 2)
 
 
@@ -166,6 +158,10 @@ class ShieldedPolicy(ScanAgent):
         self.config = config or ShieldConfig()
         self.label = label or f"{getattr(policy, 'label', 'policy')}{SHIELD_SUFFIX}"
         cfg = self.config
+        robot = self.env_config.robot
+        # m, the furthest a point can be from the base's centre and still be met within the horizon
+        self._reach_m = min(cfg.ignore_beyond_m, robot.max_linear_speed * cfg.horizon_s
+                            + math.hypot(self.half_length, self.half_width) + cfg.margin_m)
         self._times = np.arange(1, int(math.ceil(cfg.horizon_s / cfg.step_s - 1e-9)) + 1) * cfg.step_s
         vs = np.linspace(0.0, 1.0, cfg.v_samples)
         ws = np.linspace(-1.0, 1.0, cfg.w_samples)
@@ -210,10 +206,7 @@ class ShieldedPolicy(ScanAgent):
             raise RuntimeError("ShieldedPolicy(static_map=True) needs reset(world, pair) first")
         world, tree = self._walls
         x, y, yaw = pose
-        robot = self.env_config.robot
-        reach = robot.max_linear_speed * self.config.horizon_s + math.hypot(self.half_length, self.half_width) \
-            + self.config.margin_m
-        near = tree.data[tree.query_ball_point([x, y], min(self.config.ignore_beyond_m, reach))]
+        near = tree.data[tree.query_ball_point([x, y], self._reach_m)]
         c, s = math.cos(yaw), math.sin(yaw)
         dx, dy = near[:, 0] - x, near[:, 1] - y
         return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1).reshape(-1, 2)
@@ -229,10 +222,9 @@ class ShieldedPolicy(ScanAgent):
         robot = self.env_config.robot
         hl, hw = self.half_length, self.half_width
         d = np.hypot(points[:, 0], points[:, 1]) if len(points) else np.zeros(0)
-        reach = robot.max_linear_speed * cfg.horizon_s + math.hypot(hl, hw) + cfg.margin_m
         inside = (np.abs(points[:, 0]) <= hl) & (np.abs(points[:, 1]) <= hw) \
             if len(points) else np.zeros(0, dtype=bool)
-        near = points[(d < min(cfg.ignore_beyond_m, reach)) & ~inside] if len(points) else points
+        near = points[(d < self._reach_m) & ~inside] if len(points) else points
         touched = np.zeros((0, 2))
         if walls is not None and len(walls):
             on_base = (np.abs(walls[:, 0]) <= hl) & (np.abs(walls[:, 1]) <= hw)

@@ -255,6 +255,11 @@ class World:
         u, v = self.grid_from_map(x, y)
         return int(math.floor(v / self.resolution)), int(math.floor(u / self.resolution))
 
+    def cells_of(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``cell_of`` for arrays of map points: the ``(iy, ix)`` int arrays; may lie outside the grid."""
+        u, v = self.grid_from_map(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        return np.floor(v / self.resolution).astype(int), np.floor(u / self.resolution).astype(int)
+
     def cell_centre(self, iy: int, ix: int) -> tuple[float, float]:
         """Map coordinates (m) of the centre of cell ``(iy, ix)``."""
         return self.map_from_grid((ix + 0.5) * self.resolution, (iy + 0.5) * self.resolution)
