@@ -105,8 +105,8 @@ def test_the_rescues_dwa_backs_away_from_a_wall_too_near_to_turn_at_where_the_ro
 
     from curlnav.planners.local import DwaConfig
 
-    cfg = evaluation_config()
-    reversing = cfg.replace(robot=dataclasses.replace(cfg.robot, max_reverse_speed=0.5))
+    reversing = evaluation_config()  # the Husky backs up at 0.5 m/s
+    cfg = reversing.replace(robot=dataclasses.replace(reversing.robot, max_reverse_speed=0.0))
     front = cfg.robot.base_length / 2 + 0.05
     wall = np.stack([np.full(41, front), np.linspace(-1.0, 1.0, 41)], axis=1)  # m, robot frame
     assert DynamicWindowPlanner(reversing).choose(wall, 5.0, 0.0) == (0.0, 0.0), "the baseline stops"

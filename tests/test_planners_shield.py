@@ -209,14 +209,14 @@ def test_astar_reaches_exactly_the_4_connected_free_region_the_scan_plan_checks_
 
 def test_a_shielded_robot_that_can_reverse_backs_out_of_a_spot_too_tight_to_turn_in():
     """A goal seeker rams the bottom of a U; the shield stops the base a few cm short, where the
-    Husky's rectangle cannot turn. Forward only, it stays there; given a reverse gear (as the
-    Jackal has) and ``reverse_recovery``, the shield's recovery backs it out, and the base never
+    Husky's rectangle cannot turn. Forward only, it stays there; with its reverse gear (the Husky's
+    and the Jackal's) and ``reverse_recovery``, the shield's recovery backs it out, and the base never
     touches a wall."""
     import dataclasses
 
-    cfg = evaluation_config()
+    reversing = evaluation_config()  # the Husky backs up at 0.5 m/s
     world = u_trap_world()
-    reversing = cfg.replace(robot=dataclasses.replace(cfg.robot, max_reverse_speed=0.5))
+    cfg = reversing.replace(robot=dataclasses.replace(reversing.robot, max_reverse_speed=0.0))
     for env_cfg, can_reverse in ((cfg, False), (reversing, True)):
         shield = ShieldedPolicy(GoalSeeker(env_cfg), env_cfg, ShieldConfig(reverse_recovery=True))
         env = NamoEnv(world, env_cfg)
@@ -242,7 +242,8 @@ def test_a_shielded_robot_that_can_reverse_backs_out_of_a_spot_too_tight_to_turn
 def test_a_reverse_command_is_refused_for_a_forward_only_robot_and_taken_within_a_reversing_ones_limit():
     import dataclasses
 
-    cfg = evaluation_config()
+    reversing = evaluation_config()  # the Husky backs up at 0.5 m/s
+    cfg = reversing.replace(robot=dataclasses.replace(reversing.robot, max_reverse_speed=0.0))
     env = NamoEnv(u_trap_world(), cfg)
     try:
         env.reset(seed=0, options={"pair": 0})
@@ -250,7 +251,6 @@ def test_a_reverse_command_is_refused_for_a_forward_only_robot_and_taken_within_
             env.step([-0.1, 0.0, 0.0])
     finally:
         env.close()
-    reversing = cfg.replace(robot=dataclasses.replace(cfg.robot, max_reverse_speed=0.5))
     env = NamoEnv(u_trap_world(), reversing)
     try:
         env.reset(seed=0, options={"pair": 0})

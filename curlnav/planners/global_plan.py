@@ -205,6 +205,11 @@ class GlobalPlanAgent:
         if callable(inner):
             inner(world, pair)
 
+    @property
+    def episode(self) -> tuple[World, StartGoal, GridPlanner] | None:
+        """The current episode's world, pair and planner (None before ``reset``)."""
+        return self._episode
+
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         raise TypeError("GlobalPlanAgent needs the pose: call act(observation, info) after reset(world, pair)")
 

@@ -35,6 +35,7 @@ import numpy as np
 from curlnav.layout import ObservationLayout
 from curlnav.planners import RESCUE_SUFFIX
 from curlnav.planners.local import goal_in_robot_frame
+from curlnav.planners.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
 from curlnav.sim import EnvConfig, StartGoal, World
 
 
@@ -45,8 +46,10 @@ class RescueConfig:
     stall_steps: int = 40  # steps in which the goal came no nearer than the best so far by progress_m
     progress_m: float = 0.5  # "nearer": by this much
     max_steps: int = 100  # the fallback drives at most this many steps at a time
-    #: the default fallback's DWA may back up, on a robot that can (``RobotConfig.max_reverse_speed``);
-    #: it checks a backing arc against its one-second scan memory only: the LiDAR does not see behind
+    #: the default (map-less) fallback's DWA may back up, on a robot that can
+    #: (``RobotConfig.max_reverse_speed``); it checks a backing arc against its one-second scan
+    #: memory only: the LiDAR does not see behind. Behind a global plan the fallback's manoeuvre
+    #: backs up whatever this says, checked against the map (``curlnav.planners.manoeuvre``)
     reverse: bool = True
 
     def __post_init__(self) -> None:
@@ -84,21 +87,47 @@ def global_plan_fallback(planned):
 
 class PlanTracker:
     """A rescue's fallback that drives a ``GlobalPlanAgent``'s trackers on its plan (the agent
-    resets them: ``reset`` here does nothing). Where the map has no path to the goal, it stands
-    still, as the plan's policy steers for the goal itself."""
+    resets them). Where the map has no path to the goal, it stands still, as the plan's policy
+    steers for the goal itself. Where the robot stands stuck beside the path (still for
+    ``ManoeuvreConfig.still_steps`` steps: a post off its corner where pure pursuit's short turn
+    sweeps into it), it drives a multi-point turn onto the path planned on the map
+    (``curlnav.planners.manoeuvre``; ``manoeuvre=None``: never)."""
 
     label = "plan tracker"
 
-    def __init__(self, planned) -> None:
+    def __init__(self, planned, manoeuvre: ManoeuvreConfig | None = ManoeuvreConfig()) -> None:
         self.planned = planned
+        self.driver = None if manoeuvre is None else ManoeuvreDriver(ManoeuvrePlanner(planned.env_config, manoeuvre))
+        self._given: np.ndarray | None = None  # the command this fallback gave last step
+        self._in_charge = False  # whether that command was the one sent
 
     def reset(self, world: World | None, pair: StartGoal | None) -> None:
-        pass  # the GlobalPlanAgent behind the rescue plans anew at its own reset
+        if self.driver is not None:  # the GlobalPlanAgent behind the rescue plans anew at its own reset
+            self.driver.clear()
+        self._given, self._in_charge = None, False
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
-        """The plan's tracker's command (the oracle's settings, near a tight spot too: handing a
-        rescue there the tight spots' tracker scored 166 of 180 on validation against 168)."""
-        return self.planned.track(observation, info)
+        """The manoeuvre's command while one is under way, else the plan's tracker's (the oracle's
+        settings, near a tight spot too: handing a rescue there the tight spots' tracker scored
+        166 of 180 on validation against 168). A manoeuvre is planned only while this fallback
+        drives (its command was sent last step): not for a policy standing still on its own."""
+        episode, plan = self.planned.episode, self.planned.plan
+        command = None
+        if self.driver is not None and episode is not None and plan is not None:
+            turn = self.driver.command(episode[0], info["pose"], plan.path, plan.index, may_plan=self._in_charge)
+            if turn is not None:
+                command = np.array([turn[0], turn[1], 0.0], dtype=np.float32)
+        if command is None:
+            command = np.asarray(self.planned.track(observation, info), dtype=np.float32)
+        self._given = command
+        return command
+
+    def commanded(self, action: np.ndarray) -> None:
+        """The command sent this step (the policy's, or this fallback's)."""
+        sent = np.asarray(action, dtype=np.float64).reshape(-1)
+        self._in_charge = self._given is not None and np.allclose(sent[:2], self._given[:2], atol=1e-6)
+        if self.driver is not None:
+            self.driver.sent(sent)
 
 
 class RescuedPolicy:

@@ -43,11 +43,13 @@ class RobotConfig:
     arm_thickness: float = 0.03  # m
     arm_force: float = 200.0  # N, prismatic actuator limit
     arm_speed: float = 1.0  # m/s, prismatic actuator speed limit
-    #: m/s the base may back up at. The policies drive forward only (action[0] in 0..1, as in the
-    #: paper); a negative action[0], down to -max_reverse_speed / max_linear_speed, is taken only
-    #: where the robot can reverse, for a stack's recovery (``curlnav.planners.shield`` backs out
-    #: of a spot it cannot turn in). 0: the base drives forward only.
-    max_reverse_speed: float = field(default=0.0, metadata={"hash": "omit-default"})
+    #: m/s the base may back up at: the Husky's 0.5 (its datasheet's top speed is 1.0 m/s both ways;
+    #: backing up is kept slow, the LiDAR does not see behind). The policies drive forward only
+    #: (action[0] in 0..1, as in the paper); a negative action[0], down to -max_reverse_speed /
+    #: max_linear_speed, comes only from a stack's helpers (the rescue's DWA, the shield's recovery
+    #: with ``reverse_recovery``, the manoeuvre behind a global plan: ``curlnav.planners.manoeuvre``).
+    #: 0: the base drives forward only (a robot profile file's default).
+    max_reverse_speed: float = field(default=0.5, metadata={"hash": "omit-default"})
 
     @staticmethod
     def husky() -> RobotConfig:

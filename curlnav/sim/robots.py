@@ -118,6 +118,7 @@ def _robot_from_dict(data: dict) -> RobotConfig:
             raise ConfigError(f"RobotConfig.{key} must be {kind}, got {value!r}")
         else:
             values[key] = float(value)
+    values.setdefault("max_reverse_speed", 0.0)  # a robot of one's own backs up only when its file says it can
     return RobotConfig(**values)
 
 
