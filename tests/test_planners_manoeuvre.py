@@ -17,6 +17,7 @@ from curlnav.planners.global_plan import GlobalPlanAgent
 from curlnav.planners.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
 from curlnav.planners.rescue import PlanTracker, RescueConfig, RescuedPolicy
 from curlnav.planners.shield import ShieldedPolicy
+from curlnav.worlds.pairs import clearance_map
 from curlnav.sim import StartGoal, World, get_world
 
 #: a pose in the validation world ``slam-office:91`` (seed 91: validation, never an evaluation
@@ -114,7 +115,8 @@ def test_a_husky_jammed_at_a_post_behind_the_plan_gets_out_and_reaches_the_goal_
 
 
 @pytest.mark.parametrize("field, value", [("max_expansions", 0), ("cell_m", -0.1), ("backing", (0.0,)),
-                                          ("speeds", (1.5,)), ("backing_cost", 0.5), ("ahead_max_m", 0.2)])
+                                          ("speeds", (0.0,)), ("turns", (1.5,)), ("turns", (-1.0, 1.0)),
+                                          ("backing_cost", 0.5), ("ahead_max_m", 0.2), ("retry_steps", -1)])
 def test_bad_manoeuvre_settings_are_refused_naming_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         ManoeuvreConfig(**{field: value})
@@ -141,3 +143,49 @@ def test_the_driver_waits_for_the_robot_to_stand_still_and_drops_a_manoeuvre_who
     assert driver.command(world, JAMMED_POSE, planned.plan.path, 0) is not None  # not yet strayed
     driver.sent(np.array([1.0, 0.0, 0.0]))
     assert not driver.driving, "the policy drove instead: dropped"
+
+
+def test_every_command_the_search_takes_the_shield_behind_the_plan_lets_through_and_every_other_it_replaces():
+    """The search checks its commands against the map's walls with the shield's own rule: on 60
+    poses 20-60 cm from the walls of ``slam-office:91`` (random headings), the shield that checks
+    the map (``ShieldedPolicy(static_map=True)``, no scan) passes exactly the commands the
+    search admits, unchanged."""
+    cfg = evaluation_config()
+    world, pair = jammed()
+    planner = ManoeuvrePlanner(cfg)
+    tree = planner.walls_of(world)
+    shield = ShieldedPolicy(lambda observation: np.zeros(3, np.float32), cfg, static_map=True)
+    shield.reset(world, pair)
+    clearance = clearance_map(world)
+    rows, cols = np.nonzero((clearance > 0.2) & (clearance < 0.6))
+    rng = np.random.default_rng(11)
+    admitted = refused = 0
+    for k in rng.choice(len(rows), 60, replace=False):
+        x, y = world.map_from_grid((cols[k] + rng.random()) * world.resolution, (rows[k] + rng.random()) * world.resolution)
+        pose = (float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
+        walls = shield.map_points(pose)
+        for command, ok in zip(planner._commands, planner.admissible(tree, pose)):
+            proposed = np.array([command[0], command[1], 0.0], dtype=np.float32)
+            passed = np.array_equal(shield.check(proposed, np.zeros((0, 2)), walls), proposed)
+            shield._stuck = shield._recovering = 0  # each command judged on its own
+            assert passed == bool(ok), (pose, command)
+            admitted += ok
+            refused += not ok
+    assert admitted > 100 and refused > 100, "both kinds were met"
+
+
+def test_after_a_search_that_finds_nothing_the_driver_waits_before_searching_again():
+    """A robot boxed in where no manoeuvre exists (forward only, at the speck): one search, then
+    ``retry_steps`` steps without one, then another (each failed search may take a second on a
+    dense map)."""
+    cfg = forward_only(evaluation_config())
+    world, pair = jammed()
+    planned = GlobalPlanAgent(GoalSeeker(), cfg)
+    planned.reset(world, pair)
+    driver = ManoeuvreDriver(ManoeuvrePlanner(cfg))
+    searches = []
+    plan = driver.planner.plan
+    driver.planner.plan = lambda *args: searches.append(1) or plan(*args)
+    for _ in range(10 + 25 + 1):
+        assert driver.command(world, JAMMED_POSE, planned.plan.path, 0) is None
+    assert len(searches) == 2, "one at the 10th still step, the next 25 steps later"

@@ -10,8 +10,9 @@ docs/results/2026-11-27-namo-robust, sessions 10 and 11).
 
 ``ManoeuvrePlanner`` plans what a driver does there, a multi-point turn: a search (weighted A*,
 as a lattice planner such as Nav2's Smac planners) over poses ``(x, y, yaw)``, each step one
-control period of one command out of a small set (turns on the spot and slow forward arcs: the
-base does not back up), to a pose on the path ahead, lined up with it, from where driving forward is
+control period of one command out of a small set (turns on the spot, slow forward arcs and, on a
+robot that can back up, slow backing arcs: the policies drive forward only, the Husky and the
+Jackal back up), to a pose on the path ahead, lined up with it, from where driving forward is
 clear. Every step is checked against the map's walls round the pose with the shield's own rule
 (``curlnav.planners.shield``: the footprint over the shield's horizon keeps ``margin_m``, a turn on
 the spot ``turn_margin_m``, and a base already nearer does not come nearer), so the shield lets the
@@ -38,13 +39,13 @@ from curlnav.sim import EnvConfig, World
 class ManoeuvreConfig:
     """The manoeuvre's search (m, rad, control steps)."""
 
-    #: forward speeds of the search's commands, fractions of the top speed (0: turns on the spot)
+    #: forward speeds of the search's commands, m/s (0: turns on the spot; capped at the robot's top speed)
     speeds: tuple[float, ...] = (0.0, 0.25, 0.5)
     #: turn rates of the search's commands, fractions of the top turn rate
     turns: tuple[float, ...] = (-1.0, -0.5, 0.0, 0.5, 1.0)
-    #: backing speeds, fractions of the robot's reverse limit (``RobotConfig.max_reverse_speed``;
-    #: none on a robot that drives forward only), each with every turn rate ...
-    backing: tuple[float, ...] = (0.5,)
+    #: backing speeds, m/s, each with every turn rate (capped at ``RobotConfig.max_reverse_speed``;
+    #: none on a robot that drives forward only) ...
+    backing: tuple[float, ...] = (0.25,)
     #: ... and a step backing up costs this many steps forward (the LiDAR does not see behind:
     #: only the map's walls are checked there)
     backing_cost: float = 2.0
@@ -57,7 +58,9 @@ class ManoeuvreConfig:
     #: the search's cells: poses nearer than this (m, rad) count as one
     cell_m: float = 0.03
     cell_rad: float = math.radians(5.0)
-    max_expansions: int = 4000  # poses expanded at most (each 1-20 ms, by how many wall points are near)
+    #: poses expanded at most (each 1-20 ms, by how many wall points are near; the validation
+    #: worlds' manoeuvres took at most 1,057)
+    max_expansions: int = 1500
     max_steps: int = 60  # a manoeuvre costs at most this many control steps (backing_cost each backing one)
     #: the search's weight on its estimate of the steps left (weighted A*: above 1, quicker, a
     #: little longer manoeuvres)
@@ -66,6 +69,9 @@ class ManoeuvreConfig:
     #: ``still_steps`` steps
     still_steps: int = 10
     still_m: float = 0.05
+    #: after a search that found nothing (or a manoeuvre given up after two re-plans), none is
+    #: started for this many steps
+    retry_steps: int = 25
     #: a driven manoeuvre is planned again when the robot is this far off its predicted pose
     deviation_m: float = 0.1
     deviation_rad: float = math.radians(15.0)
@@ -76,21 +82,22 @@ class ManoeuvreConfig:
                                               "estimate_weight"])
         if self.ahead_max_m <= self.ahead_min_m:
             raise ValueError(f"manoeuvre: ahead_max_m ({self.ahead_max_m}) must exceed ahead_min_m ({self.ahead_min_m})")
-        for name in ("max_expansions", "max_steps", "still_steps"):
+        for name in ("max_expansions", "max_steps", "still_steps", "retry_steps"):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 1_000_000):
                 raise ValueError(f"manoeuvre: {name} must be a whole number 1-1000000, got {value!r}")
         if not (isinstance(self.backing_cost, (int, float)) and not isinstance(self.backing_cost, bool)
                 and math.isfinite(self.backing_cost) and self.backing_cost >= 1):
             raise ValueError(f"manoeuvre: backing_cost must be a number of at least 1, got {self.backing_cost!r}")
-        if not (isinstance(self.backing, tuple) and all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x <= 1.0 for x in self.backing)):
-            raise ValueError(f"manoeuvre: backing must be a tuple of fractions above 0 up to 1, got {self.backing!r}")
-        for name, low in (("speeds", 0.0), ("turns", -1.0)):
+        for name, low, high in (("speeds", 0.0, 10.0), ("backing", 0.0, 10.0), ("turns", -1.0, 1.0)):
             values = getattr(self, name)
-            if not (isinstance(values, tuple) and values and all(
-                    isinstance(x, (int, float)) and not isinstance(x, bool) and low <= x <= 1.0 for x in values)):
-                raise ValueError(f"manoeuvre: {name} must be a non-empty tuple of fractions {low:g}..1, got {values!r}")
+            if not (isinstance(values, tuple) and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                      and low <= x <= high for x in values)):
+                raise ValueError(f"manoeuvre: {name} must be a tuple of numbers {low:g}..{high:g}, got {values!r}")
+        if not any(v > 0 for v in self.speeds) or 0.0 not in self.turns or 0.0 in self.backing:
+            raise ValueError("manoeuvre: speeds needs a forward speed and turns a 0 (the search ends lined up with "
+                             f"room to drive straight on), backing no 0; got speeds {self.speeds!r}, turns "
+                             f"{self.turns!r}, backing {self.backing!r}")
 
 
 @dataclass(frozen=True)
@@ -116,10 +123,10 @@ class ManoeuvrePlanner:
         self._period = self.env_config.control_period
         self._times = np.arange(1, int(math.ceil(self.shield.horizon_s / self.shield.step_s - 1e-9)) + 1) \
             * self.shield.step_s
-        speeds = list(self.config.speeds) + [-b * robot.reverse_fraction for b in self.config.backing
-                                             if robot.reverse_fraction > 0]
-        commands = [(v, w) for v in speeds for w in self.config.turns if (v, w) != (0.0, 0.0)]
-        self._commands = np.array(commands, dtype=np.float64)  # (m, 2) fractions
+        speeds = sorted({min(v, robot.max_linear_speed) for v in self.config.speeds}
+                        | {-min(b, robot.max_reverse_speed) for b in self.config.backing if robot.max_reverse_speed > 0})
+        commands = [(v / robot.max_linear_speed, w) for v in speeds for w in self.config.turns if (v, w) != (0.0, 0.0)]
+        self._commands = np.array(commands, dtype=np.float64)  # (m, 2) fractions of the top speeds
         self._cost = np.where(self._commands[:, 0] < 0, self.config.backing_cost, 1.0)  # steps
         self._v = self._commands[:, 0] * robot.max_linear_speed  # m/s
         self._w = self._commands[:, 1] * robot.max_angular_speed  # rad/s
@@ -218,14 +225,12 @@ class ManoeuvrePlanner:
             expansions += 1
             if arrived(p, ok):
                 return self._unwind(nodes, i, expansions) if i > 0 else None
-            if steps >= cfg.max_steps:
-                continue
             for k, q in zip(np.nonzero(ok)[0], self._after(tuple(p))[ok]):
+                cost = steps + float(self._cost[k])
                 key = cell(q)
-                if key in seen:
+                if key in seen or cost > cfg.max_steps:
                     continue
                 seen.add(key)
-                cost = steps + float(self._cost[k])
                 nodes.append((q, i, int(k), cost))
                 heapq.heappush(frontier, (cost + cfg.estimate_weight * estimate(q), len(nodes) - 1))
         return None
@@ -244,8 +249,9 @@ class ManoeuvreDriver:
     poses within ``still_m``), plans a ``Manoeuvre`` and drives it: ``command(world, pose, path,
     index)`` gives the manoeuvre's next ``[v, w]`` (fractions), or None (the tracker drives). A
     manoeuvre is planned again from where the robot is when it strays from the predicted pose (a
-    ball, the drive's lag; twice at most), and dropped when a command other than its own was sent
-    (``sent``); after a search finds nothing, none is made for ``still_steps`` more steps."""
+    ball, the drive's lag, the shield's own recovery; twice at most), and dropped when a command
+    other than its own was sent (``sent``); after a search finds nothing, or a manoeuvre is given
+    up, none is started for ``retry_steps`` steps."""
 
     def __init__(self, planner: ManoeuvrePlanner) -> None:
         self.planner = planner
@@ -259,7 +265,7 @@ class ManoeuvreDriver:
         self._step = 0  # the next command of the active manoeuvre
         self._given: np.ndarray | None = None  # the command last given
         self._replans = 0
-        self._quiet_until = 0  # no search before this many poses have been seen (after a failed one)
+        self._quiet = 0  # steps before a new manoeuvre may be started
         self.manoeuvres = 0  # manoeuvres started in the current episode
 
     @property
@@ -269,7 +275,7 @@ class ManoeuvreDriver:
 
     def _still(self) -> bool:
         cfg = self.config
-        if len(self._poses) < max(cfg.still_steps, self._quiet_until):
+        if len(self._poses) < cfg.still_steps or self._quiet > 0:
             return False
         recent = np.array(self._poses[-cfg.still_steps:])[:, :2]
         return bool(np.max(np.hypot(*(recent - recent[-1]).T)) <= cfg.still_m)
@@ -283,6 +289,13 @@ class ManoeuvreDriver:
         found = self.planner.plan(world, pose, path, index)
         self._active = found if found is not None and len(found.commands) else None
         self._step = 0
+        if self._active is None:
+            self._quiet = self.config.retry_steps
+
+    def _end(self) -> None:
+        """The manoeuvre is over (done, dropped or given up): stillness is counted afresh."""
+        self._active = None
+        self._poses.clear()
 
     def command(self, world: World, pose: tuple[float, float, float], path: np.ndarray | None,
                 index: int, may_plan: bool = True) -> np.ndarray | None:
@@ -290,19 +303,21 @@ class ManoeuvreDriver:
         None; ``may_plan``: whether a new manoeuvre may be started this step."""
         pose = tuple(float(x) for x in pose)
         self._poses.append(pose)
+        self._quiet = max(self._quiet - 1, 0)
         self._given = None
         if self._active is not None and self._strayed(pose):
-            self._active = None
+            self._end()
             if self._replans < 2:
                 self._replans += 1
                 self._start(world, pose, path, index)
+            else:
+                self._quiet = self.config.retry_steps
         elif self._active is None:
             if path is None or not may_plan or not self._still():
                 return None
             self._replans = 0
             self._start(world, pose, path, index)
             if self._active is None:
-                self._quiet_until = len(self._poses) + self.config.still_steps
                 return None
             self.manoeuvres += 1
         if self._active is None:
@@ -310,13 +325,11 @@ class ManoeuvreDriver:
         self._given = self._active.commands[self._step]
         self._step += 1
         if self._step >= len(self._active.commands):  # the last command: the tracker drives on
-            self._active = None
-            self._poses.clear()
+            self._end()
         return self._given
 
     def sent(self, action: np.ndarray) -> None:
         """The command the robot was sent this step: a manoeuvre whose command it was not is dropped."""
         if self._given is not None and not np.allclose(np.asarray(action, dtype=np.float64)[:2], self._given,
                                                        atol=1e-6):
-            self._active = None
-            self._poses.clear()
+            self._end()

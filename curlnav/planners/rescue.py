@@ -16,10 +16,11 @@ goal (from the observation's goal block, as the policy sees it):
 
 The fallback by default is ``dwa`` following A* on the scan map (``dwa+scan-plan``: unknown cells
 free, the robot's own scans marking and clearing cells), the map-less analogue of ``move_base``,
-the BARN Challenge's baseline stack; on a robot that can reverse its DWA samples backing up too
-(``RescueConfig.reverse``). It sees only what the policy's robot has: scan, labels, goal and
-odometry. Behind a global plan (``POLICY+global-plan+rescue``), where the stack has the map and a
-localised pose, it is regulated pure pursuit of the same plan instead (``global_plan_fallback``).
+the BARN Challenge's baseline stack; asked to (``RescueConfig.reverse``), on a robot that can
+reverse, its DWA samples backing up too. It sees only what the policy's robot has: scan, labels,
+goal and odometry. Behind a global plan (``POLICY+global-plan+rescue``), where the stack has the map
+and a localised pose, it is regulated pure pursuit of the same plan instead, with a manoeuvre onto
+the path where the robot stands jammed (``global_plan_fallback``).
 While the policy drives, the fallback is told each command sent (``commanded``), so that its
 dynamic window starts from the robot's real speed when it takes over.
 """
@@ -48,9 +49,12 @@ class RescueConfig:
     max_steps: int = 100  # the fallback drives at most this many steps at a time
     #: the default (map-less) fallback's DWA may back up, on a robot that can
     #: (``RobotConfig.max_reverse_speed``); it checks a backing arc against its one-second scan
-    #: memory only: the LiDAR does not see behind. Behind a global plan the fallback's manoeuvre
-    #: backs up whatever this says, checked against the map (``curlnav.planners.manoeuvre``)
-    reverse: bool = True
+    #: memory only: the LiDAR does not see behind. Off unless asked (``policies/barn-jackal`` asks,
+    #: in its ``deploy_settings``): on the Husky's validation floors it gained nothing and raised
+    #: contacts (docs/results/2026-11-27-namo-robust, session 11). Behind a global plan the
+    #: fallback's manoeuvre backs up whatever this says, checked against the map
+    #: (``curlnav.planners.manoeuvre``)
+    reverse: bool = False
 
     def __post_init__(self) -> None:
         for name in ("stall_steps", "max_steps"):
@@ -64,7 +68,7 @@ class RescueConfig:
             raise ValueError(f"rescue: progress_m must be a positive number of metres, got {self.progress_m!r}")
 
 
-def default_fallback(env_config: EnvConfig, reverse: bool = True):
+def default_fallback(env_config: EnvConfig, reverse: bool = False):
     """``dwa`` behind A* on the map of its own scans (``dwa+scan-plan``), backing up with ``reverse``
     where the robot can."""
     from curlnav.planners.local import DwaConfig, DynamicWindowPlanner
