@@ -17,8 +17,8 @@ from curlnav.planners.global_plan import GlobalPlanAgent
 from curlnav.planners.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
 from curlnav.planners.rescue import PlanTracker, RescueConfig, RescuedPolicy
 from curlnav.planners.shield import ShieldedPolicy
-from curlnav.worlds.pairs import clearance_map
 from curlnav.sim import StartGoal, World, get_world
+from curlnav.worlds.pairs import clearance_map
 
 #: a pose in the validation world ``slam-office:91`` (seed 91: validation, never an evaluation
 #: suite's) where ``policies/namo-robust`` behind the plan stood for 50 s (session 11): a speck of
