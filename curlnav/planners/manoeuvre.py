@@ -2,9 +2,9 @@
 
 Behind a global plan the rescue is the plan's path tracker (``curlnav.planners.rescue.PlanTracker``,
 regulated pure pursuit). Pure pursuit knows one way onto the path: turn toward it, the short way
-round, then drive. A forward-only base (the Husky's policies drive forward only) that stands with a
-post or a wall end a few centimetres off its corner, where the short turn sweeps that corner into
-it, never gets there: the shield refuses the turn, its recovery turns the other way for a second,
+round, then drive. A base that stands with a post or a wall end a few centimetres off its
+corner, where the short turn sweeps that corner into it (or a post just before its nose, where
+either turn does), never gets there: the shield refuses the turn, its recovery turns the other way for a second,
 the tracker asks for the short turn again, and so on for the rest of the minute (validation,
 docs/results/2026-11-27-namo-robust, sessions 10 and 11).
 

@@ -1,7 +1,8 @@
 """``NamoEnv``: navigation among movable obstacles as a ``gymnasium.Env``.
 
 Action (float, shape ``(3,)``): ``[v, w, L]`` with ``v`` in [0, 1] (forward speed as a fraction
-of ``RobotConfig.max_linear_speed``; no reverse), ``w`` in [-1, 1] (turn rate as a fraction of
+of ``RobotConfig.max_linear_speed``, the policies' range; down to ``-reverse_fraction`` on a robot
+that backs up, for a stack's helpers), ``w`` in [-1, 1] (turn rate as a fraction of
 ``max_angular_speed``, positive counter-clockwise) and ``L`` in [0, 1] (end-effector forward
 displacement as a fraction of ``arm_reach``, 0.5 m for the Husky preset). NaN, infinite or
 out-of-range actions raise ``ValueError``; the policy must clip its own output.
