@@ -174,11 +174,9 @@ def test_every_command_the_search_takes_the_shield_behind_the_plan_lets_through_
     assert admitted > 100 and refused > 100, "both kinds were met"
 
 
-def test_after_a_search_that_finds_nothing_the_driver_waits_before_searching_again():
-    """A robot boxed in where no manoeuvre exists (forward only, at the speck): one search, then
-    ``retry_steps`` steps without one, then another (each failed search may take a second on a
-    dense map)."""
-    cfg = forward_only(evaluation_config())
+def counting_driver(cfg):
+    """The speck's world and pair, the plan, a ``ManoeuvreDriver`` and the list its searches are
+    counted in (one entry a search)."""
     world, pair = jammed()
     planned = GlobalPlanAgent(GoalSeeker(), cfg)
     planned.reset(world, pair)
@@ -186,6 +184,43 @@ def test_after_a_search_that_finds_nothing_the_driver_waits_before_searching_aga
     searches = []
     plan = driver.planner.plan
     driver.planner.plan = lambda *args: searches.append(1) or plan(*args)
+    return world, pair, planned, driver, searches
+
+
+def test_after_a_search_that_finds_nothing_the_driver_waits_before_searching_again():
+    """A robot boxed in where no manoeuvre exists (forward only, at the speck): one search, then
+    ``retry_steps`` steps without one, then another (each failed search may take a second on a
+    dense map)."""
+    world, pair, planned, driver, searches = counting_driver(forward_only(evaluation_config()))
     for _ in range(10 + 25 + 1):
         assert driver.command(world, JAMMED_POSE, planned.plan.path, 0) is None
     assert len(searches) == 2, "one at the 10th still step, the next 25 steps later"
+
+
+def test_no_manoeuvre_is_planned_while_the_policy_drives_and_the_tracker_forgets_it_at_reset():
+    """``may_plan`` false (the rescue's command was not the one sent last step): a robot standing
+    still gets no search however long; the first step the rescue drives, it does. ``PlanTracker``
+    resets its driver with the episode."""
+    world, pair, planned, driver, searches = counting_driver(evaluation_config())
+    for _ in range(30):
+        assert driver.command(world, JAMMED_POSE, planned.plan.path, 0, may_plan=False) is None
+    assert not searches
+    assert driver.command(world, JAMMED_POSE, planned.plan.path, 0, may_plan=True) is not None
+    assert len(searches) == 1 and driver.driving
+    tracker = PlanTracker(planned)
+    tracker.driver = driver
+    tracker.reset(world, pair)
+    assert not driver.driving and driver.manoeuvres == 0
+
+
+def test_map_less_rescues_back_up_only_where_the_artefact_asks():
+    """``RescueConfig.reverse`` is off by default (the Husky's map-less rescue stays forward-only);
+    ``policies/barn-jackal`` asks for it, ``policies/namo-robust`` does not."""
+    from pathlib import Path
+
+    from curlnav.planners import rescue_settings
+
+    policies = Path(__file__).resolve().parent.parent / "policies"
+    assert RescueConfig().reverse is False
+    assert rescue_settings(str(policies / "barn-jackal")).reverse is True
+    assert rescue_settings(str(policies / "namo-robust")).reverse is False

@@ -100,7 +100,8 @@ def test_bad_rescue_settings_are_refused_by_name(bad):
 
 def test_the_rescues_dwa_backs_away_from_a_wall_too_near_to_turn_at_where_the_robot_can_reverse():
     """A wall 5 cm ahead of the bumper (inside DWA's 10 cm margin): forward-only DWA can only stop;
-    the rescue's DWA, on a robot with a reverse gear, backs away."""
+    a DWA that may back up (``reverse=True``, as the rescue's where ``RescueConfig.reverse`` asks),
+    on a robot with a reverse gear, backs away."""
     import dataclasses
 
     from curlnav.planners.local import DwaConfig

@@ -439,8 +439,9 @@ class DwaConfig:
     margin_m: float = 0.1  # a trajectory is dropped when its footprint comes this close to a static point
     ignore_beyond_m: float = 2.6  # static points further than this cannot matter within sim_time_s
     #: also sample backing up (down to the robot's ``max_reverse_speed``; ROS's negative min_vel_x):
-    #: off for the baseline, on for the rescue (``curlnav.planners.rescue``), which must get a robot
-    #: out of a spot where no forward arc keeps the margin
+    #: off for the baseline, on for the rescue (``curlnav.planners.rescue``) where its
+    #: ``RescueConfig.reverse`` asks (``policies/barn-jackal``'s does), to get a robot out of a spot
+    #: where no forward arc keeps the margin
     reverse: bool = False
 
 

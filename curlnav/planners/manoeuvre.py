@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import heapq
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -260,7 +261,7 @@ class ManoeuvreDriver:
 
     def clear(self) -> None:
         """Forget the episode: the poses seen, any manoeuvre under way, the count."""
-        self._poses: list[tuple[float, float, float]] = []
+        self._poses: deque[tuple[float, float, float]] = deque(maxlen=self.config.still_steps)
         self._active: Manoeuvre | None = None
         self._step = 0  # the next command of the active manoeuvre
         self._given: np.ndarray | None = None  # the command last given
@@ -277,7 +278,7 @@ class ManoeuvreDriver:
         cfg = self.config
         if len(self._poses) < cfg.still_steps or self._quiet > 0:
             return False
-        recent = np.array(self._poses[-cfg.still_steps:])[:, :2]
+        recent = np.array(self._poses)[:, :2]
         return bool(np.max(np.hypot(*(recent - recent[-1]).T)) <= cfg.still_m)
 
     def _strayed(self, pose: tuple[float, float, float]) -> bool:
@@ -329,7 +330,9 @@ class ManoeuvreDriver:
         return self._given
 
     def sent(self, action: np.ndarray) -> None:
-        """The command the robot was sent this step: a manoeuvre whose command it was not is dropped."""
+        """The command the robot's stack chose this step (behind a rescue: the rescue's, before the
+        shield, whose replacements show as a stray from the predicted pose): a manoeuvre whose
+        command it was not is dropped."""
         if self._given is not None and not np.allclose(np.asarray(action, dtype=np.float64)[:2], self._given,
                                                        atol=1e-6):
             self._end()

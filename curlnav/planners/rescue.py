@@ -103,7 +103,9 @@ class PlanTracker:
         self.planned = planned
         self.driver = None if manoeuvre is None else ManoeuvreDriver(ManoeuvrePlanner(planned.env_config, manoeuvre))
         self._given: np.ndarray | None = None  # the command this fallback gave last step
-        self._in_charge = False  # whether that command was the one sent
+        #: whether that command was the one the rescue chose (``commanded``: the rescue's output,
+        #: before a shield outside it, whose replacements the driver sees as a stray)
+        self._in_charge = False
 
     def reset(self, world: World | None, pair: StartGoal | None) -> None:
         if self.driver is not None:  # the GlobalPlanAgent behind the rescue plans anew at its own reset

@@ -30,7 +30,7 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
   barely move the base, the shield drives ``recovery_steps`` steps itself, each the admissible
   command that ends with the most room round the base, as ``move_base`` runs its recovery
   behaviours, and hands back. With ``reverse_recovery``, on a robot that can reverse
-  (``RobotConfig.max_reverse_speed``, the Jackal's 0.5 m/s), the recovery may back up, as Nav2's
+  (``RobotConfig.max_reverse_speed``, the Husky's and the Jackal's 0.5 m/s), the recovery may back up, as Nav2's
   BackUp behaviour: a base that drove into a spot too tight to turn in gets out of it. A backing
   command from the policy's stack (the rescue's DWA) is checked like any other.
 

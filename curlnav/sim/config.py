@@ -46,8 +46,9 @@ class RobotConfig:
     #: m/s the base may back up at: the Husky's 0.5 (its datasheet's top speed is 1.0 m/s both ways;
     #: backing up is kept slow, the LiDAR does not see behind). The policies drive forward only
     #: (action[0] in 0..1, as in the paper); a negative action[0], down to -max_reverse_speed /
-    #: max_linear_speed, comes only from a stack's helpers (the rescue's DWA, the shield's recovery
-    #: with ``reverse_recovery``, the manoeuvre behind a global plan: ``curlnav.planners.manoeuvre``).
+    #: max_linear_speed, comes only from a stack's helpers (the rescue's DWA with
+    #: ``RescueConfig.reverse``, the shield's recovery with ``reverse_recovery``, the manoeuvre behind a
+    #: global plan: ``curlnav.planners.manoeuvre``).
     #: 0: the base drives forward only (a robot profile file's default).
     max_reverse_speed: float = field(default=0.5, metadata={"hash": "omit-default"})
 

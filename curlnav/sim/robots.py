@@ -18,7 +18,8 @@ Built-in profiles (manufacturers' published figures; ``docs/guide/robots.md``):
 A profile file (YAML) gives ``name``, any ``RobotConfig`` field (``base_length``, ``base_width``,
 ``base_height``, ``base_mass``, ``max_linear_speed``, ``max_angular_speed``, ``drive_force``,
 ``arm`` true/false, ``arm_reach`` ...; m, kg, m/s, rad/s, N) and ``lidar: {beams, fov_deg, range_m,
-height_m}``; fields left out keep the Husky's. See ``docs/guide/robots.md`` for an example.
+height_m}``; fields left out keep the Husky's, but for ``max_reverse_speed``: 0 (forward only) unless
+the file gives it. See ``docs/guide/robots.md`` for an example.
 """
 
 from __future__ import annotations
