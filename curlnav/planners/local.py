@@ -75,6 +75,21 @@ def wrap(angle: float | np.ndarray) -> float | np.ndarray:
     return (np.asarray(angle) + math.pi) % (2 * math.pi) - math.pi
 
 
+def arc_poses(v: np.ndarray, w: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(x, y, th)``, each ``(N, T)``: where each command ``(v[i], w[i])`` (m/s, rad/s), driven as a
+    constant arc from the origin of the robot frame heading +x, has the base at the ``times``
+    ``(T,)`` (s): position (m) and heading (rad), in that frame."""
+    v = np.asarray(v, dtype=np.float64)
+    w = np.asarray(w, dtype=np.float64)
+    times = np.asarray(times, dtype=np.float64)
+    th = w[:, None] * times[None, :]
+    straight = np.abs(w) < 1e-6
+    safe_w = np.where(straight, 1.0, w)[:, None]
+    x = np.where(straight[:, None], v[:, None] * times[None, :], v[:, None] * np.sin(th) / safe_w)
+    y = np.where(straight[:, None], 0.0, v[:, None] * (1.0 - np.cos(th)) / safe_w)
+    return x, y, th
+
+
 def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times: np.ndarray,
                         half_length: float, half_width: float, signed: bool = False) -> np.ndarray:
     """For each command ``(v[i], w[i])`` (m/s, rad/s) driven from the origin of the robot frame as a
@@ -90,11 +105,7 @@ def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times:
     if len(points) > chunk:  # a dense map's walls: thousands of points round the base
         return np.min([footprint_clearance(points[i:i + chunk], v, w, times, half_length, half_width, signed)
                        for i in range(0, len(points), chunk)], axis=0)
-    th = w[:, None] * times[None, :]  # (N, T)
-    straight = np.abs(w) < 1e-6
-    safe_w = np.where(straight, 1.0, w)[:, None]
-    x = np.where(straight[:, None], v[:, None] * times[None, :], v[:, None] * np.sin(th) / safe_w)
-    y = np.where(straight[:, None], 0.0, v[:, None] * (1.0 - np.cos(th)) / safe_w)
+    x, y, th = arc_poses(v, w, times)  # (N, T)
     c, s = np.cos(th)[..., None], np.sin(th)[..., None]
     px = points[None, None, :, 0] - x[..., None]
     py = points[None, None, :, 1] - y[..., None]
@@ -494,11 +505,7 @@ class DynamicWindowPlanner(ScanAgent):
         vs, ws = self.window()
         v, w = (a.ravel() for a in np.meshgrid(vs, ws))  # (N,)
         t = np.arange(1, int(round(cfg.sim_time_s / cfg.sim_dt_s)) + 1) * cfg.sim_dt_s  # (T,)
-        th = w[:, None] * t[None, :]
-        straight = np.abs(w) < 1e-6
-        safe_w = np.where(straight, 1.0, w)[:, None]
-        x = np.where(straight[:, None], v[:, None] * t, v[:, None] * np.sin(th) / safe_w)
-        y = np.where(straight[:, None], 0.0, v[:, None] * (1.0 - np.cos(th)) / safe_w)  # (N, T)
+        x, y, th = arc_poses(v, w, t)  # (N, T)
         d = np.hypot(points[:, 0], points[:, 1])
         inside_now = (np.abs(points[:, 0]) <= self.half_length) & (np.abs(points[:, 1]) <= self.half_width)
         used = points[(d < cfg.ignore_beyond_m) & ~inside_now]
