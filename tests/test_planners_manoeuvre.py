@@ -16,7 +16,7 @@ from curlnav.evaluation.protocol import evaluation_config
 from curlnav.planners.global_plan import GlobalPlanAgent
 from curlnav.planners.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
 from curlnav.planners.rescue import PlanTracker, RescueConfig, RescuedPolicy
-from curlnav.planners.shield import ShieldedPolicy
+from curlnav.planners.shield import ShieldedPolicy, wall_tree
 from curlnav.sim import StartGoal, World, get_world
 from curlnav.worlds.pairs import clearance_map
 
@@ -153,7 +153,7 @@ def test_every_command_the_search_takes_the_shield_behind_the_plan_lets_through_
     cfg = evaluation_config()
     world, pair = jammed()
     planner = ManoeuvrePlanner(cfg)
-    tree = planner.walls_of(world)
+    tree = wall_tree(world)
     shield = ShieldedPolicy(lambda observation: np.zeros(3, np.float32), cfg, static_map=True)
     shield.reset(world, pair)
     clearance = clearance_map(world)

@@ -31,8 +31,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from curlnav.config import _positive_numbers
-from curlnav.planners.local import footprint_clearance
-from curlnav.planners.shield import ShieldConfig, wall_outline
+from curlnav.planners.local import arc_poses
+from curlnav.planners.shield import ArcRule, ShieldConfig, wall_tree, walls_near
 from curlnav.sim import EnvConfig, World
 
 
@@ -122,8 +122,7 @@ class ManoeuvrePlanner:
         robot = self.env_config.robot
         self.half_length, self.half_width = robot.base_length / 2, robot.base_width / 2
         self._period = self.env_config.control_period
-        self._times = np.arange(1, int(math.ceil(self.shield.horizon_s / self.shield.step_s - 1e-9)) + 1) \
-            * self.shield.step_s
+        self._times = self.shield.times()
         speeds = sorted({min(v, robot.max_linear_speed) for v in self.config.speeds}
                         | {-min(b, robot.max_reverse_speed) for b in self.config.backing if robot.max_reverse_speed > 0})
         commands = [(v / robot.max_linear_speed, w) for v in speeds for w in self.config.turns if (v, w) != (0.0, 0.0)]
@@ -134,45 +133,22 @@ class ManoeuvrePlanner:
         # m, the furthest a wall point can be from the base's centre and still matter to a command
         self._reach = (math.hypot(self.half_length, self.half_width) + self.shield.margin_m
                        + float(np.max(np.abs(self._v), initial=0.0)) * max(self.shield.horizon_s, self._period))
-        self._walls: tuple[World, cKDTree] | None = None
-
-    def walls_of(self, world: World) -> cKDTree:
-        """The map's wall outline (``curlnav.planners.shield.wall_outline``) as a tree, kept per world."""
-        if self._walls is None or self._walls[0] is not world:
-            self._walls = (world, cKDTree(wall_outline(world)))
-        return self._walls[1]
 
     def admissible(self, tree: cKDTree, pose: tuple[float, float, float]) -> np.ndarray:
         """``(m,)`` which of the search's commands the shield admits at ``pose`` against the map's
         walls: the footprint over the shield's horizon keeps ``margin_m`` (a turn on the spot
         ``turn_margin_m``) from the points the base does not touch, or no less than it keeps now,
         and presses no deeper into those it touches."""
-        x, y, yaw = pose
-        near = tree.data[tree.query_ball_point([x, y], self._reach)]
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = near[:, 0] - x, near[:, 1] - y
-        points = np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1).reshape(-1, 2)
+        points = walls_near(tree, pose, self._reach)
         hl, hw = self.half_length, self.half_width
         on_base = (np.abs(points[:, 0]) <= hl) & (np.abs(points[:, 1]) <= hw)
-        free, touched = points[~on_base], points[on_base]
-        zero = np.zeros(1)
-        now = float(footprint_clearance(free, zero, zero, zero, hl, hw)[0])
-        margin = np.minimum(np.where(self._v == 0.0, self.shield.turn_margin_m, self.shield.margin_m), now)
-        ok = footprint_clearance(free, self._v, self._w, self._times, hl, hw) >= margin
-        if len(touched):
-            pressed_now = float(footprint_clearance(touched, zero, zero, zero, hl, hw, signed=True)[0])
-            ok &= footprint_clearance(touched, self._v, self._w, self._times, hl, hw, signed=True) >= pressed_now - 1e-9
-        return ok
+        rule = ArcRule(points[~on_base], points[on_base], hl, hw, self.shield.margin_m, self.shield.turn_margin_m)
+        return rule.admissible(self._v, self._w, self._times)
 
     def _after(self, pose: tuple[float, float, float]) -> np.ndarray:
         """``(m, 3)`` the pose after one control period of each command (exact arcs)."""
         x, y, yaw = pose
-        t = self._period
-        th = self._w * t
-        straight = np.abs(self._w) < 1e-9
-        safe = np.where(straight, 1.0, self._w)
-        fx = np.where(straight, self._v * t, self._v * np.sin(th) / safe)  # robot frame at pose
-        fy = np.where(straight, 0.0, self._v * (1.0 - np.cos(th)) / safe)
+        fx, fy, th = (a[:, 0] for a in arc_poses(self._v, self._w, np.array([self._period])))  # robot frame at pose
         c, s = math.cos(yaw), math.sin(yaw)
         return np.stack([x + c * fx - s * fy, y + s * fx + c * fy, yaw + th], axis=1)
 
@@ -194,7 +170,7 @@ class ManoeuvrePlanner:
         targets = path[pick]
         direction = path[pick + 1] - path[pick]
         headings = np.arctan2(direction[:, 1], direction[:, 0])
-        tree = self.walls_of(world)
+        tree = wall_tree(world)
         step_m = max(float(np.max(self._v)) * self._period, 1e-3)  # m, the furthest one step goes
         turn_rad = self.env_config.robot.max_angular_speed * self._period
 

@@ -83,6 +83,10 @@ class ShieldConfig:
     #: backing recovery once met a post it had passed more than a second before
     reverse_recovery: bool = False
 
+    def times(self) -> np.ndarray:
+        """``(T,)`` s, the checks along each command's arc: every ``step_s`` up to ``horizon_s``."""
+        return np.arange(1, int(math.ceil(self.horizon_s / self.step_s - 1e-9)) + 1) * self.step_s
+
     def __post_init__(self) -> None:
         for name in ("horizon_s", "step_s", "margin_m", "turn_margin_m", "turn_weight", "ignore_beyond_m"):
             value = getattr(self, name)
@@ -140,6 +144,66 @@ def wall_outline(world: World) -> np.ndarray:
     return np.unique(np.round(np.stack([x, y], axis=1), 6), axis=0).reshape(-1, 2)
 
 
+_WALL_TREE: tuple[World, cKDTree] | None = None  # the last world's, shared by the shield and the manoeuvre
+
+
+def wall_tree(world: World) -> cKDTree:
+    """``wall_outline(world)`` as a tree, built once for the world last asked for (a stack's
+    shield and its rescue's manoeuvre both check the same map's walls)."""
+    global _WALL_TREE
+    if _WALL_TREE is None or _WALL_TREE[0] is not world:
+        _WALL_TREE = (world, cKDTree(wall_outline(world)))
+    return _WALL_TREE[1]
+
+
+def walls_near(tree: cKDTree, pose: tuple[float, float, float], reach_m: float) -> np.ndarray:
+    """``(n, 2)`` robot-frame points (m) of ``tree``'s (map frame) within ``reach_m`` of ``pose``
+    (map frame: x, y m, yaw rad)."""
+    x, y, yaw = pose
+    near = tree.data[tree.query_ball_point([x, y], reach_m)]
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = near[:, 0] - x, near[:, 1] - y
+    return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1).reshape(-1, 2)
+
+
+class ArcRule:
+    """The shield's rule for the arcs a base may drive from where it stands (module docstring):
+    ``near`` ``(n, 2)`` are the points (m, robot frame) the base does not touch, ``touched`` the walls
+    on or inside its outline. An arc is admissible when its footprint keeps ``margin_m`` from
+    ``near`` (a turn on the spot ``turn_margin_m``), or no less than it keeps now, and presses no
+    deeper into ``touched`` (signed clearance). ``v``, ``w``: m/s, rad/s (``need``: any speed whose
+    zero is a turn on the spot); ``times``: s along each arc."""
+
+    def __init__(self, near: np.ndarray, touched: np.ndarray, half_length: float, half_width: float,
+                 margin_m: float, turn_margin_m: float) -> None:
+        self.near, self.touched = near, touched
+        self.half_length, self.half_width = half_length, half_width
+        self.margin_m, self.turn_margin_m = margin_m, turn_margin_m
+        zero = np.zeros(1)
+        self.now = float(self.clearance(zero, zero, zero)[0])  # m, from ``near`` where the base stands
+        self.pressed_now = float(self.pressed(zero, zero, zero)[0])  # m, signed, from ``touched`` (inf: none)
+
+    def clearance(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """m, each arc's least clearance from the points the base does not touch."""
+        return footprint_clearance(self.near, v, w, times, self.half_length, self.half_width)
+
+    def pressed(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """m, each arc's least signed clearance from the walls the base touches (inf: none)."""
+        return footprint_clearance(self.touched, v, w, times, self.half_length, self.half_width, signed=True)
+
+    def need(self, v) -> np.ndarray:
+        """m, the clearance each arc of speed ``v`` must keep: its margin, or what the base keeps now."""
+        return np.minimum(np.where(np.asarray(v) == 0.0, self.turn_margin_m, self.margin_m), self.now)
+
+    def no_deeper(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Whether each arc presses no deeper into a wall the base touches."""
+        return self.pressed(v, w, times) >= self.pressed_now - 1e-9
+
+    def admissible(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Whether each arc is admissible."""
+        return (self.clearance(v, w, times) >= self.need(v)) & self.no_deeper(v, w, times)
+
+
 class ShieldedPolicy(ScanAgent):
     """``policy`` (``obs -> [v, w, L]``, or an ``EpisodeAgent`` such as a policy behind a global
     plan) behind the safety shield (module docstring):
@@ -162,7 +226,7 @@ class ShieldedPolicy(ScanAgent):
         # m, the furthest a point can be from the base's centre and still be met within the horizon
         self._reach_m = min(cfg.ignore_beyond_m, robot.max_linear_speed * cfg.horizon_s
                             + math.hypot(self.half_length, self.half_width) + cfg.margin_m)
-        self._times = np.arange(1, int(math.ceil(cfg.horizon_s / cfg.step_s - 1e-9)) + 1) * cfg.step_s
+        self._times = cfg.times()
         vs = np.linspace(0.0, 1.0, cfg.v_samples)
         ws = np.linspace(-1.0, 1.0, cfg.w_samples)
         v, w = np.meshgrid(vs, ws)
@@ -180,7 +244,7 @@ class ShieldedPolicy(ScanAgent):
         if self.static_map and world is None:
             self._walls = None  # map_points refuses until a world is given
         elif self.static_map and (self._walls is None or self._walls[0] is not world):
-            self._walls = (world, cKDTree(wall_outline(world)))
+            self._walls = (world, wall_tree(world))
         inner = getattr(self.policy, "reset", None)
         if callable(inner):
             inner(world, pair)
@@ -204,12 +268,7 @@ class ShieldedPolicy(ScanAgent):
         from ``pose`` (map frame: x, y m, yaw rad) within the horizon."""
         if self._walls is None:
             raise RuntimeError("ShieldedPolicy(static_map=True) needs reset(world, pair) first")
-        world, tree = self._walls
-        x, y, yaw = pose
-        near = tree.data[tree.query_ball_point([x, y], self._reach_m)]
-        c, s = math.cos(yaw), math.sin(yaw)
-        dx, dy = near[:, 0] - x, near[:, 1] - y
-        return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1).reshape(-1, 2)
+        return walls_near(self._walls[1], pose, self._reach_m)
 
     def check(self, proposed: np.ndarray, points: np.ndarray, walls: np.ndarray | None = None) -> np.ndarray:
         """``proposed`` ``[v, w, L]`` (fractions) if its arc is admissible against ``points``
@@ -229,24 +288,7 @@ class ShieldedPolicy(ScanAgent):
         if walls is not None and len(walls):
             on_base = (np.abs(walls[:, 0]) <= hl) & (np.abs(walls[:, 1]) <= hw)
             near, touched = np.concatenate([near, walls[~on_base]]), walls[on_base]
-
-        def clearance_along(v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
-            """m, each arc's least clearance from the points the base does not touch; v, w in m/s, rad/s."""
-            return footprint_clearance(near, v, w, times, hl, hw)
-
-        def pressed_along(v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
-            """m, each arc's least signed clearance from the walls the base touches (inf: none)."""
-            return footprint_clearance(touched, v, w, times, hl, hw, signed=True)
-        now = float(clearance_along(np.zeros(1), np.zeros(1), np.zeros(1))[0])
-        pressed_now = float(pressed_along(np.zeros(1), np.zeros(1), np.zeros(1))[0])
-        turn_margin = cfg.turn_margin_m if self.static_map else cfg.margin_m
-
-        def need(v):  # already nearer than the margin: do not come nearer
-            return np.minimum(np.where(np.asarray(v) == 0.0, turn_margin, cfg.margin_m), now)
-
-        def no_deeper(v: np.ndarray, w: np.ndarray) -> np.ndarray:
-            """Whether each arc presses no deeper into a wall the base touches."""
-            return pressed_along(v, w, self._times) >= pressed_now - 1e-9
+        rule = ArcRule(near, touched, hl, hw, cfg.margin_m, cfg.turn_margin_m if self.static_map else cfg.margin_m)
         if not np.isfinite(proposed[:2]).all():
             self.interventions += 1
             out = proposed.copy()
@@ -255,15 +297,14 @@ class ShieldedPolicy(ScanAgent):
         back = robot.reverse_fraction  # 0: forward only
         v0, w0 = float(np.clip(proposed[0], -back, 1.0)), float(np.clip(proposed[1], -1.0, 1.0))
         arc = np.array([v0 * robot.max_linear_speed]), np.array([w0 * robot.max_angular_speed])
-        mine = clearance_along(*arc, self._times)[0]
-        if mine >= need(v0) and no_deeper(*arc)[0] and not self._recovering:
+        if rule.admissible(*arc, self._times)[0] and not self._recovering:
             self._stuck = 0
             return proposed
         self.interventions += 1
         grid = self._grid
         vs, ws = grid[:, 0] * robot.max_linear_speed, grid[:, 1] * robot.max_angular_speed
-        clearance = clearance_along(vs, ws, self._times)
-        admissible = (clearance >= need(grid[:, 0])) & no_deeper(vs, ws)
+        clearance = rule.clearance(vs, ws, self._times)
+        admissible = (clearance >= rule.need(vs)) & rule.no_deeper(vs, ws, self._times)
         if self._recovering or not admissible.any():
             # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
             # clearance of now): the command that ends with the most room round the base, backing
@@ -271,10 +312,10 @@ class ShieldedPolicy(ScanAgent):
             if back > 0 and cfg.reverse_recovery:
                 grid = np.vstack([grid, self._reverse * [back, 1.0]])
                 rv, rw = grid[len(vs):, 0] * robot.max_linear_speed, grid[len(vs):, 1] * robot.max_angular_speed
-                clearance = np.concatenate([clearance, clearance_along(rv, rw, self._times)])
+                clearance = np.concatenate([clearance, rule.clearance(rv, rw, self._times)])
                 vs, ws = np.concatenate([vs, rv]), np.concatenate([ws, rw])
-                admissible = (clearance >= need(grid[:, 0])) & no_deeper(vs, ws)
-            room = clearance_along(vs, ws, self._times[-1:])
+                admissible = (clearance >= rule.need(vs)) & rule.no_deeper(vs, ws, self._times)
+            room = rule.clearance(vs, ws, self._times[-1:])
             best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
                 else int(np.argmax(clearance))
             self._recovering = max(self._recovering - 1, 0)
