@@ -161,36 +161,6 @@ def test_the_global_plan_flag_keeps_an_artefacts_shipped_helpers_and_says_so_in_
     assert isinstance(agent, ShieldedPolicy), "the artefact named by its metadata file ships the same"
 
 
-def test_behind_a_global_plan_an_artefacts_shipped_scan_plan_gives_way_to_it_and_the_notice_says_so(tmp_path):
-    """``deploy: "+scan-plan+rescue+shield"``: named alone, the policy follows a plan on its own
-    scans; with ``--global-plan`` (eval, policy run, the ROS 2 node's /plan) it follows the global
-    plan instead, its other helpers kept, and the line that names the stack says so; naming both
-    plans outright is still refused."""
-    import json
-
-    from curlnav.planners import deploy_notice
-    from curlnav.planners.global_plan import GlobalPlanAgent
-    from curlnav.planners.scan_map import ScanMapPlanAgent
-
-    cfg = evaluation_config()
-    artefact = tmp_path / "policy"
-    artefact.mkdir()
-    (artefact / "metadata.json").write_text(json.dumps({"deploy": "+scan-plan+rescue+shield"}))
-    load = lambda spec: GoalSeeker()  # noqa: E731
-    _, agent = make_agent(str(artefact), cfg, load)
-    assert isinstance(agent, ShieldedPolicy) and isinstance(agent.policy.policy, ScanMapPlanAgent)
-    _, agent = make_agent(str(artefact), cfg, load, global_plan=True)
-    assert isinstance(agent, ShieldedPolicy) and isinstance(agent.policy, RescuedPolicy)
-    inner = agent.policy.policy
-    assert isinstance(inner, GlobalPlanAgent) and not isinstance(inner, ScanMapPlanAgent)
-    assert isinstance(inner.policy, GoalSeeker)
-    notice = deploy_notice(str(artefact), "bare", global_plan=True)
-    assert f"{artefact}+rescue+shield (its +scan-plan gives way to the global plan)" in notice
-    assert "+scan-plan" not in deploy_notice(str(artefact), "bare", global_plan=True).split(" (")[0]
-    with pytest.raises(ValueError, match="choose one"):
-        make_agent(f"{artefact}+scan-plan+rescue", cfg, load, global_plan=True)
-
-
 def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_bad_ones_are_refused(tmp_path,
                                                                                                  monkeypatch):
     """``metadata.json`` ``deploy_settings.rescue``: the rescue it drives behind takes over after the

@@ -80,7 +80,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     agents = dict(make_agent(spec, env_config, load, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
-    _say_deploy_stacks(args.agents, args.global_plan)
+    _say_deploy_stacks(args.agents)
     pairs_of = suite.pairs_of if suite else lambda w: episode_pairs(w, args.pair or (), args.pairs, args.episodes)
     comparison = Comparison(agents, worlds, pairs_of, env_config)
     from tqdm import tqdm
@@ -137,7 +137,7 @@ def _eval_barn(args: argparse.Namespace) -> int:
     agents = dict(make_agent(spec, env_config, load, args.global_plan) for spec in args.agents)
     if len(agents) < len(args.agents):
         raise ValueError(f"an agent is named twice: {' '.join(args.agents)}")
-    _say_deploy_stacks(args.agents, args.global_plan)
+    _say_deploy_stacks(args.agents)
     print(f"suite barn: the BARN Challenge's worlds {numbers[0]}-{numbers[-1]} ({len(numbers)}), a Jackal from "
           f"({barn.START[0]:g}, {barn.START[1]:g}) facing +y to the goal 10 m ahead, within {barn.GOAL_RADIUS:g} m, "
           f"{barn.TIME_LIMIT:g} s, any collision ends the trial; in curlnav's simulator, not Gazebo")
@@ -286,12 +286,11 @@ def add_rollout_command(sub) -> None:
     p.set_defaults(func=_cmd_rollout)
 
 
-def _say_deploy_stacks(specs: list[str], global_plan: bool = False) -> None:
-    """One line per artefact named alone whose metadata ships it with helpers (``deploy_stack``;
-    ``global_plan``: every policy behind a global plan)."""
+def _say_deploy_stacks(specs: list[str]) -> None:
+    """One line per artefact named alone whose metadata ships it with helpers (``deploy_stack``)."""
     from curlnav.planners import deploy_notice
 
     for spec in specs:
-        line = deploy_notice(spec, f"{spec}+bare: the network alone", global_plan)
+        line = deploy_notice(spec, f"{spec}+bare: the network alone")
         if line:
             print(line)

@@ -100,12 +100,10 @@ def _shipped_metadata(folder: str) -> tuple[Path, dict] | None:
     return (meta, contents) if isinstance(contents, dict) else None
 
 
-def deploy_stack(spec: str, global_plan: bool = False) -> str:
+def deploy_stack(spec: str) -> str:
     """The helpers a policy artefact folder is shipped with: its ``metadata.json``'s ``deploy``
     (suffixes in their order, e.g. ``"+rescue+shield"``), "" when it names none or ``spec`` is no
-    artefact folder. A malformed one is refused in one line (``ValueError``). With
-    ``global_plan`` (the artefact driven behind a global plan) a shipped ``+scan-plan`` is left
-    out: the global plan sets the policy's waypoints instead of the plan on its own scans."""
+    artefact folder. A malformed one is refused in one line (``ValueError``)."""
     shipped = _shipped_metadata(spec)
     if shipped is None:
         return ""
@@ -114,7 +112,7 @@ def deploy_stack(spec: str, global_plan: bool = False) -> str:
     if not isinstance(deploy, str) or not _DEPLOY.match(deploy):
         raise ValueError(f"{meta}: deploy must be suffixes in the order {_ORDER[6:]}, "
                          f"got {deploy!r}")
-    return deploy.replace(SCAN_PLAN_SUFFIX, "") if global_plan else deploy
+    return deploy
 
 
 def rescue_settings(spec: str):
@@ -147,11 +145,10 @@ def rescue_settings(spec: str):
         raise ValueError(f"{meta}: deploy_settings.{exc}") from None
 
 
-def deploy_notice(spec: str, bare_hint: str, global_plan: bool = False) -> str:
-    """The line that says an artefact named alone drives with its shipped helpers (``deploy_stack``;
-    ``global_plan``: behind a global plan), "" when it ships none or ``spec`` carries suffixes;
-    ``bare_hint`` names how to drop them."""
-    stack = deploy_stack(spec, global_plan) if "+" not in spec else ""
+def deploy_notice(spec: str, bare_hint: str) -> str:
+    """The line that says an artefact named alone drives with its shipped helpers (``deploy_stack``),
+    "" when it ships none or ``spec`` carries suffixes; ``bare_hint`` names how to drop them."""
+    stack = deploy_stack(spec) if "+" not in spec else ""
     if not stack:
         return ""
     settings = rescue_settings(spec) if RESCUE_SUFFIX in stack else None
@@ -163,10 +160,7 @@ def deploy_notice(spec: str, bare_hint: str, global_plan: bool = False) -> str:
         changed = [f"{k} {getattr(settings, k)}" for k in RescueConfig.__dataclass_fields__
                    if getattr(settings, k) != getattr(default, k)]
         own = f"; its rescue: {', '.join(changed)} (deploy_settings)" if changed else ""
-    instead = " (its +scan-plan gives way to the global plan)" if global_plan and SCAN_PLAN_SUFFIX in deploy_stack(
-        spec) else ""
-    return (f"{spec}: driven as its artefact ships it, {spec}{stack}{instead} (metadata.json deploy{own}; "
-            f"{bare_hint})")
+    return f"{spec}: driven as its artefact ships it, {spec}{stack} (metadata.json deploy{own}; {bare_hint})"
 
 
 for _planner in (
@@ -207,8 +201,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
     laser odometry (``curlnav.planners.scan_match``). Suffixes stack in that order:
     ``PATH+scan-plan+rescue+shield+track+scan-match``.
     An artefact folder named without a suffix drives with the helpers its metadata ships it with
-    (``deploy_stack``; label: the path as given; with ``global_plan`` a shipped ``+scan-plan``
-    gives way to the global plan); ``PATH+bare`` is the network alone.
+    (``deploy_stack``; label: the path as given); ``PATH+bare`` is the network alone.
     A map-less planner takes the same suffixes (``dwa+scan-plan``: ``move_base``'s pairing)."""
     if canonical(spec) is not None:
         agent = make_planner(spec, env_config)
@@ -220,7 +213,7 @@ def make_agent(spec: str, env_config, load_policy: Callable[[str], object],
         if "+" in spec:
             raise ValueError(f"{label}: +bare is the network alone, without any other suffix")
     elif not any(spec.endswith(s) for s in _STACKED):
-        spec += deploy_stack(spec, global_plan)  # an artefact named alone drives as it is shipped
+        spec += deploy_stack(spec)  # an artefact named alone drives as it is shipped
     plain = spec.split("+", 1)[0]
     planner = canonical(plain) is not None
     if planner:

@@ -175,8 +175,7 @@ def match(reference: tuple[np.ndarray, np.ndarray], current: np.ndarray, guess: 
         point = ~n.any(axis=1)  # a point feature: two residuals, along x and along y
         if point.any():
             p, q = np.concatenate([p, p[point]]), np.concatenate([q, q[point]])
-            n = n.copy()
-            n[point] = (1.0, 0.0)
+            n[point] = (1.0, 0.0)  # n is the paired rows' own copy (fancy indexing)
             n = np.concatenate([n, np.tile([0.0, 1.0], (int(point.sum()), 1))])
         residual = np.einsum("ij,ij->i", n, q - p)
         arm = q - np.array([x, y])

@@ -190,14 +190,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if not (args.bare or helpers):
         from curlnav.planners import deploy_notice, deploy_stack
 
-        # an artefact named alone (or with --global-plan) drives as it is shipped; behind /plan its
-        # +scan-plan gives way to the plan
-        stack = deploy_stack(args.agent, args.global_plan)
+        stack = deploy_stack(args.agent)  # an artefact named alone (or with --global-plan) drives as it is shipped
         if stack:
+            if args.global_plan and "+scan-plan" in stack:
+                raise ValueError(f"{args.agent} ships with +scan-plan, which --global-plan replaces; add --bare, or "
+                                 f"name the helpers yourself")
             args.scan_plan, args.global_plan = "+scan-plan" in stack, args.global_plan or "+global-plan" in stack
             args.rescue, args.shield, args.track = "+rescue" in stack, "+shield" in stack, "+track" in stack
             args.scan_match = "+scan-match" in stack
-            print(deploy_notice(args.agent, "--bare: the network alone", args.global_plan))
+            print(deploy_notice(args.agent, "--bare: the network alone"))
     from curlnav.planners import rescue_settings
 
     policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue, args.track,
