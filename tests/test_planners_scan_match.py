@@ -21,18 +21,26 @@ from curlnav.sim.controllers import GoalSeekingController
 OFFICE = "namo-office:3"  # 22 x 14 m: walls, doors, furniture, balls
 
 
-def test_two_scans_of_the_office_give_back_the_motion_between_them():
+def office_scans(here=None, moved=(0.0, 0.0, 0.0)):
+    """``(here, there, first, second)``: the static points (robot frame, m) the office's scans give
+    at pose ``here`` (default: the episode's start) and at ``there``, ``moved`` further from it
+    (the simulator's own ray cast at both)."""
     cfg = EnvConfig(end_on_base_collision=False)
     env = NamoEnv(OFFICE, cfg)
     try:
         _, info = env.reset(seed=0)
-        here = info["pose"]
-        there = compose(here, (0.35, -0.12, 0.15))  # a step and a turn further
+        here = info["pose"] if here is None else here
+        there = compose(here, moved)
         agent = ScanMatchedPolicy(lambda obs: obs, cfg)
         first = agent.static_points(*env.scene.scan(*here)[:2])
         second = agent.static_points(*env.scene.scan(*there)[:2])
     finally:
         env.close()
+    return here, there, first, second
+
+
+def test_two_scans_of_the_office_give_back_the_motion_between_them():
+    here, there, first, second = office_scans(moved=(0.35, -0.12, 0.15))  # a step and a turn further
     config = ScanMatchConfig()
     fitted = match(lines(first, config), second, (0.3, -0.05, 0.1), config)  # started a few cm and degrees off
     assert fitted is not None
@@ -46,17 +54,7 @@ def test_along_a_corridor_the_jambs_and_corners_give_the_motion_the_walls_cannot
     # the office's corridor (y 5.2-7.3 m, 22 m long, its far ends beyond range_m): the walls' lines
     # say nothing along it; the jambs of its doorways and the corners do, point to point. Started
     # 10 cm short, as 25 % wheel drift over the 0.4 m driven, the match finds the true motion
-    cfg = EnvConfig(end_on_base_collision=False)
-    env = NamoEnv(OFFICE, cfg)
-    try:
-        env.reset(seed=0)
-        here = (11.0, 6.25, 0.0)
-        there = compose(here, (0.4, 0.0, 0.0))
-        agent = ScanMatchedPolicy(lambda obs: obs, cfg)
-        first = agent.static_points(*env.scene.scan(*here)[:2])
-        second = agent.static_points(*env.scene.scan(*there)[:2])
-    finally:
-        env.close()
+    _, _, first, second = office_scans((11.0, 6.25, 0.0), moved=(0.4, 0.0, 0.0))
     fits = {}
     for corners in (True, False):
         config = ScanMatchConfig(corner_points=corners)
