@@ -221,6 +221,19 @@ def test_a_goal_the_robot_makes_no_progress_on_is_given_up_after_30_s_and_never_
     assert node.state == "active"
 
 
+def test_a_goal_taken_before_the_first_scan_is_held_stopped_until_a_scan_comes_then_driven():
+    from curlnav.ros2.node import PolicyNode
+
+    node = PolicyNode(lambda obs: np.array([0.5, 0.0, 0.0]))
+    node.on_goal(goal_of(5.0, 0.0))
+    node.on_odom(odom_of(0.0, 0.0, stamp_s=1000.0), 0.0)
+    command = node.act(0.0)  # odometry but no /scan: the robot stands, the goal stays
+    assert command.is_stop and command.state == "stopped: no /scan yet", command
+    assert node.goal == (5.0, 0.0)
+    command = step(node, 0.2, (0.0, 0.0, 0.0))  # the first scan: it drives
+    assert node.state == "active" and command.linear > 0, command
+
+
 def test_a_goal_ends_when_cancelled_or_the_odometry_restarts_and_is_never_resumed():
     from curlnav.ros2.node import PolicyNode
 
