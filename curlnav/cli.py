@@ -17,11 +17,17 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescrip
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser with ``_HelpFormatter``; its sub-command parsers are of this class too."""
+    """An argument parser with ``_HelpFormatter``; its sub-command parsers are of this class too.
+    Options of ``type=int`` or ``type=float`` take ASCII decimal only (``curlnav.files.decimal_int``,
+    ``decimal_float``): Python's own ``int("0_1")`` is 1, and it reads non-ASCII digits."""
 
     def __init__(self, *args, **kwargs) -> None:
+        from curlnav.files import decimal_float, decimal_int
+
         kwargs.setdefault("formatter_class", _HelpFormatter)
         super().__init__(*args, **kwargs)
+        self.register("type", int, decimal_int)  # argparse looks a type up here before calling it
+        self.register("type", float, decimal_float)
 
 
 def package_version() -> str:
@@ -74,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "pair", None) is not None and str(args.pair).isdigit():
+    if getattr(args, "pair", None) is not None and str(args.pair).isascii() and str(args.pair).isdigit():
         args.pair = int(args.pair)
     from curlnav.bus.service import ConfigMismatch
     from curlnav.bus.transport import RouterUnreachable

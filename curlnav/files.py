@@ -6,6 +6,11 @@ world, curriculum and config YAML, ``metadata.json``, rankings, pull listings.
   ``MAX_DEPTH`` levels of nesting (deeper ones overflowed PyYAML's recursion);
 - JSON without NaN, Infinity or numbers that overflow to them (``1e400``), and a one-line
   refusal where nesting overflows the decoder's recursion;
+- no key given twice in one mapping, YAML or JSON (a duplicate silently took the last value);
+- numbers in ASCII decimal only, in files and on the command line (``decimal_int``,
+  ``decimal_float``): YAML 1.1's ``0_1``, ``0x1f``, ``0o17``, ``1:30`` and a leading zero, and
+  Python's ``int``/``float`` spellings with ``_`` or non-ASCII digits, are not numbers here (in a
+  file they stay text, which the field's own check refuses);
 - ``shown(value)``: a user value for an error message, cut to a few dozen characters.
 
 Every refusal is a ``FileRefused`` (a ``ValueError``) with one line naming the file.
@@ -29,8 +34,14 @@ MAX_DEPTH = 64  # nesting levels of YAML or JSON
 
 _PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
 
-__all__ = ["FileRefused", "MAX_DEPTH", "MAX_JSON_BYTES", "MAX_YAML_BYTES", "is_plain_file_name", "loads_json",
-           "loads_yaml", "read_capped", "read_json", "read_yaml", "shown"]
+#: a whole number in ASCII decimal: an optional sign, then 0 or digits without a leading zero
+DECIMAL_INT = re.compile(r"[-+]?(?:0|[1-9][0-9]*)")
+#: a number in ASCII decimal: a whole number, a decimal fraction, or either with an exponent
+DECIMAL_FLOAT = re.compile(r"[-+]?(?:(?:0|[1-9][0-9]*)(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
+
+__all__ = ["DECIMAL_FLOAT", "DECIMAL_INT", "FileRefused", "MAX_DEPTH", "MAX_JSON_BYTES", "MAX_YAML_BYTES",
+           "decimal_float", "decimal_int", "is_plain_file_name", "loads_json", "loads_yaml", "read_capped",
+           "read_json", "read_yaml", "shown"]
 
 
 class FileRefused(ValueError):
@@ -45,6 +56,27 @@ def shown(value: Any, limit: int = 60) -> str:
     short.maxlevel = 3
     text = short.repr(value)
     return text if len(text) <= limit + 10 else text[:limit] + "..."
+
+
+def decimal_int(text: str) -> int:
+    """``text`` (surrounding blanks dropped) as a whole number in ASCII decimal (``DECIMAL_INT``);
+    ``ValueError`` (one line) for anything else: ``0_1``, ``0x1f``, ``1e3``, non-ASCII digits."""
+    stripped = text.strip() if isinstance(text, str) else text
+    if not isinstance(stripped, str) or len(stripped) > 40 or not DECIMAL_INT.fullmatch(stripped):
+        raise ValueError(f"not a whole number in decimal digits: {shown(text, 40)}")
+    return int(stripped)
+
+
+def decimal_float(text: str) -> float:
+    """``text`` (surrounding blanks dropped) as a finite number in ASCII decimal (``DECIMAL_FLOAT``);
+    ``ValueError`` (one line) for anything else: ``0_1``, ``nan``, ``inf``, ``1e400``, non-ASCII digits."""
+    stripped = text.strip() if isinstance(text, str) else text
+    if not isinstance(stripped, str) or len(stripped) > 60 or not DECIMAL_FLOAT.fullmatch(stripped):
+        raise ValueError(f"not a number in decimal digits: {shown(text, 40)}")
+    value = float(stripped)
+    if not math.isfinite(value):
+        raise ValueError(f"not a finite number: {shown(text, 40)}")
+    return value
 
 
 def is_plain_file_name(name: Any) -> bool:
@@ -70,8 +102,19 @@ def _decode(data: bytes, source: str) -> str:
 
 
 # -- YAML ----------------------------------------------------------------------------------------
+_INT_TAG, _FLOAT_TAG = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+_YAML_FLOAT = re.compile(rf"{DECIMAL_FLOAT.pattern}|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)")
+
+
 class _BoundedLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that refuses aliases and more than ``MAX_DEPTH`` levels of nesting."""
+    """``yaml.SafeLoader`` that refuses aliases, more than ``MAX_DEPTH`` levels of nesting and a key
+    given twice, and reads numbers in ASCII decimal only (``DECIMAL_INT``, ``DECIMAL_FLOAT``; ``.inf``
+    and ``.nan`` too, which the fields' own checks refuse)."""
+
+    # YAML 1.1's number forms (``0_1`` is octal 1, ``1:30`` is 90) replaced by decimal ones
+    yaml_implicit_resolvers = {
+        first: [(tag, rx) for tag, rx in resolvers if tag not in (_INT_TAG, _FLOAT_TAG)]
+        for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 
     def __init__(self, stream) -> None:
         super().__init__(stream)
@@ -91,12 +134,48 @@ class _BoundedLoader(yaml.SafeLoader):
         finally:
             self._depth -= 1
 
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            self.flatten_mapping(node)
+            seen: set = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    duplicate = key in seen
+                    seen.add(key)
+                except TypeError:  # an unhashable key: the base class names it
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(None, None, f"the key {shown(key, 40)} is given twice",
+                                                            key_node.start_mark)
+        return super().construct_mapping(node, deep)
+
+    def construct_yaml_int(self, node):
+        text = self.construct_scalar(node)
+        if not DECIMAL_INT.fullmatch(text):
+            raise yaml.constructor.ConstructorError(None, None, f"{shown(text, 40)} is not a whole number in "
+                                                    "decimal digits", node.start_mark)
+        return int(text)
+
+    def construct_yaml_float(self, node):
+        text = self.construct_scalar(node)
+        if not _YAML_FLOAT.fullmatch(text):
+            raise yaml.constructor.ConstructorError(None, None, f"{shown(text, 40)} is not a number in decimal "
+                                                    "digits", node.start_mark)
+        return super().construct_yaml_float(node)
+
     # flow collections ([ ... ], { ... }) recurse in the parser, before the composer sees them
     def fetch_flow_collection_start(self, token_class):
         if self.flow_level >= MAX_DEPTH:
             raise yaml.scanner.ScannerError(None, None, f"nested too deep (more than {MAX_DEPTH} levels)",
                                             self.get_mark())
         super().fetch_flow_collection_start(token_class)
+
+
+_BoundedLoader.add_implicit_resolver(_INT_TAG, re.compile(rf"^{DECIMAL_INT.pattern}$"), list("-+0123456789"))
+_BoundedLoader.add_implicit_resolver(_FLOAT_TAG, re.compile(rf"^(?:{_YAML_FLOAT.pattern})$"), list("-+0123456789."))
+_BoundedLoader.add_constructor(_INT_TAG, _BoundedLoader.construct_yaml_int)
+_BoundedLoader.add_constructor(_FLOAT_TAG, _BoundedLoader.construct_yaml_float)
 
 
 def loads_yaml(text: str, source: str = "<text>") -> Any:
@@ -129,13 +208,22 @@ def _no_constant(name: str):
     raise FileRefused(f"{name} is not a number curlnav accepts")
 
 
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise FileRefused(f"the key {shown(key, 40)} is given twice")
+        out[key] = value
+    return out
+
+
 def loads_json(text: str | bytes, source: str = "<text>") -> Any:
     """Parse JSON refusing NaN, Infinity, numbers beyond float range and deep nesting;
     ``FileRefused`` names ``source``."""
     if isinstance(text, bytes):
         text = _decode(text, source)
     try:
-        return json.loads(text, parse_float=_finite, parse_constant=_no_constant)
+        return json.loads(text, parse_float=_finite, parse_constant=_no_constant, object_pairs_hook=_unique_keys)
     except FileRefused as exc:
         raise FileRefused(f"{source}: {exc}") from None
     except RecursionError:

@@ -2,13 +2,19 @@
 by ``scripts/vendor-real-maps.py`` (never committed) and checked byte for byte against the committed
 manifest, their sources and licences, loaded whole, unknown cells as walls, and the suite's pairs
 and balls fixed by seed, reachable for the Husky, on the shortest paths. Where the maps are absent
-(a fresh clone, CI: the tests need no network), the tests that read them skip."""
+(a fresh clone, CI: the tests need no network), the tests that read them skip. Hostile vendored
+files and manifests (issue 55: truncated or bomb xz, links, malformed lines) are one-line refusals
+within bounds, planted in a copy of the data folder."""
 
 from __future__ import annotations
 
 import hashlib
 import io
+import lzma
+import os
 import re
+import resource
+import time
 
 import numpy as np
 import pytest
@@ -192,3 +198,111 @@ def test_a_downloaded_file_that_is_not_the_sources_is_refused_in_one_line(monkey
     monkeypatch.setattr(real_maps, "manifest", lambda: {**real, key: "0" * 64})
     with pytest.raises(WorldError, match=r"real map yujin-rnd: .*\.pgm is not the source's .*vendor-real-maps.py"):
         real_maps.map_world("yujin-rnd")
+
+
+# -- hostile vendored files (issue 55) -------------------------------------------------------------
+@pytest.fixture
+def planted(tmp_path, monkeypatch) -> real_maps.RealMap:
+    """yujin-rnd's folder in a ``DATA`` of ``tmp_path``: a small valid YAML, image and licence, and a
+    ``MANIFEST.sha256`` saying their sha256; the suite's task cache cleared around the test."""
+    m = real_maps.MAPS["yujin-rnd"]
+    data = tmp_path / "real"
+    (data / m.name).mkdir(parents=True)
+    yaml_name, image, licence = m.originals
+    originals = {yaml_name: f"image: {image}\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: 0\n"
+                            "occupied_thresh: 0.65\nfree_thresh: 0.196\n".encode(),
+                 image: b"P5\n4 4\n255\n" + bytes(range(0, 256, 16)), licence: b"<package/>\n"}
+    for file, body in originals.items():
+        (data / m.name / (file + ".xz" if file == image else file)).write_bytes(
+            lzma.compress(body) if file == image else body)
+    (data / "MANIFEST.sha256").write_text(
+        "".join(f"{hashlib.sha256(body).hexdigest()}  {m.name}/{file}\n" for file, body in originals.items()))
+    monkeypatch.setattr(real_maps, "DATA", data)
+    monkeypatch.setattr(real_maps, "MANIFEST", data / "MANIFEST.sha256")
+    real_maps.task.cache_clear()
+    assert real_maps.original_bytes(m.name, image) == originals[image]
+    yield m
+    real_maps.task.cache_clear()
+
+
+def refusal(call, *args) -> str:
+    """The one-line ``WorldError`` of ``call(*args)``, raised within a second."""
+    start = time.monotonic()
+    with pytest.raises(WorldError) as info:
+        call(*args)
+    assert time.monotonic() - start < 1.0
+    message = str(info.value)
+    assert "\n" not in message and len(message) < 400, message
+    return message
+
+
+@pytest.mark.parametrize("packed", ["empty", "truncated", "random", "bytes after its end"])
+def test_a_vendored_xz_that_is_not_whole_is_one_line_naming_the_file(planted, packed):
+    image = planted.originals[1]
+    path = planted.folder / (image + ".xz")
+    whole = path.read_bytes()
+    path.write_bytes({"empty": b"", "truncated": whole[:len(whole) // 2], "random": os.urandom(4096),
+                      "bytes after its end": whole + b"more"}[packed])
+    assert f"{path}: not a whole xz file" in refusal(real_maps.original_bytes, planted.name, image)
+
+
+@pytest.mark.parametrize("which", [0, 1, 2])
+def test_a_vendored_file_that_is_a_symlink_is_refused(planted, tmp_path, which):
+    file = planted.files[which]
+    path = planted.folder / file
+    path.rename(tmp_path / file)  # the same bytes, reached through a link
+    path.symlink_to(tmp_path / file)
+    message = refusal(real_maps.original_bytes, planted.name, planted.originals[which])
+    assert f"{path}: not a regular file" in message
+
+
+def test_an_xz_bomb_is_refused_at_the_cap_in_bounded_time_and_memory(planted):
+    """The issue's bomb: 520 KB of xz that took 2.5 GB, then MemoryError. Here: 40 xz streams of
+    64 MiB of zeros each (2.5 GiB in all, about 400 KB)."""
+    packer = lzma.LZMACompressor(preset=0)
+    stream = b"".join(packer.compress(bytes(1 << 20)) for _ in range(64)) + packer.flush()
+    path = planted.folder / (planted.originals[1] + ".xz")
+    path.write_bytes(stream * 40)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    start = time.monotonic()
+    with pytest.raises(WorldError) as info:
+        real_maps.original_bytes(planted.name, planted.originals[1])
+    assert time.monotonic() - start < 3.0
+    grown_mib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert grown_mib < 300, f"the peak grew by {grown_mib:.0f} MiB"
+    cap = real_maps.MAX_IMAGE_BYTES
+    assert str(info.value) == f"{path}: decompresses to more than {cap >> 20} MiB (a map image's cap); refused"
+    assert cap < 64 << 20
+
+
+def test_a_vendored_xz_above_the_compressed_cap_is_refused_unread(planted, monkeypatch):
+    monkeypatch.setattr(real_maps, "MAX_PACKED_BYTES", 32)
+    path = planted.folder / (planted.originals[1] + ".xz")
+    assert f"{path}: " in refusal(real_maps.original_bytes, planted.name, planted.originals[1])
+
+
+@pytest.mark.parametrize("body, line", [
+    ("abc\n", 1),
+    (f"{'0' * 64}  yujin-rnd/a.yaml\n\nnot a line\n", 3),
+    (f"{'0' * 64} yujin-rnd/a.yaml\n", 1),
+    (f"{'g' * 64}  yujin-rnd/a.yaml\n", 1),
+    (f"{'0' * 64}  a.yaml\n", 1),
+])
+def test_a_malformed_manifest_is_one_line_naming_the_file_and_the_line(planted, body, line):
+    real_maps.MANIFEST.write_text(body)
+    assert f"{real_maps.MANIFEST}: line {line} is not" in refusal(real_maps.manifest)
+
+
+def test_a_manifest_above_its_cap_or_not_text_is_refused_in_one_line(planted):
+    real_maps.MANIFEST.write_text(f"{'0' * 64}  yujin-rnd/a.yaml\n" * 4000)  # 332 KB
+    assert "above" in refusal(real_maps.manifest)
+    real_maps.MANIFEST.write_bytes(b"\xff\xfe  yujin-rnd/a.yaml\n")
+    assert f"{real_maps.MANIFEST}: not UTF-8" in refusal(real_maps.manifest)
+
+
+def test_the_cli_says_a_broken_vendored_map_in_one_line_with_exit_2(planted, tmp_path, capsys):
+    path = planted.folder / (planted.originals[1] + ".xz")
+    path.write_bytes(path.read_bytes()[:40])
+    assert main(["worlds", "show", "real:yujin-rnd", "--out", str(tmp_path / "w.png")]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [f"curlnav: error: {path}: not a whole xz file (it ends early); refused"]

@@ -510,7 +510,7 @@ class HttpServer:
             conn.head_end = end.end()
             lengths = {v.strip() for v in _CONTENT_LENGTH.findall(bytes(conn.data[:conn.head_end]))}
             raw = lengths.pop() if len(lengths) == 1 else b""
-            length = int(raw) if raw.isdigit() and len(raw) < 20 else 0  # else the handler answers 400
+            length = int(raw) if raw.isascii() and raw.isdigit() and len(raw) < 20 else 0  # else the handler answers 400
             conn.need = conn.head_end + (length if length <= self.max_body else 0)  # 413 without the body
         if len(conn.data) >= conn.need:
             self._dispatch(selector, incoming, conn)

@@ -26,7 +26,6 @@ challenge's ``report_test.py`` takes it, over the worlds with a success.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from curlnav.files import read_json
 from curlnav.sim import EnvConfig
 from curlnav.sim.config import RobotConfig
 from curlnav.sim.robots import PROFILES
@@ -68,8 +68,8 @@ def check_robot(spec: str, robot: RobotConfig = JACKAL) -> None:
     if meta_path is None or not meta_path.is_file():
         return
     try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, ValueError):
+        meta = read_json(meta_path, what="metadata.json")  # beyond its caps: refused, one line
+    except OSError:
         return  # the artefact loader names what is wrong with it
     if not isinstance(meta, dict):
         return

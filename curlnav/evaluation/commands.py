@@ -130,7 +130,7 @@ def _eval_barn(args: argparse.Namespace) -> int:
     if given:
         raise ValueError(f"--suite barn fixes the worlds (--worlds A-B picks some), the start and the goal; drop "
                          f"{', '.join(given)}")
-    numbers = barn.parse_range(args.worlds) if args.worlds else list(range(barn.COUNT))
+    numbers = barn.parse_range(args.worlds) if args.worlds is not None else list(range(barn.COUNT))
     sensor_noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set or ())
     env_config = jackal_env_config(ExperimentConfig().eval_env.replace(sensor_noise=sensor_noise))
     load = policy_loader(env_config, _load_policy)  # checks each artefact's robot before it loads it

@@ -60,7 +60,7 @@ def episode_pairs(world: World, names: Iterable[str] = (), pairs: int | None = N
         if n is not None and n < 1:
             raise ValueError(f"--{label} must be at least 1, got {n}")
     if names:
-        chosen = [world.pair(int(n) if str(n).isdigit() else n) for n in names]
+        chosen = [world.pair(int(n) if str(n).isascii() and str(n).isdigit() else n) for n in names]
         return [chosen[i % len(chosen)] for i in range(episodes or len(chosen))]
     if pairs is not None:
         return held_out_pairs(world, pairs) if draws_random_pairs(world) else list(world.pairs[:pairs])

@@ -20,12 +20,13 @@ each new goal. To add one: a module here and one ``Planner(...)`` line in ``PLAN
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import import_module
 from pathlib import Path
+
+from curlnav.files import read_json, shown
 
 __all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_MATCH_SUFFIX",
            "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "TRACK_SUFFIX", "agents_help", "canonical", "deploy_notice",
@@ -79,7 +80,7 @@ TRACK_SUFFIX = "+track"
 SCAN_MATCH_SUFFIX = "+scan-match"
 #: appended to a policy artefact whose metadata names a deploy stack: the network alone, without it
 BARE_SUFFIX = "+bare"
-_DEPLOY = re.compile(r"^(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?(\+track)?(\+scan-match)?$")
+_DEPLOY = re.compile(r"(\+global-plan|\+scan-plan)?(\+rescue)?(\+shield)?(\+track)?(\+scan-match)?")
 _ORDER = "POLICY[+global-plan|+scan-plan][+rescue][+shield][+track][+scan-match]"
 #: the suffixes an agent argument stacks, outermost (last written) first
 _STACKED = (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_PLAN_SUFFIX, GLOBAL_PLAN_SUFFIX)
@@ -87,15 +88,19 @@ _STACKED = (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_
 
 def _shipped_metadata(folder: str) -> tuple[Path, dict] | None:
     """``(path, contents)`` of the ``metadata.json`` of an artefact ``folder`` (or the file itself);
-    None when there is none, or it is unreadable or no JSON object (the policy loader reports a
-    broken metadata.json itself)."""
+    None when ``folder`` names a planner (``make_agent`` drives the planner, whatever folder has that
+    name), there is no such file, it is unreadable or no JSON object (the policy loader reports those
+    itself). A file beyond ``curlnav.files``' caps (size, depth, duplicate keys) is refused
+    (``FileRefused``, one line)."""
+    if canonical(folder) is not None:
+        return None
     path = Path(folder)
     meta = path if path.name == "metadata.json" else path / "metadata.json"
     if not meta.is_file():
         return None
     try:
-        contents = json.loads(meta.read_text())
-    except (OSError, ValueError):
+        contents = read_json(meta, what="metadata.json")
+    except OSError:
         return None
     return (meta, contents) if isinstance(contents, dict) else None
 
@@ -109,9 +114,9 @@ def deploy_stack(spec: str) -> str:
         return ""
     meta, contents = shipped
     deploy = contents.get("deploy", "")
-    if not isinstance(deploy, str) or not _DEPLOY.match(deploy):
+    if not isinstance(deploy, str) or not _DEPLOY.fullmatch(deploy):
         raise ValueError(f"{meta}: deploy must be suffixes in the order {_ORDER[6:]}, "
-                         f"got {deploy!r}")
+                         f"got {shown(deploy)}")
     return deploy
 
 
@@ -131,14 +136,14 @@ def rescue_settings(spec: str):
     settings = contents.get("deploy_settings", {})
     if not isinstance(settings, dict) or not set(settings) <= {"rescue"}:
         raise ValueError(f"{meta}: deploy_settings must be an object with at most the key 'rescue', "
-                         f"got {settings!r}")
+                         f"got {shown(settings)}")
     rescue = settings.get("rescue")
     if rescue is None:
         return None
     fields = set(RescueConfig.__dataclass_fields__)
     if not isinstance(rescue, dict) or not set(rescue) <= fields:
         raise ValueError(f"{meta}: deploy_settings.rescue must be an object of {', '.join(sorted(fields))}, "
-                         f"got {rescue!r}")
+                         f"got {shown(rescue)}")
     try:
         return RescueConfig(**rescue)
     except ValueError as exc:

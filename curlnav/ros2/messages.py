@@ -165,7 +165,7 @@ def build(name: str, value: dict):
             else:
                 kwargs[field] = [build(kind, v) for v in (given or [])]
         elif array is not None:
-            size = int(array[1:-1]) if array[1:-1].isdigit() else 0
+            size = int(array[1:-1]) if array[1:-1].isascii() and array[1:-1].isdigit() else 0
             kwargs[field] = list(given) if given is not None else [0.0] * size
         elif given is not None:
             kwargs[field] = given

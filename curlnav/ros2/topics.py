@@ -67,7 +67,7 @@ def remap(topics: dict[str, TopicSpec], rules: list[str]) -> dict[str, TopicSpec
 def domain_id_from_env(environ=os.environ) -> int:
     """``ROS_DOMAIN_ID`` (0 when unset), checked: 0-232 (the UDP ports of higher ids overflow)."""
     raw = environ.get("ROS_DOMAIN_ID", "").strip() or "0"
-    if not raw.isdigit() or int(raw) > 232:
+    if not (raw.isascii() and raw.isdigit()) or int(raw) > 232:
         raise ValueError(f"ROS_DOMAIN_ID must be a whole number 0-232, got {raw!r}")
     return int(raw)
 

@@ -12,9 +12,25 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from curlnav.files import decimal_float, decimal_int
+
 
 class ConfigError(ValueError):
     """A configuration value is out of range or of the wrong type."""
+
+
+#: the most a robot's field may be (the unit of the field): a mobile robot that a 2-D LiDAR and a
+#: pushing arm serve, with room to spare (the Husky is 0.99 m and 50 kg); beyond these the simulator
+#: overflows or its time step cannot hold the robot
+ROBOT_LIMITS = {"base_length": 5.0, "base_width": 5.0, "base_height": 3.0,  # m
+                "base_mass": 2000.0,  # kg
+                "max_linear_speed": 10.0, "max_reverse_speed": 10.0,  # m/s
+                "max_angular_speed": 10.0,  # rad/s
+                "drive_force": 1e6, "arm_force": 1e5,  # N
+                "arm_reach": 3.0, "arm_length": 3.0, "arm_width": 1.0, "arm_thickness": 1.0,  # m
+                "arm_speed": 10.0}  # m/s
+#: the LiDAR's bounds: range and scan-plane height at most (m), field of view at least (rad, 1 degree)
+LIDAR_MAX_RANGE_LIMIT, LIDAR_HEIGHT_LIMIT, LIDAR_FOV_MIN = 100.0, 5.0, math.radians(1.0)
 
 
 @dataclass(frozen=True)
@@ -86,6 +102,7 @@ class RobotConfig:
                 and math.isfinite(self.max_reverse_speed) and self.max_reverse_speed >= 0):
             raise ConfigError(f"robot.max_reverse_speed must be a number of m/s of at least 0 (0: forward only), "
                               f"got {self.max_reverse_speed!r}")
+        _at_most(self, ROBOT_LIMITS)
 
 
 @dataclass(frozen=True)
@@ -266,12 +283,8 @@ class SensorNoiseConfig:
                 overrides[name] = raw.lower() in ("true", "yes", "1", "on")
                 continue
             try:
-                value = float(raw)
-                if name == "latency_steps":
-                    if value != int(value):
-                        raise ValueError
-                    value = int(value)
-            except (ValueError, OverflowError):
+                value = decimal_int(raw) if name == "latency_steps" else decimal_float(raw)
+            except ValueError:
                 kind = "a whole number" if name == "latency_steps" else "a number"
                 raise ConfigError(f"sensor_noise.{name} must be {kind}, got {raw!r}") from None
             overrides[name] = value
@@ -386,9 +399,20 @@ class EnvConfig:
                          "label_frames", "goal_frames", "goal_tolerance", "max_episode_steps"])
         if self.lidar_fov > 2 * math.pi:
             raise ConfigError("lidar_fov must be at most 2 pi")
+        if self.lidar_fov < LIDAR_FOV_MIN:
+            raise ConfigError(f"lidar_fov must be at least 1 degree ({LIDAR_FOV_MIN:.4f} rad), got {self.lidar_fov!r}")
+        _at_most(self, {"lidar_max_range": LIDAR_MAX_RANGE_LIMIT, "lidar_height": LIDAR_HEIGHT_LIMIT})
 
     def replace(self, **changes: Any) -> EnvConfig:
         return dataclasses.replace(self, **changes)
+
+
+def _at_most(obj: Any, limits: dict[str, float]) -> None:
+    """Refuse (``ConfigError``, one line) a field above its limit (the fields are numbers already)."""
+    for name, limit in limits.items():
+        value = getattr(obj, name)
+        if value > limit:
+            raise ConfigError(f"{type(obj).__name__}.{name} must be at most {limit:g}, got {value:.6g}")
 
 
 def _positive(obj: Any, names: list[str]) -> None:

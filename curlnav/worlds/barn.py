@@ -58,9 +58,11 @@ def check_index(n: int) -> int:
 
 def parse_range(text: str) -> list[int]:
     """``"A-B"`` (inclusive) or ``"N"`` as world numbers; ``ValueError`` (one line) otherwise."""
+    from curlnav.files import decimal_int
+
     first, sep, last = text.partition("-")
     try:
-        a, b = int(first), int(last) if sep else int(first)
+        a, b = decimal_int(first), decimal_int(last) if sep else decimal_int(first)
     except ValueError:
         raise ValueError(f"--worlds takes A-B or N (BARN worlds 0-{COUNT - 1}), got {text!r}") from None
     if not (0 <= a <= b < COUNT):

@@ -143,7 +143,7 @@ def get_world(spec: str | os.PathLike | World) -> World:
 
         return real_maps.task(key.removeprefix("real:"))
     family, sep, seed = key.rpartition(":")
-    if sep and seed.isdigit():
+    if sep and seed.isascii() and seed.isdigit():
         from curlnav.worlds.families import FAMILIES, generate
 
         if family in FAMILIES:

@@ -95,22 +95,17 @@ def _cmd_rank(args: argparse.Namespace) -> int:
 
 
 def _cmd_import_sdf(args: argparse.Namespace) -> int:
-    from curlnav.worlds.sdf import world_from_sdf
-    from curlnav.worlds.world import save_world
+    from curlnav.worlds.sdf import import_sdf
 
-    source = Path(args.world)
-    out = Path(args.out) if args.out else source.with_suffix(".yaml")
-    if out.suffix not in (".yaml", ".yml"):
-        raise ValueError(f"--out must be a world YAML path (.yaml), got {args.out!r}")
-    world, contents = world_from_sdf(source, args.resolution, args.margin, args.skip_unsupported)
-    path = save_world(world.with_changes(name=out.stem), out)
+    out, world, contents = import_sdf(args.world, args.out, args.resolution, args.margin, args.skip_unsupported)
     kinds = [s.kind for s in contents.shapes]
     rows, cols = world.occupancy.shape
-    print(f"{path}: {kinds.count('box')} boxes and {kinds.count('cylinder')} cylinders of {source} on {cols} x {rows} "
+    print(f"{out}: {kinds.count('box')} boxes and {kinds.count('cylinder')} cylinders of {args.world} on {cols} x {rows} "
           f"cells of {world.resolution:g} m ({world.size[0]:.2f} m x {world.size[1]:.2f} m, origin "
           f"({world.origin[0]:g}, {world.origin[1]:g})); no start/goal pairs (add them to train or evaluate on it)")
     if contents.unsupported:
-        print(f"skipped {len(contents.unsupported)} unsupported: {', '.join(contents.unsupported)}")
+        listed, more = contents.unsupported[:10], len(contents.unsupported) - 10  # each item is a short name
+        print(f"skipped {len(contents.unsupported)} unsupported: {', '.join(listed)}{f' and {more} more' * (more > 0)}")
     return 0
 
 

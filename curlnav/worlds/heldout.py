@@ -61,5 +61,5 @@ def check_training_world(spec) -> None:
         raise HeldOutSeedError(f"{spec[:60]} is a map of the real suite (curlnav eval --suite real), kept for "
                                f"evaluation: nobody trains or tunes on it")
     family, sep, seed = spec.rpartition(":")
-    if sep and family and seed.isdigit():
+    if sep and family and seed.isascii() and seed.isdigit():
         check_training_seed(family, int(seed))

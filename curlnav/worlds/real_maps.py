@@ -24,6 +24,14 @@ apart in a straight line, the Husky's footprint free at the start, and a shortes
 (8-connected) of at most ``MAX_PATH_M``, so that a trial fits the evaluation's 60 s at 1 m/s with
 room to turn; then ``BALLS`` balls (0.25 m, 0.5 kg) scattered on the pairs' shortest paths by
 ``curlnav.worlds.scatter.scatter_balls`` from the same seed. Same code, same maps: same tasks.
+
+**Reading the vendored files** (anyone may have put them there): each is read only if it is a regular
+file (a link is refused), at most ``MAX_TEXT_BYTES`` for a YAML or licence, ``MAX_PACKED_BYTES`` for
+an image's ``.xz``, which must be one whole xz stream decompressing to at most ``MAX_IMAGE_BYTES``
+(decompressed incrementally: a 520 KB xz bomb took 2.5 GB, then MemoryError); ``MANIFEST.sha256``
+at most ``MAX_MANIFEST_BYTES``, every line ``<sha256>  <name>/<file>``. Every refusal is a
+``WorldError``, one line naming the file and the limit. ``scripts/vendor-real-maps.py`` fetches
+with the same caps.
 """
 
 from __future__ import annotations
@@ -31,6 +39,9 @@ from __future__ import annotations
 import hashlib
 import lzma
 import math
+import os
+import re
+import stat
 import tempfile
 from dataclasses import dataclass
 from functools import cache
@@ -39,6 +50,7 @@ from pathlib import Path
 import numpy as np
 from scipy.sparse import csgraph
 
+from curlnav.files import FileRefused, read_capped, shown
 from curlnav.worlds.heldout import REAL_PREFIX
 from curlnav.worlds.metrics import GridGraph
 from curlnav.worlds.pairs import PairSampler, cspace_free, pair_key
@@ -56,6 +68,13 @@ MIN_DISTANCE = 6.0  # m, start to goal in a straight line
 MAX_DISTANCE = 20.0  # m
 MAX_PATH_M = 30.0  # m, the longest shortest path (8-connected, on the C-space grid)
 MAX_DRAWS = 400  # pairs drawn per map before giving up
+# caps on what is read (the real maps' largest: a 2.7 MB image, ipa-office's map.pgm; a 159 KB .xz,
+# willow-garage's; an 11 KB licence; a 2.5 KB manifest)
+MAX_IMAGE_BYTES = 32 << 20  # a map image (PGM) decompressed: above 100 m x 100 m at 0.02 m (25 MB)
+MAX_PACKED_BYTES = 4 << 20  # an image's .xz as vendored
+MAX_TEXT_BYTES = 1 << 20  # a map's YAML or licence file
+MAX_MANIFEST_BYTES = 64 << 10  # MANIFEST.sha256
+_MANIFEST_LINE = re.compile(r"([0-9a-f]{64})  ([^/\s]+/[^/]+)")
 
 
 @dataclass(frozen=True)
@@ -151,18 +170,66 @@ def missing(name: str | None = None) -> list[Path]:
     return [m.folder / f for m in maps for f in m.files if not (m.folder / f).is_file()]
 
 
+def read_vendored(path: Path, max_bytes: int, what: str) -> bytes:
+    """The bytes of a vendored file; ``WorldError`` (one line) when it is not a regular file (a link,
+    a folder, a device), holds more than ``max_bytes`` or cannot be read."""
+    try:
+        if not stat.S_ISREG(os.lstat(path).st_mode):
+            raise WorldError(f"{path}: not a regular file (a link, a folder or a device); refused")
+        return read_capped(path, max_bytes, what)
+    except FileRefused as exc:
+        raise WorldError(str(exc)) from None
+    except OSError as exc:
+        raise WorldError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+
+
+def unxz(packed: bytes, source: Path | str, max_bytes: int = MAX_IMAGE_BYTES) -> bytes:
+    """The bytes of one whole xz stream, decompressed incrementally (at most ``max_bytes`` + 1 bytes
+    ever held). ``WorldError`` (one line naming ``source``) when the stream is not whole (empty,
+    truncated, not xz, bytes after its end) or decompresses to more than ``max_bytes``."""
+    unpacker = lzma.LZMADecompressor(format=lzma.FORMAT_XZ)
+    try:
+        data = unpacker.decompress(packed, max_length=max_bytes + 1)
+    except lzma.LZMAError as exc:
+        raise WorldError(f"{source}: not a whole xz file ({exc}); refused") from None
+    if len(data) > max_bytes:
+        raise WorldError(f"{source}: decompresses to more than {max_bytes >> 20} MiB (a map image's cap); refused")
+    if not unpacker.eof:
+        raise WorldError(f"{source}: not a whole xz file (it ends early); refused")
+    if unpacker.unused_data:
+        raise WorldError(f"{source}: not a whole xz file ({len(unpacker.unused_data)} bytes after its end); refused")
+    return data
+
+
 def manifest() -> dict[str, str]:
-    """``<name>/<file>`` -> the sha256 of the original bytes (the committed ``MANIFEST.sha256``)."""
-    lines = MANIFEST.read_text().splitlines()
-    return {path: digest for digest, path in (line.split("  ", 1) for line in lines if line.strip())}
+    """``<name>/<file>`` -> the sha256 of the original bytes (the committed ``MANIFEST.sha256``).
+    ``WorldError`` (one line naming the file, and the line) when it is above ``MAX_MANIFEST_BYTES``,
+    not UTF-8, or a line is not ``<sha256>  <name>/<file>``."""
+    try:
+        text = read_vendored(MANIFEST, MAX_MANIFEST_BYTES, "manifest").decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise WorldError(f"{MANIFEST}: not UTF-8 text (byte {exc.start})") from None
+    digests = {}
+    for number, line in enumerate(text.splitlines(), 1):
+        match = _MANIFEST_LINE.fullmatch(line)
+        if match is None and line.strip():
+            raise WorldError(f"{MANIFEST}: line {number} is not '<sha256>  <name>/<file>': {shown(line)}")
+        if match is not None:
+            digests[match[2]] = match[1]
+    return digests
 
 
 def original_bytes(name: str, file: str) -> bytes:
     """A downloaded file's original bytes (``file`` as in the source: the image decompressed), checked
-    against the committed manifest (``WorldError``, one line, when they differ)."""
+    against the committed manifest; ``WorldError`` (one line) when they differ, or when a file is
+    refused (see the module docstring: links, caps, xz that is not whole)."""
     m = check_name(name)
     packed = m.folder / (file + ".xz")
-    data = lzma.decompress(packed.read_bytes()) if packed.is_file() else (m.folder / file).read_bytes()
+    if os.path.lexists(packed):
+        data = unxz(read_vendored(packed, MAX_PACKED_BYTES, "packed map image"), packed)
+    else:
+        data = read_vendored(m.folder / file, MAX_IMAGE_BYTES if file == m.originals[1] else MAX_TEXT_BYTES,
+                             "map file")
     digest, expected = hashlib.sha256(data).hexdigest(), manifest().get(f"{name}/{file}")
     if digest != expected:
         raise WorldError(f"real map {name}: {file} is not the source's (sha256 {digest[:12]}..., MANIFEST.sha256 says "

@@ -46,6 +46,7 @@ import dataclasses
 import math
 import os
 import re
+import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -487,16 +488,50 @@ def _read_curlnav_keys(path: Path, meta: dict) -> dict:
 
 
 def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm") -> Path:
-    """Write ``world`` as ``path`` (YAML) plus ``<stem>.pgm`` or ``.png`` beside it."""
+    """Write ``world`` as ``path`` (YAML) plus ``<stem>.pgm`` or ``.png`` beside it, whole or not at
+    all: both are written to temporary files beside them first, then renamed into place (the YAML
+    last). A failure (``OSError``) leaves neither, nor a temporary file, nor the folders made for them."""
     from PIL import Image
 
     if image_format not in ("pgm", "png"):
         raise ValueError(f"image_format must be 'pgm' or 'png', got {image_format!r}")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    made = [p for p in (path.parent, *path.parent.parents) if not p.exists()]  # deepest first
     image_name = f"{path.stem}.{image_format}"
-    pixels = np.where(np.flipud(world.occupancy), 0, 254).astype(np.uint8)
-    Image.fromarray(pixels, mode="L").save(path.parent / image_name)
+    image_path = path.parent / image_name
+    temporary: list[Path] = []
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pixels = np.where(np.flipud(world.occupancy), 0, 254).astype(np.uint8)
+        temporary.append(_temporary_beside(image_path))
+        Image.fromarray(pixels, mode="L").save(temporary[-1], format=image_format.upper().replace("PGM", "PPM"))
+        temporary.append(_temporary_beside(path))
+        temporary[-1].write_text(yaml.safe_dump(_world_file_fields(world, image_name), sort_keys=False))
+        os.replace(temporary[0], image_path)
+        os.replace(temporary[1], path)
+    except BaseException:
+        for leftover in temporary:
+            leftover.unlink(missing_ok=True)
+        for folder in made:
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
+    return path
+
+
+def _temporary_beside(path: Path) -> Path:
+    """A new empty file in ``path``'s folder, hidden, named after it, readable by all as a plain
+    file would be (``mkstemp`` makes it the owner's alone)."""
+    handle, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    os.close(handle)
+    os.chmod(name, 0o644)
+    return Path(name)
+
+
+def _world_file_fields(world: World, image_name: str) -> dict[str, Any]:
+    """The world file's mapping: map_server's fields, then curlnav's."""
 
     def as_dicts(items: tuple) -> list[dict]:
         out = []
@@ -523,5 +558,4 @@ def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm")
     }
     if world.random_pairs is not None:
         meta["random_pairs"] = {k: float(v) for k, v in dataclasses.asdict(world.random_pairs).items()}
-    path.write_text(yaml.safe_dump(meta, sort_keys=False))
-    return path
+    return meta
