@@ -15,7 +15,7 @@ from curlnav.evaluation.barn import BarnTrial, check_robot, jackal_env_config, s
 from curlnav.worlds import barn
 
 LAST_LINE = re.compile(r"^barn: (\S+) success (\d+\.\d)%, collisions (\d+\.\d)%, timeouts (\d+\.\d)%, "
-                       r"mean time (\d+\.\d|-) s, score (\d\.\d{4}) over (\d+) worlds$")
+                       r"mean time (\d+\.\d|-) s, score (\d\.\d{4}) over (\d+) worlds; senses (.+)$")
 
 
 def test_path_lengths_are_measured_as_run_py_measures_them():
@@ -48,7 +48,7 @@ def test_a_collision_ends_the_trial_and_outranks_reaching_the_goal():
     assert (s.success, s.collisions, s.timeouts, s.mean_time_s) == (0.5, 0.25, 0.25, 15.0)
     assert s.score == pytest.approx(np.mean([t.score for t in trials]))
     m = LAST_LINE.match(s.line())
-    assert m and m.groups() == ("a", "50.0", "25.0", "25.0", "15.0", f"{s.score:.4f}", "4"), s.line()
+    assert m and m.groups() == ("a", "50.0", "25.0", "25.0", "15.0", f"{s.score:.4f}", "4", "exact"), s.line()
 
 
 def test_the_robot_is_the_jackal_with_the_challenges_lidar():

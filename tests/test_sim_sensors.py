@@ -13,7 +13,7 @@ from conftest import assert_one_line_error, run_curlnav
 
 from curlnav.config import ConfigError, ExperimentConfig, apply_overrides, config_hash, service_config_hash
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
-from curlnav.sim.config import SENSOR_NOISE_FIELDS, SENSOR_NOISE_PRESETS, SensorNoiseConfig
+from curlnav.sim.config import PERSISTENT_FIELDS, SENSOR_NOISE_FIELDS, SENSOR_NOISE_PRESETS, SensorNoiseConfig
 from curlnav.sim.controllers import GoalSeekingController
 from curlnav.sim.sensors import corrupt_scan
 from curlnav.worlds.builtin import _walled_grid
@@ -294,10 +294,12 @@ def test_the_presets_take_the_heading_from_an_imu_and_the_hash_says_which_headin
     assert SensorNoiseConfig("realistic").heading == SensorNoiseConfig("harsh").heading == "imu"
     assert SensorNoiseConfig("none").heading == "wheels" and SensorNoiseConfig("none").is_exact
     realistic = apply_overrides(ExperimentConfig(), ["env.sensor_noise.preset=realistic"])
-    wheels = apply_overrides(realistic, ["env.sensor_noise.heading=wheels"])
+    wheels = apply_overrides(realistic, ["env.sensor_noise.heading=wheels"]
+                             + [f"env.sensor_noise.{name}=0" for name in PERSISTENT_FIELDS])
     assert wheels.env.sensor_noise.heading == "wheels" and config_hash(wheels) != config_hash(realistic)
-    # the realistic preset's hash recorded before the IMU heading existed: the wheels' heading
-    # keeps it (the same physics), the IMU's does not (services started before and after disagree)
+    # the realistic preset's hash recorded before the IMU heading and the errors that persist existed:
+    # the wheels' heading without them keeps it (the same physics); the IMU's, or those errors, do not
+    # (services started before and after disagree)
     before = "c21f7ce8db8a3fd84c2e9a4d0a55047706aa76c69ee655aae01659a298e690d2"
     assert config_hash(wheels) == before and config_hash(realistic) != before
     gyro = apply_overrides(realistic, ["env.sensor_noise.gyro_bias=0.001"])
@@ -429,7 +431,7 @@ def test_presets_hold_the_documented_values():
                  "odometry_rotation_drift", "actuation_lag", "wheel_slip"):
         assert getattr(harsh, name) >= 1.5 * getattr(realistic, name), name  # about double
     assert harsh.max_linear_accel <= realistic.max_linear_accel / 1.5
-    assert set(SENSOR_NOISE_PRESETS) == {"none", "realistic", "harsh"}
+    assert set(SENSOR_NOISE_PRESETS) == {"none", "realistic", "harsh", "realistic-frame", "harsh-frame"}
     assert all(set(values) == set(SENSOR_NOISE_FIELDS) for values in SENSOR_NOISE_PRESETS.values())
 
 
@@ -444,10 +446,10 @@ def test_any_field_overrides_the_preset_and_a_new_preset_carries_the_rest():
 
 
 @pytest.mark.parametrize("preset, items, fragment", [
-    ("loud", [], "sensor_noise.preset must be one of none, realistic, harsh"),
+    ("loud", [], "sensor_noise.preset must be one of none, realistic, harsh, realistic-frame, harsh-frame"),
     ("realistic", ["dropout=1.5"], "sensor_noise.dropout must be in [0, 1]"),
     ("realistic", ["range_sigma=-0.01"], "sensor_noise.range_sigma must be in [0, 1]"),
-    ("realistic", ["range_sigma=nan"], "sensor_noise.range_sigma must be a finite number"),
+    ("realistic", ["range_sigma=nan"], "sensor_noise.range_sigma must be a number"),
     ("realistic", ["latency_steps=1.5"], "sensor_noise.latency_steps must be a whole number"),
     ("realistic", ["label_run=0.5"], "sensor_noise.label_run must be in [1, 1000]"),
     ("realistic", ["dropout=0.6", "spurious=0.6"], "dropout + sensor_noise.spurious must be at most 1"),

@@ -184,15 +184,17 @@ class BarnSummary:
     timeouts: float
     mean_time_s: float
     score: float
+    senses: str = "exact"  # the senses the trials ran with (``SensorNoiseConfig.describe``)
 
     def line(self) -> str:
         time = "-" if math.isnan(self.mean_time_s) else f"{self.mean_time_s:.1f}"
         return (f"barn: {self.agent} success {self.success:.1%}, collisions {self.collisions:.1%}, timeouts "
-                f"{self.timeouts:.1%}, mean time {time} s, score {self.score:.4f} over {self.worlds} worlds")
+                f"{self.timeouts:.1%}, mean time {time} s, score {self.score:.4f} over {self.worlds} worlds; "
+                f"senses {self.senses}")
 
 
-def summarise(trials: list[BarnTrial]) -> list[BarnSummary]:
-    """One summary per agent, in order of first appearance."""
+def summarise(trials: list[BarnTrial], senses: str = "exact") -> list[BarnSummary]:
+    """One summary per agent, in order of first appearance; ``senses`` as ``BarnSummary.senses``."""
     out = []
     for agent in dict.fromkeys(t.agent for t in trials):
         group = [t for t in trials if t.agent == agent]
@@ -202,7 +204,8 @@ def summarise(trials: list[BarnTrial]) -> list[BarnSummary]:
             return sum(t.outcome == outcome for t in group) / len(group)
 
         out.append(BarnSummary(agent, len(group), rate("succeeded"), rate("collided"), rate("timeout"),
-                               float(np.mean(times)) if times else float("nan"), float(np.mean([t.score for t in group]))))
+                               float(np.mean(times)) if times else float("nan"), float(np.mean([t.score for t in group])),
+                               senses))
     return out
 
 

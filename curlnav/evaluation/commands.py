@@ -88,7 +88,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     with tqdm(total=comparison.episode_count(args.seeds), unit="episode", desc="eval", disable=None) as bar:
         episodes = comparison.run(args.seeds, on_episode=lambda e: bar.update(), mcap=args.mcap,
                                   recorder=_mcap_file if args.mcap else None)
-    summaries = summarise(episodes)
+    summaries = summarise(episodes, senses=sensor_noise.senses)
     for s in summaries:
         if s.world != OVERALL or len(worlds) > 1:
             print(s.line())
@@ -150,7 +150,7 @@ def _eval_barn(args: argparse.Namespace) -> int:
         episodes = comparison.run(1, on_episode=lambda e: bar.update())
     trials = [BarnTrial.of(e.agent, int(e.world.rsplit("-", 1)[1]), e.success, e.base_collisions, e.time_s)
               for e in episodes]
-    summaries = summarise(trials)
+    summaries = summarise(trials, senses=sensor_noise.senses)
     print(reference_line())
     for summary in summaries:
         for trial in sorted((t for t in trials if t.agent == summary.agent), key=lambda t: t.world):

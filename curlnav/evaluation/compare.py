@@ -109,6 +109,9 @@ class Summary:
     path_length_m: float  # mean over successful trials (nan if none)
     spl: float
     base_collision_events_per_trial: float = 0.0  # wall contacts of the base, each counted once
+    #: the senses the trials ran with: ``exact``, or the sensor-noise preset and its overrides
+    #: (``SensorNoiseConfig.describe``)
+    senses: str = "exact"
 
     def line(self) -> str:
         return (f"{self.agent} on {self.world}: success {self.success_rate:.0%} over {self.episodes} episodes, "
@@ -116,7 +119,7 @@ class Summary:
                 f"({self.base_collision_events_per_trial:.2f} contact events), "
                 f"{self.arm_collisions_per_trial:.2f} arm collisions/trial, "
                 f"time to goal {_number(self.time_to_goal_s, '{:.1f} s')}, path {_number(self.path_length_m, '{:.1f} m')}, "
-                f"SPL {self.spl:.2f}")
+                f"SPL {self.spl:.2f}; senses {self.senses}")
 
 
 def _number(value: float, fmt: str) -> str:
@@ -244,8 +247,9 @@ def _mean(values: list[float]) -> float:
     return float(np.mean(values)) if values else float("nan")
 
 
-def summarise(episodes: list[Episode]) -> list[Summary]:
-    """Per agent: one summary per world (in order of first appearance), then ``OVERALL``."""
+def summarise(episodes: list[Episode], senses: str = "exact") -> list[Summary]:
+    """Per agent: one summary per world (in order of first appearance), then ``OVERALL``; ``senses``:
+    what the trials sensed with (``SensorNoiseConfig.describe``, ``exact`` for none)."""
     agents = list(dict.fromkeys(e.agent for e in episodes))
     worlds = list(dict.fromkeys(e.world for e in episodes))
     out = []
@@ -258,7 +262,8 @@ def summarise(episodes: list[Episode]) -> list[Summary]:
             out.append(Summary(agent, world, len(group), len(won) / len(group),
                                _mean([e.base_collisions for e in group]), _mean([e.arm_collisions for e in group]),
                                _mean([e.time_s for e in won]), _mean([e.path_length_m for e in won]),
-                               _mean([e.spl for e in group]), _mean([e.base_collision_events for e in group])))
+                               _mean([e.spl for e in group]), _mean([e.base_collision_events for e in group]),
+                               senses))
     return out
 
 
@@ -425,8 +430,8 @@ def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float
 
 def table_ii(summaries: list[Summary]) -> str:
     """The paper's Table II layout as a Markdown table: a row per world (and one over all), a
-    column per agent; each cell: success with its 95 % interval, base contact events per trial,
-    time to goal (s, successful trials) and SPL."""
+    column per agent; each cell: success with its 95 % interval, base contact events per trial, arm
+    contacts per trial (steps), time to goal (s, successful trials) and SPL; the caption names the senses."""
     agents = list(dict.fromkeys(s.agent for s in summaries))
     worlds = list(dict.fromkeys(s.world for s in summaries))
     by = {(s.agent, s.world): s for s in summaries}
@@ -436,13 +441,15 @@ def table_ii(summaries: list[Summary]) -> str:
             return "-"
         low, high = wilson_interval(round(s.success_rate * s.episodes), s.episodes)
         return (f"{s.success_rate:.0%} ({low:.0%}-{high:.0%}) · {s.base_collision_events_per_trial:.2f} · "
-                f"{_number(s.time_to_goal_s, '{:.0f} s')} · {s.spl:.2f}")
+                f"arm {s.arm_collisions_per_trial:.2f} · {_number(s.time_to_goal_s, '{:.0f} s')} · {s.spl:.2f}")
 
     lines = ["| world | " + " | ".join(agents) + " |", "|---|" + "---|" * len(agents)]
     for world in worlds:
         count = max((by[(a, world)].episodes for a in agents if (a, world) in by), default=0)
         name = f"**{world}**" if world == OVERALL else world
         lines.append(f"| {name} ({count}) | " + " | ".join(cell(by.get((a, world))) for a in agents) + " |")
-    lines += ["", "Each cell: success (95 % Wilson interval) · base contact events per trial · time to goal "
-              "(successful trials) · SPL. In brackets after the world: trials per agent."]
+    senses = ", ".join(dict.fromkeys(s.senses for s in summaries)) or "exact"
+    lines += ["", "Each cell: success (95 % Wilson interval) · base contact events per trial · arm contacts per "
+              "trial (steps) · time to goal (successful trials) · SPL. In brackets after the world: trials per "
+              f"agent. Senses: {senses}."]
     return "\n".join(lines)

@@ -144,21 +144,33 @@ class RewardConfig:
 #: The magnitudes of ``SensorNoiseConfig`` (every field but ``preset``, ``randomise`` and ``heading``), in order.
 SENSOR_NOISE_FIELDS = ("range_sigma", "range_sigma_fraction", "dropout", "spurious", "label_error", "label_run",
                        "latency_steps", "odometry_drift", "odometry_rotation_drift", "gyro_bias", "gyro_scale",
-                       "gyro_noise", "max_linear_accel", "max_angular_accel", "actuation_lag", "wheel_slip")
+                       "gyro_noise", "max_linear_accel", "max_angular_accel", "actuation_lag", "wheel_slip",
+                       "block_label_error", "object_label_error", "dark_blocks", "glass_blocks", "phantom_blocks",
+                       "mount_yaw", "mount_height", "arm_occlusion")
 
 _ADDED_WITH_IMU = ("gyro_bias", "gyro_scale", "gyro_noise")
+#: the errors that persist for an episode (``curlnav.sim.lidar_faults``): counted in a config's hash
+#: only where set, so every config from before they existed keeps its hash
+PERSISTENT_FIELDS = ("block_label_error", "object_label_error", "dark_blocks", "glass_blocks", "phantom_blocks",
+                     "mount_yaw", "mount_height", "arm_occlusion")
+_NO_PERSISTENT = dict.fromkeys(PERSISTENT_FIELDS, 0.0)
 
 #: Where the odometry's heading comes from in each preset (``SensorNoiseConfig.heading``):
 #: ``wheels`` (the wheels' differential, ``odometry_rotation_drift``) or ``imu`` (a gyro fused
 #: with the wheels' translation, as the Husky's and the Jackal's robot_localization EKFs do:
 #: ``gyro_bias``, ``gyro_scale``, ``gyro_noise``).
-SENSOR_NOISE_HEADINGS: dict[str, str] = {"none": "wheels", "realistic": "imu", "harsh": "imu"}
+SENSOR_NOISE_HEADINGS: dict[str, str] = {"none": "wheels", "realistic": "imu", "harsh": "imu",
+                                         "realistic-frame": "imu", "harsh-frame": "imu"}
 
 #: Named presets of ``SensorNoiseConfig``: ``none`` (exact senses, the default), ``realistic`` (a
-#: robot with a datasheet LiDAR, a segmenter, wheel odometry and an IMU's heading) and ``harsh``
-#: (about double).
-#: Sources of the values: docs/guide/environment.md, "Sensor, odometry and actuation models".
-SENSOR_NOISE_PRESETS: dict[str, dict[str, float | int]] = {
+#: robot with a datasheet LiDAR, a segmenter, wheel odometry and an IMU's heading, its LiDAR's and
+#: segmenter's errors drawn afresh in every frame *and* persisting for the episode: mislabelled wall
+#: blocks and objects, dark and glass surfaces, phantoms, a LiDAR mounted a little off, the arm in the
+#: way) and ``harsh`` (about double). ``realistic-frame`` and ``harsh-frame``: the same without the
+#: errors that persist (every error lasts one frame), the presets that figures before them measured.
+#: Sources of the values: docs/guide/environment.md, "Sensor, odometry and actuation models" and
+#: "Errors that persist".
+_FRAME_PRESETS: dict[str, dict[str, float | int]] = {
     "none": dict(range_sigma=0.0, range_sigma_fraction=0.0, dropout=0.0, spurious=0.0, label_error=0.0,
                  label_run=1.0, latency_steps=0, odometry_drift=0.0, odometry_rotation_drift=0.0,
                  gyro_bias=0.0, gyro_scale=0.0, gyro_noise=0.0,
@@ -171,6 +183,19 @@ SENSOR_NOISE_PRESETS: dict[str, dict[str, float | int]] = {
                   label_run=10.0, latency_steps=2, odometry_drift=0.05, odometry_rotation_drift=0.10,
                   gyro_bias=math.radians(0.04), gyro_scale=0.02, gyro_noise=math.radians(0.02),
                   max_linear_accel=1.5, max_angular_accel=3.0, actuation_lag=0.1, wheel_slip=0.05),
+}
+_PERSISTENT_PRESETS: dict[str, dict[str, float]] = {
+    "realistic": dict(block_label_error=0.05, object_label_error=0.05, dark_blocks=0.02, glass_blocks=0.03,
+                      phantom_blocks=0.01, mount_yaw=math.radians(0.5), mount_height=0.01, arm_occlusion=1.0),
+    "harsh": dict(block_label_error=0.10, object_label_error=0.10, dark_blocks=0.04, glass_blocks=0.06,
+                  phantom_blocks=0.02, mount_yaw=math.radians(1.0), mount_height=0.02, arm_occlusion=1.0),
+}
+SENSOR_NOISE_PRESETS: dict[str, dict[str, float | int]] = {
+    "none": {**_FRAME_PRESETS["none"], **_NO_PERSISTENT},
+    "realistic": {**_FRAME_PRESETS["realistic"], **_PERSISTENT_PRESETS["realistic"]},
+    "harsh": {**_FRAME_PRESETS["harsh"], **_PERSISTENT_PRESETS["harsh"]},
+    "realistic-frame": {**_FRAME_PRESETS["realistic"], **_NO_PERSISTENT},
+    "harsh-frame": {**_FRAME_PRESETS["harsh"], **_NO_PERSISTENT},
 }
 
 
@@ -212,6 +237,16 @@ class SensorNoiseConfig:
     max_angular_accel: float | None = None  # rad/s^2 of the base (0: none)
     actuation_lag: float | None = None  # s, first-order time constant from command to velocity (0: none)
     wheel_slip: float | None = None  # 1-sigma fraction of the commanded motion lost to slip each step
+    # -- errors that persist for the episode (curlnav.sim.lidar_faults; the map in blocks of 0.5 m)
+    block_label_error: float | None = None  # fraction of wall blocks whose returns are all labelled movable
+    object_label_error: float | None = None  # fraction of movable objects labelled static (missed) throughout
+    dark_blocks: float | None = None  # fraction of wall blocks that return nothing at any angle (black, absorbing)
+    glass_blocks: float | None = None  # fraction of wall blocks that return only near their normal (glass)
+    phantom_blocks: float | None = None  # fraction of wall blocks whose returns read short by a fixed distance (a phantom)
+    mount_yaw: float | None = None  # rad, 1-sigma per-episode yaw error of the LiDAR's mount
+    mount_height: float | None = None  # m, 1-sigma per-episode height error of the scan plane
+    #: the fraction of the extended arm's width that hides the beams behind it (self-filtered: no return); 0: none
+    arm_occlusion: float | None = None
 
     def __post_init__(self) -> None:
         if self.preset not in SENSOR_NOISE_PRESETS:
@@ -238,11 +273,16 @@ class SensorNoiseConfig:
         bounded = {"range_sigma": 1.0, "range_sigma_fraction": 0.5, "dropout": 1.0, "spurious": 1.0,
                    "label_error": 1.0, "odometry_drift": 1.0, "odometry_rotation_drift": 1.0,
                    "gyro_bias": 1.0, "gyro_scale": 0.5, "gyro_noise": 1.0,
-                   "max_linear_accel": 1e3, "max_angular_accel": 1e3, "actuation_lag": 10.0, "wheel_slip": 0.5}
+                   "max_linear_accel": 1e3, "max_angular_accel": 1e3, "actuation_lag": 10.0, "wheel_slip": 0.5,
+                   "block_label_error": 1.0, "object_label_error": 1.0, "dark_blocks": 1.0, "glass_blocks": 1.0,
+                   "phantom_blocks": 1.0, "mount_yaw": 0.2, "mount_height": 0.2, "arm_occlusion": 1.0}
         for name, high in bounded.items():
             value = getattr(self, name)
             if not 0 <= value <= high:
                 raise ConfigError(f"sensor_noise.{name} must be in [0, {high:g}], got {value!r}")
+        if self.dark_blocks + self.glass_blocks + self.phantom_blocks > 1:
+            raise ConfigError("sensor_noise.dark_blocks + glass_blocks + phantom_blocks must be at most 1 (a block is "
+                              f"one surface), got {self.dark_blocks} + {self.glass_blocks} + {self.phantom_blocks}")
         if self.dropout + self.spurious > 1:
             raise ConfigError(f"sensor_noise.dropout + sensor_noise.spurious must be at most 1, "
                               f"got {self.dropout} + {self.spurious}")
@@ -299,6 +339,11 @@ class SensorNoiseConfig:
         return " ".join([self.preset, *changed, *(["randomised per episode"] if self.randomise else [])])
 
     @property
+    def senses(self) -> str:
+        """What a result line says of these senses: ``exact``, or ``describe()``."""
+        return "exact" if self.is_exact else self.describe()
+
+    @property
     def is_exact(self) -> bool:
         """No noise, no lag, no limits: the simulator's exact senses (``none``, however reached)."""
         return all(getattr(self, name) == 0 for name in SENSOR_NOISE_FIELDS if name != "label_run")
@@ -341,6 +386,10 @@ class SensorNoiseConfig:
         for name in SENSOR_NOISE_FIELDS:
             if name in _ADDED_WITH_IMU and for_hash:
                 if imu:
+                    out[name] = getattr(self, name)
+                continue
+            if name in PERSISTENT_FIELDS and for_hash:
+                if getattr(self, name):
                     out[name] = getattr(self, name)
                 continue
             out[name] = None if getattr(self, name) == base[name] else getattr(self, name)

@@ -195,9 +195,9 @@ class NamoEnv(gym.Env):
         self._pose = (x, y, yaw)
         self._distance = math.hypot(self.pair.gx - x, self.pair.gy - y)
         cfg = self.config
-        ranges, labels, hits = self.scene.scan(x, y, yaw)
         self.sensors = SensorModel.for_episode(cfg, self.np_random, self._pose)
-        seen_ranges, seen_labels, goal = self._sensed(ranges, labels)
+        ranges, labels, hits = self._scan(x, y, yaw)
+        seen_ranges, seen_labels, goal = self._sensed(ranges, labels, hits)
         self._range_stack = np.repeat(seen_ranges[None, :], cfg.range_frames, axis=0)
         self._label_stack = np.repeat(seen_labels[None, :], cfg.label_frames, axis=0)
         self._goal_stack = np.repeat(goal[None, :], cfg.goal_frames, axis=0)
@@ -224,7 +224,7 @@ class NamoEnv(gym.Env):
         if sensors is not None:
             sensors.odometry.update((x0, y0, yaw0), (x, y, yaw), sensors.actuator.slip)
         contacts = self.scene.contacts()
-        ranges, labels, hits = self.scene.scan(x, y, yaw)
+        ranges, labels, hits = self._scan(x, y, yaw)
         self._steps += 1
 
         distance = math.hypot(self.pair.gx - x, self.pair.gy - y)
@@ -254,7 +254,7 @@ class NamoEnv(gym.Env):
 
         self._pose = (x, y, yaw)
         self._distance = distance
-        seen_ranges, seen_labels, goal = self._sensed(ranges, labels)
+        seen_ranges, seen_labels, goal = self._sensed(ranges, labels, hits)
         self._range_stack[:-1] = self._range_stack[1:]
         self._range_stack[-1] = seen_ranges
         self._label_stack[:-1] = self._label_stack[1:]
@@ -308,12 +308,23 @@ class NamoEnv(gym.Env):
             raise ValueError(f"action {a.tolist()} out of range: v in [{low}, 1], w in [-1, 1], L in [0, 1]")
         return min(max(v, -back), 1.0), min(max(w, -1.0), 1.0), min(max(arm, 0.0), 1.0)
 
-    def _sensed(self, ranges: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _scan(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The true scan from the base at ``(x, y, yaw)``, cast from where the LiDAR really looks
+        (its mount's yaw and height error, when this episode's senses have one)."""
+        if self.sensors is None or self.sensors.faults is None:
+            return self.scene.scan(x, y, yaw)
+        mount_yaw, mount_height = self.sensors.mount
+        return self.scene.scan(x, y, yaw + mount_yaw, self.config.lidar_height + mount_height)
+
+    def _sensed(self, ranges: np.ndarray, labels: np.ndarray,
+                hits: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The newest frame the observation shows: the scan and the goal frame as the robot
         senses them (exact without a sensor model)."""
         if self.sensors is None:
             return ranges, labels, self._goal_frame(*self._pose)
-        seen_ranges, seen_labels, estimate = self.sensors.observe(ranges, labels)
+        arm = self.scene.robot_pose()[3] if self.sensors.faults is not None else 0.0
+        seen_ranges, seen_labels, estimate = self.sensors.observe(ranges, labels, hits, self.scene.last_bodies,
+                                                                  self._pose[:2], arm)
         return seen_ranges, seen_labels, self._goal_frame(*estimate)
 
     def _goal_frame(self, x: float, y: float, yaw: float) -> np.ndarray:

@@ -196,6 +196,7 @@ class Scene:
         self.beam_angles = (np.linspace(-cfg.lidar_fov / 2, cfg.lidar_fov / 2, beams)
                             if beams > 1 else np.zeros(1))
         self._static_ranges = np.empty(beams, dtype=np.float64)
+        self.last_bodies = np.full(beams, -1)  # the movable body each beam of the last scan hit (-1: none)
         self._no_boxes = np.zeros((0, 15))
 
     # -- building --------------------------------------------------------------------------
@@ -465,12 +466,15 @@ class Scene:
                 counts.end_effector_movable |= movable
         return counts
 
-    def scan(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Cast the LiDAR from ``(x, y)`` at heading ``yaw`` (map frame).
+    def scan(self, x: float, y: float, yaw: float, height: float | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cast the LiDAR from ``(x, y)`` at heading ``yaw`` (map frame), its scan plane at ``height``
+        (m; default ``EnvConfig.lidar_height``).
 
         Returns ``ranges`` (m, float32, shape ``(beams,)``, clipped at max range), ``labels``
         (float32, 1.0 where the beam's first hit is a movable object, else 0.0) and ``hits``
-        (map x, y of each beam's end point, shape ``(beams, 2)``).
+        (map x, y of each beam's end point, shape ``(beams, 2)``); ``last_bodies`` keeps the movable
+        body each beam hit (index: balls, then boxes, then doors; -1 for a static surface or none).
         """
         cfg = self.cfg
         world = self.world
@@ -478,9 +482,10 @@ class Scene:
         u, v = world.grid_from_map(x, y)
         static = cast_grid(world.occupancy, world.resolution, u, v, angles - world.origin_yaw,
                            cfg.lidar_max_range, self._static_ranges)
-        movable, _ = cast_movable(x, y, cfg.lidar_height, angles, cfg.lidar_max_range,
-                                  self._ball_spheres(), self._box_obbs())
+        movable, body = cast_movable(x, y, cfg.lidar_height if height is None else height, angles,
+                                     cfg.lidar_max_range, self._ball_spheres(), self._box_obbs())
         labels = (movable < static).astype(np.float32)
+        self.last_bodies = np.where(movable < static, body, -1)
         ranges64 = np.minimum(static, movable)
         hits = np.stack([x + ranges64 * np.cos(angles), y + ranges64 * np.sin(angles)], axis=1)
         return ranges64.astype(np.float32), labels, hits

@@ -9,6 +9,10 @@ Per step, in this order:
 - **Drive** (``Actuator``): the commanded ``(v, w)`` loses a slip fraction (half-normal, 1-sigma
   ``wheel_slip``), follows it with a first-order lag (``actuation_lag``, s) and within acceleration
   limits (``max_linear_accel``, ``max_angular_accel``), one value per physics sub-step.
+- **Persistent errors** (``curlnav.sim.lidar_faults.LidarFaults``, when the preset sets any):
+  mislabelled, dark, glass and phantom surfaces and missed objects for the whole episode, the
+  LiDAR's mount off in yaw and height, the arm hiding the beams behind it; applied to the true scan
+  first.
 - **Scan** (``corrupt_scan``): Gaussian range noise (``range_sigma`` + ``range_sigma_fraction`` x
   range) on beams with a return; movable objects missed whole (each run of movable beams with
   probability ``label_error``) and false movable runs on other beams with a return (a fraction
@@ -41,6 +45,7 @@ from collections import deque
 import numpy as np
 
 from .config import EnvConfig, SensorNoiseConfig
+from .lidar_faults import LidarFaults
 
 
 def corrupt_scan(ranges: np.ndarray, labels: np.ndarray, noise: SensorNoiseConfig, max_range: float,
@@ -185,6 +190,18 @@ class SensorModel:
         self._delayed: deque[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]] = deque()
         #: the odometry pose of the frame ``observe`` gave last (``latency_steps`` old, as its scan)
         self.seen_pose: tuple[float, float, float] = tuple(pose)
+        #: the errors that persist for the episode; None where the preset sets none (then nothing is
+        #: drawn for them, so the frame-by-frame presets' streams are as before they existed)
+        self.faults: LidarFaults | None = None
+        if LidarFaults.wanted(noise):
+            beam_angles = (np.linspace(-cfg.lidar_fov / 2, cfg.lidar_fov / 2, cfg.lidar_beams)
+                           if cfg.lidar_beams > 1 else np.zeros(1))
+            self.faults = LidarFaults(noise, rng, cfg.robot, beam_angles, cfg.lidar_max_range)
+
+    @property
+    def mount(self) -> tuple[float, float]:
+        """The LiDAR mount's error: yaw (rad) and scan-plane height (m), to add where the scan is cast."""
+        return (self.faults.mount_yaw, self.faults.mount_height) if self.faults is not None else (0.0, 0.0)
 
     @staticmethod
     def for_episode(cfg: EnvConfig, episode_rng: np.random.Generator,
@@ -199,10 +216,17 @@ class SensorModel:
             noise = noise.scaled(float(rng.random()))
         return SensorModel(cfg, noise, rng, pose)
 
-    def observe(self, ranges: np.ndarray, labels: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
+    def observe(self, ranges: np.ndarray, labels: np.ndarray, hits: np.ndarray | None = None,
+                bodies: np.ndarray | None = None, origin: tuple[float, float] = (0.0, 0.0),
+                arm_displacement: float = 0.0) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
         """The frame the observation shows now: the corrupted scan and the odometry pose, from
-        ``latency_steps`` control periods ago (the first frame until then)."""
+        ``latency_steps`` control periods ago (the first frame until then). The persistent errors
+        need the beams' end points ``hits`` (m, map frame), the movable body each hit (``bodies``,
+        -1: none), the LiDAR's ``origin`` (m) and the arm's displacement (m)."""
+        if self.faults is not None:
+            if hits is None or bodies is None:
+                raise ValueError("persistent sensor errors need the scan's hit points and bodies")
+            ranges, labels = self.faults.apply(ranges, labels, hits, bodies, origin, arm_displacement)
         frame = (*corrupt_scan(ranges, labels, self.noise, self.max_range, self.rng), self.odometry.pose)
         if not self._delayed:
             self._delayed.extend([frame] * self.noise.latency_steps)
