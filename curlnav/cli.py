@@ -29,6 +29,10 @@ class _Parser(argparse.ArgumentParser):
         self.register("type", int, decimal_int)  # argparse looks a type up here before calling it
         self.register("type", float, decimal_float)
 
+    def error(self, message: str):
+        """A bad command line is one ``curlnav: error:`` line and exit 2, as every other refusal."""
+        self.exit(2, f"curlnav: error: {self.prog}: {' '.join(message.split())} (see {self.prog} --help)\n")
+
 
 def package_version() -> str:
     """The installed distribution's version, else the one in the source tree's pyproject.toml."""

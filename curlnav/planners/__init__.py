@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from importlib import import_module
 from pathlib import Path
 
-from curlnav.files import read_json, shown
+from curlnav.files import FileRefused, read_json, shown
 
 __all__ = ["ALIASES", "BARE_SUFFIX", "GLOBAL_PLAN_SUFFIX", "PLANNERS", "Planner", "RESCUE_SUFFIX", "SCAN_MATCH_SUFFIX",
            "SCAN_PLAN_SUFFIX", "SHIELD_SUFFIX", "TRACK_SUFFIX", "agents_help", "canonical", "deploy_notice",
@@ -89,9 +89,9 @@ _STACKED = (SCAN_MATCH_SUFFIX, TRACK_SUFFIX, SHIELD_SUFFIX, RESCUE_SUFFIX, SCAN_
 def _shipped_metadata(folder: str) -> tuple[Path, dict] | None:
     """``(path, contents)`` of the ``metadata.json`` of an artefact ``folder`` (or the file itself);
     None when ``folder`` names a planner (``make_agent`` drives the planner, whatever folder has that
-    name), there is no such file, it is unreadable or no JSON object (the policy loader reports those
-    itself). A file beyond ``curlnav.files``' caps (size, depth, duplicate keys) is refused
-    (``FileRefused``, one line)."""
+    name), there is no such file, it is unreadable, beyond ``curlnav.files``' caps (size, depth,
+    duplicate keys; read no further) or no JSON object: the policy loader, which reads it with the
+    same caps, reports those in one line itself."""
     if canonical(folder) is not None:
         return None
     path = Path(folder)
@@ -100,7 +100,7 @@ def _shipped_metadata(folder: str) -> tuple[Path, dict] | None:
         return None
     try:
         contents = read_json(meta, what="metadata.json")
-    except OSError:
+    except (OSError, FileRefused):
         return None
     return (meta, contents) if isinstance(contents, dict) else None
 
