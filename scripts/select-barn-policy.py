@@ -11,7 +11,9 @@ the policy with the most successes (ties: the shorter mean time).
 A policy argument takes ``curlnav eval``'s suffixes: ``POLICY+shield`` checks it behind the safety
 shield (``curlnav.planners.shield``).
 
-Usage: ``scripts/select-barn-policy.py POLICY... [--fills 0.15,0.2,0.25] [--seeds 90-99]``
+``--sensor-noise PRESET`` drives them under a robot's senses (``curlnav eval``'s presets).
+
+Usage: ``scripts/select-barn-policy.py POLICY... [--fills 0.15,0.2,0.25] [--seeds 90-99] [--sensor-noise PRESET]``
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ def main() -> int:
     p.add_argument("policies", nargs="+")
     p.add_argument("--fills", default="0.15,0.2,0.25", help="fill_pct values of the automaton")
     p.add_argument("--seeds", default="90-99", help="validation seeds A-B (within 90-99)")
+    p.add_argument("--sensor-noise", default="none", help="a sensor-noise preset (default none: exact senses)")
+    p.add_argument("--sensor-set", action="append", default=[], metavar="FIELD=VALUE", help="override a magnitude")
     args = p.parse_args()
     lo, hi = (int(v) for v in args.seeds.split("-"))
     if not 90 <= lo <= hi <= 99:
@@ -43,7 +47,11 @@ def main() -> int:
     fills = [float(v) for v in args.fills.split(",")]
     worlds = [barn_course(seed, fill_pct=fill).with_changes(name=f"barn-course-{seed}-fill{fill:g}")
               for seed in range(lo, hi + 1) for fill in fills]
-    env_config = jackal_env_config(ExperimentConfig().eval_env)
+    from curlnav.sim.config import SensorNoiseConfig
+
+    noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set)
+    env_config = jackal_env_config(ExperimentConfig().eval_env.replace(sensor_noise=noise))
+    print(f"senses: {noise.senses}")
     load = policy_loader(env_config, load_policy)
     from curlnav.planners import make_agent
 

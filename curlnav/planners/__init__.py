@@ -5,7 +5,8 @@ behind it), ``global_plan`` (a policy behind an A* path: ``GlobalPlan``, ``Globa
 ``local`` (the map-less ``tare-l`` and ``dwa``, on the same scan as a policy), and what a robot's
 stack puts round any policy: ``scan_map`` (a plan on a map of its own scans, ``+scan-plan``),
 ``rescue`` (that plan followed by ``dwa`` while the policy stalls, ``+rescue``) and ``shield`` (each
-command checked against the scan, ``+shield``).
+command checked against the scan, ``+shield``); ``push_check`` says when those believe a movable
+label near the base (a robot without an arm never does).
 
 ``PLANNERS`` names every planner an agent argument may name (``curlnav eval``, ``curlnav
 experiment``; the map-less ones also ``curlnav ros2 run``): a ``Planner`` with its class as an

@@ -18,9 +18,13 @@ The fallback by default is ``dwa`` following A* on the scan map (``dwa+scan-plan
 free, the robot's own scans marking and clearing cells), the map-less analogue of ``move_base``,
 the BARN Challenge's baseline stack; asked to (``RescueConfig.reverse``), on a robot that can
 reverse, its DWA samples backing up too. It sees only what the policy's robot has: scan, labels,
-goal and odometry. Behind a global plan (``POLICY+global-plan+rescue``), where the stack has the map
-and a localised pose, it is regulated pure pursuit of the same plan instead, with a manoeuvre onto
-the path where the robot stands jammed (``global_plan_fallback``).
+goal and odometry. Its scan map does not trust the segmenter where it knows better
+(``curlnav.planners.push_check``): a return labelled movable near a robot without an arm, or one
+that pushes showed staying put, is marked like a wall; its DWA's scan memory believes the labels (it
+pushes with the base), and the shield behind the rescue (``+rescue+shield``) does not. Behind a
+global plan (``POLICY+global-plan+rescue``), where the stack has the map and a localised pose, it is
+regulated pure pursuit of the same plan instead, with a manoeuvre onto the path where the robot
+stands jammed (``global_plan_fallback``).
 While the policy drives, the fallback is told each command sent (``commanded``), so that its
 dynamic window starts from the robot's real speed when it takes over.
 """

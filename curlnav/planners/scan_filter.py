@@ -28,7 +28,14 @@ one missing beam opens a wall. ``ScanMemory`` does the same for ``tare-l`` and `
   neighbouring one: a ball's returns move with range noise and as it is pushed, 0.2 m a step at
   full speed) static at least as often as movable. A segmenter errs on whole objects at a time: a wall it labels
   movable for a moment stays remembered, and a ball it misses for a moment does not become a wall
-  the planners go round, or the shield stops at while it is pushed (they push balls).
+  the planners go round, or the shield stops at while it is pushed (they push balls);
+- **labels doubted near the base** (with a push check, ``ScanMemory(push=...)``: the shield's
+  memory): a return labelled movable within the push check's ``near_m`` counts as static unless
+  the robot may push it (``curlnav.planners.push_check``); a segmenter that calls a pillar movable
+  in every frame does not hide it. What the memory kept of an object while it was doubted (a ball
+  seen before it came within the arm's reach) is dropped where the object is pushable now
+  (``PushCheck.follows``). Without a push check (the map-less baselines ``tare-l`` and ``dwa``,
+  which push with the base) every label is believed.
 
 On clean scans every return of the newest scan is kept (a lone return of a thin object a step
 later), except a static one within about 0.3 m of where a ball was seen in the scans before it,
@@ -101,10 +108,13 @@ class ScanMemory:
     per control step returns the static obstacle points to plan against (robot frame, m).
 
     ``beam_angles``: ``(beams,)`` rad, beam 0 on the right; ``max_range``: m, the reading of a
-    beam that returns nothing."""
+    beam that returns nothing; ``push``: a ``curlnav.planners.push_check.PushCheck`` that says which
+    movable labels near the base to believe (None: all of them)."""
 
-    def __init__(self, beam_angles: np.ndarray, max_range: float, config: ScanFilterConfig | None = None) -> None:
+    def __init__(self, beam_angles: np.ndarray, max_range: float, config: ScanFilterConfig | None = None,
+                 push=None) -> None:
         self.config = config or ScanFilterConfig()
+        self.push = push
         self.beam_angles = np.asarray(beam_angles, dtype=np.float64)
         self.max_range = float(max_range)
         self._spacing = float(np.abs(np.diff(self.beam_angles)).mean()) if len(self.beam_angles) > 1 else math.pi
@@ -113,10 +123,14 @@ class ScanMemory:
         # spatial support, and the label cells (label_cell_m) of its static and of its movable returns within range_m
         self._scans: deque[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = \
             deque(maxlen=self.config.scans)
+        self._doubted: deque[np.ndarray] = deque(maxlen=self.config.scans)  # per scan: which static returns were labelled movable
 
     def reset(self) -> None:
         """Forget every scan (a new episode or goal: the odometry may have restarted)."""
         self._scans.clear()
+        self._doubted.clear()
+        if self.push is not None:
+            self.push.reset()
 
     def keys(self, points: np.ndarray) -> np.ndarray:
         """The voting cell of each ``(n, 2)`` odometry-frame point (m), as one int64 key."""
@@ -154,6 +168,10 @@ class ScanMemory:
         ranges = np.asarray(ranges, dtype=np.float64)
         labels = np.asarray(labels)
         returned = ranges < self.max_range - 1e-3
+        doubted = np.zeros(len(ranges), dtype=bool)
+        if self.push is not None:  # a movable label near the base is believed only where the robot may push it
+            doubted = returned & (labels >= 0.5) & ~self.push.update(ranges, labels, pose)
+            labels = np.where(doubted, 0.0, labels)
         static = returned & (labels < 0.5)
         near = static & (ranges <= cfg.range_m)
         local = np.stack([ranges * self._cos, ranges * self._sin], axis=1)
@@ -163,6 +181,7 @@ class ScanMemory:
         support = self.supported(ranges, static) | (static & ~self.spikes(ranges))
         self._scans.append((points, keys, support[near], cell_keys(points, cfg.label_cell_m),
                             cell_keys(to_frame(local[movable], pose), cfg.label_cell_m)))
+        self._doubted.append(doubted[near])
 
         def counter(key_sets, neighbours=_NEIGHBOURS):
             """votes(keys): in how many of the remembered scans each cell (or a neighbour) was hit."""
@@ -205,6 +224,9 @@ class ScanMemory:
         old_keys = np.concatenate([k for _, k, _, _, _ in older])
         confirmed = np.concatenate([c for _, _, c, _, _ in older]) | (votes(old_keys) >= cfg.votes)
         keep = confirmed & static_cell(old_points, self._scans) & ~np.isin(old_keys, keys[taken[near]])
+        if self.push is not None:  # kept while doubted, pushable now: what the memory kept of it is no wall
+            was_doubted = np.concatenate(list(self._doubted)[-2::-1])
+            keep[was_doubted] &= ~self.push.follows(old_points[was_doubted])
         _, first = np.unique(old_keys[keep], return_index=True)
         kept = from_frame(old_points[keep][np.sort(first)], pose)
         # cleared: a newest beam in the same direction returns clear_margin_m beyond it

@@ -35,8 +35,14 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
   command from the policy's stack (the rescue's DWA) is checked like any other.
 
 The shield uses what the policy's own robot has: the observation (scan, labels, goal) and
-odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). Movable
-points (label 1) are not obstacles to it: the NAMO policies push them. Behind a global plan
+odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). It does not
+trust the segmenter (``curlnav.planners.push_check``): a return labelled movable near the base is an
+obstacle like any other unless it is pushable: the robot has an arm, and the object lies on the arm's
+side (ahead of the bumper, within the arm's reach) and pushes have not shown it staying put, or a
+push showed it moving. A pushable return is no obstacle to a command at pushing speed
+(``PushConfig.push_speed_mps``); a faster one keeps its margin from it, so a push goes on at pushing
+speed. A wall called movable is held static after the arm's pushes leave it in place (the shield
+checks the base's rectangle: the arm may touch it, the base stops short). Behind a global plan
 (``static_map``), where the stack has the map and a localised pose (``info["pose"]``, as the plan
 has: in the simulator the true pose, whatever the senses' noise), the walls of the map round the
 base are checked too (``wall_outline``): the LiDAR does not see the 120 degrees behind the base,
@@ -54,8 +60,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from curlnav.planners import SHIELD_SUFFIX
-from curlnav.planners.local import ScanAgent, footprint_clearance
-from curlnav.planners.scan_filter import ScanFilterConfig
+from curlnav.planners.local import ScanAgent, footprint_clearance, odometry
+from curlnav.planners.push_check import PushCheck, PushConfig
+from curlnav.planners.scan_filter import ScanFilterConfig, ScanMemory, from_frame, to_frame
 from curlnav.sim import EnvConfig, StartGoal, World
 from curlnav.sim.geometry import wall_faces
 
@@ -169,14 +176,19 @@ def walls_near(tree: cKDTree, pose: tuple[float, float, float], reach_m: float) 
 class ArcRule:
     """The shield's rule for the arcs a base may drive from where it stands (module docstring):
     ``near`` ``(n, 2)`` are the points (m, robot frame) the base does not touch, ``touched`` the walls
-    on or inside its outline. An arc is admissible when its footprint keeps ``margin_m`` from
-    ``near`` (a turn on the spot ``turn_margin_m``), or no less than it keeps now, and presses no
-    deeper into ``touched`` (signed clearance). ``v``, ``w``: m/s, rad/s (``need``: any speed whose
-    zero is a turn on the spot); ``times``: s along each arc."""
+    on or inside its outline, ``pushable`` the returns of an object the robot may push
+    (``curlnav.planners.push_check``). An arc is admissible when its footprint keeps ``margin_m``
+    from ``near`` (a turn on the spot ``turn_margin_m``), or no less than it keeps now, presses no
+    deeper into ``touched`` (signed clearance) and, faster than ``push_speed`` (m/s), keeps
+    ``margin_m`` from ``pushable`` (a push goes at pushing speed). ``v``, ``w``: m/s, rad/s
+    (``need``: any speed whose zero is a turn on the spot); ``times``: s along each arc."""
 
     def __init__(self, near: np.ndarray, touched: np.ndarray, half_length: float, half_width: float,
-                 margin_m: float, turn_margin_m: float) -> None:
+                 margin_m: float, turn_margin_m: float, pushable: np.ndarray | None = None,
+                 push_speed: float = math.inf) -> None:
         self.near, self.touched = near, touched
+        self.pushable = np.zeros((0, 2)) if pushable is None else pushable
+        self.push_speed = push_speed
         self.half_length, self.half_width = half_length, half_width
         self.margin_m, self.turn_margin_m = margin_m, turn_margin_m
         zero = np.zeros(1)
@@ -186,6 +198,16 @@ class ArcRule:
     def clearance(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
         """m, each arc's least clearance from the points the base does not touch."""
         return footprint_clearance(self.near, v, w, times, self.half_length, self.half_width)
+
+    def at_push_speed(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Whether each arc is at pushing speed, or keeps ``margin_m`` from ``pushable``."""
+        v = np.asarray(v, dtype=np.float64)
+        out = (v <= self.push_speed + 1e-9) | (len(self.pushable) == 0)
+        fast = ~out
+        if fast.any():
+            out[fast] = footprint_clearance(self.pushable, v[fast], np.asarray(w, dtype=np.float64)[fast], times,
+                                            self.half_length, self.half_width) >= self.margin_m
+        return out
 
     def pressed(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
         """m, each arc's least signed clearance from the walls the base touches (inf: none)."""
@@ -199,23 +221,31 @@ class ArcRule:
         """Whether each arc presses no deeper into a wall the base touches."""
         return self.pressed(v, w, times) >= self.pressed_now - 1e-9
 
-    def admissible(self, v: np.ndarray, w: np.ndarray, times: np.ndarray) -> np.ndarray:
-        """Whether each arc is admissible."""
-        return (self.clearance(v, w, times) >= self.need(v)) & self.no_deeper(v, w, times)
+    def admissible(self, v: np.ndarray, w: np.ndarray, times: np.ndarray,
+                   clearance: np.ndarray | None = None) -> np.ndarray:
+        """Whether each arc is admissible (``clearance``: ``self.clearance`` of the arcs, if known)."""
+        clearance = self.clearance(v, w, times) if clearance is None else clearance
+        return (clearance >= self.need(v)) & self.no_deeper(v, w, times) & self.at_push_speed(v, w, times)
 
 
 class ShieldedPolicy(ScanAgent):
     """``policy`` (``obs -> [v, w, L]``, or an ``EpisodeAgent`` such as a policy behind a global
     plan) behind the safety shield (module docstring):
     ``act(observation, info) -> [v, w, L]``. ``interventions`` counts the commands replaced in
-    the current episode, ``steps`` the commands checked."""
+    the current episode, ``steps`` the commands checked; ``push`` is its push check."""
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
                  config: ShieldConfig | None = None, label: str | None = None,
-                 scan_filter: ScanFilterConfig | None = ScanFilterConfig(), static_map: bool = False) -> None:
+                 scan_filter: ScanFilterConfig | None = ScanFilterConfig(), static_map: bool = False,
+                 push: PushConfig | None = None) -> None:
         """``static_map``: also check the walls of the world's map round ``info["pose"]`` (module
-        docstring; only a stack that has the map and a localised pose: behind a global plan)."""
+        docstring; only a stack that has the map and a localised pose: behind a global plan);
+        ``push``: when a movable label near the base is believed (default ``PushConfig()``)."""
         super().__init__(env_config, scan_filter)
+        # one push check for the shield and its memory; the speed condition is the shield's, command by command
+        self.push = PushCheck(self.env_config, push)
+        if self.memory is not None:
+            self.memory = ScanMemory(self.beam_angles, self.env_config.lidar_max_range, scan_filter, push=self.push)
         self.policy = policy
         self.static_map = static_map
         self._walls: tuple[World, cKDTree] | None = None  # the map's wall outline, for static_map
@@ -253,15 +283,38 @@ class ShieldedPolicy(ScanAgent):
         self.steps = 0
         self._stuck = 0
         self._recovering = 0
+        self.push.reset()
 
     def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
         points, _, _ = self.sense(observation, info)
+        pose = odometry(info)
+        if self.memory is None:  # the raw scan: its doubted movable returns are obstacles too
+            points = np.concatenate([points, self._doubted(observation, pose)])
+        pushable = self.push.pushable_in(pose)
         walls = self.map_points(info["pose"]) if self.static_map else None
         inner = getattr(self.policy, "act", None)
         proposed = self.policy(observation) if inner is None else inner(observation, info)
         proposed = np.asarray(proposed, dtype=np.float32).reshape(-1)
         self.steps += 1
-        return self.check(proposed, points, walls)
+        out = self.check(proposed, points, walls, pushable)
+        self.push.commanded(out)
+        return out
+
+    def commanded(self, action: np.ndarray) -> None:
+        """The command the robot was sent this step, where something after the shield changed it
+        (the ROS 2 node's stops): the push check reckons with the arm the robot has out."""
+        self.push.commanded(action)
+
+    def _doubted(self, observation: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
+        """``(n, 2)`` robot-frame points (m) at ``pose`` of the newest scan's returns labelled movable
+        that the push check does not believe (without a scan memory, which judges them itself)."""
+        ranges, labels, _ = self.layout.newest_frame(np.asarray(observation))
+        seen_from = self._poses[0]  # the pose the (possibly late) scan was taken from
+        ranges = ranges.astype(np.float64)
+        doubted = (ranges < self.env_config.lidar_max_range - 1e-3) & (labels >= 0.5) \
+            & ~self.push.update(ranges, labels, seen_from)
+        local = np.stack([ranges * np.cos(self.beam_angles), ranges * np.sin(self.beam_angles)], axis=1)[doubted]
+        return from_frame(to_frame(local, seen_from), pose)
 
     def map_points(self, pose: tuple[float, float, float]) -> np.ndarray:
         """``(n, 2)`` robot-frame points (m) of the map's wall outline that a command can reach
@@ -270,25 +323,34 @@ class ShieldedPolicy(ScanAgent):
             raise RuntimeError("ShieldedPolicy(static_map=True) needs reset(world, pair) first")
         return walls_near(self._walls[1], pose, self._reach_m)
 
-    def check(self, proposed: np.ndarray, points: np.ndarray, walls: np.ndarray | None = None) -> np.ndarray:
+    def check(self, proposed: np.ndarray, points: np.ndarray, walls: np.ndarray | None = None,
+              pushable: np.ndarray | None = None) -> np.ndarray:
         """``proposed`` ``[v, w, L]`` (fractions) if its arc is admissible against ``points``
-        ``(n, 2)`` (m, robot frame: the scan's) and ``walls`` (the map's, behind a global plan),
-        else its replacement (module docstring). A scan return inside the base is no obstacle (as
-        dwa's: noise); a wall point on or inside its outline is a wall the base touches: a command
-        may not press deeper into those (signed clearance, minus the depth inside), and keeps the
-        margins from every other point."""
+        ``(n, 2)`` (m, robot frame: the scan's), ``walls`` (the map's, behind a global plan) and,
+        faster than pushing speed, ``pushable`` (the returns of what the robot is pushing), else its
+        replacement (module docstring). A scan return inside the base is no obstacle (as dwa's:
+        noise); a wall point on or inside its outline is a wall the base touches: a command may not
+        press deeper into those (signed clearance, minus the depth inside), and keeps the margins
+        from every other point."""
         cfg = self.config
         robot = self.env_config.robot
         hl, hw = self.half_length, self.half_width
-        d = np.hypot(points[:, 0], points[:, 1]) if len(points) else np.zeros(0)
-        inside = (np.abs(points[:, 0]) <= hl) & (np.abs(points[:, 1]) <= hw) \
-            if len(points) else np.zeros(0, dtype=bool)
-        near = points[(d < self._reach_m) & ~inside] if len(points) else points
+
+        def reachable(p: np.ndarray) -> np.ndarray:
+            """Those of scan points ``p`` ``(n, 2)`` within reach and not inside the base."""
+            if len(p) == 0:
+                return np.zeros((0, 2))
+            inside = (np.abs(p[:, 0]) <= hl) & (np.abs(p[:, 1]) <= hw)
+            return p[(np.hypot(p[:, 0], p[:, 1]) < self._reach_m) & ~inside]
+
+        near = reachable(points)
         touched = np.zeros((0, 2))
         if walls is not None and len(walls):
             on_base = (np.abs(walls[:, 0]) <= hl) & (np.abs(walls[:, 1]) <= hw)
             near, touched = np.concatenate([near, walls[~on_base]]), walls[on_base]
-        rule = ArcRule(near, touched, hl, hw, cfg.margin_m, cfg.turn_margin_m if self.static_map else cfg.margin_m)
+        rule = ArcRule(near, touched, hl, hw, cfg.margin_m, cfg.turn_margin_m if self.static_map else cfg.margin_m,
+                       pushable=None if pushable is None else reachable(pushable),
+                       push_speed=self.push.config.push_speed_mps)
         if not np.isfinite(proposed[:2]).all():
             self.interventions += 1
             out = proposed.copy()
@@ -304,7 +366,7 @@ class ShieldedPolicy(ScanAgent):
         grid = self._grid
         vs, ws = grid[:, 0] * robot.max_linear_speed, grid[:, 1] * robot.max_angular_speed
         clearance = rule.clearance(vs, ws, self._times)
-        admissible = (clearance >= rule.need(vs)) & rule.no_deeper(vs, ws, self._times)
+        admissible = rule.admissible(vs, ws, self._times, clearance)
         if self._recovering or not admissible.any():
             # recovery (or nothing admissible, which the grid's (0, 0) makes rare: it keeps the
             # clearance of now): the command that ends with the most room round the base, backing
@@ -314,7 +376,7 @@ class ShieldedPolicy(ScanAgent):
                 rv, rw = grid[len(vs):, 0] * robot.max_linear_speed, grid[len(vs):, 1] * robot.max_angular_speed
                 clearance = np.concatenate([clearance, rule.clearance(rv, rw, self._times)])
                 vs, ws = np.concatenate([vs, rv]), np.concatenate([ws, rw])
-                admissible = (clearance >= rule.need(vs)) & rule.no_deeper(vs, ws, self._times)
+                admissible = rule.admissible(vs, ws, self._times, clearance)
             room = rule.clearance(vs, ws, self._times[-1:])
             best = int(np.argmax(np.where(admissible, room + 0.05 * grid[:, 0], -np.inf))) if admissible.any() \
                 else int(np.argmax(clearance))

@@ -10,6 +10,11 @@ movable object, 0.0: static), as a movable-object segmenter writes them; any oth
 is resampled to the policy's (241 beams over -120..+120 deg by default; per policy beam the
 nearest return of the input beams in its 1-degree bin, the bin's beams uncovered by the input
 read as no return). The scanner is taken to sit at ``base_link``'s origin, facing forward.
+The labels are handled as in evaluation: a stack built by ``curlnav ros2 run --shield`` (and
+``--rescue``, ``--scan-plan``) is the evaluation's own (``curlnav.planners``), built for the robot
+profile's arm, so a return labelled movable near the base is an obstacle unless the robot may push
+it (``curlnav.planners.push_check``); the node gives it the odometry pose and tells it each command
+it publishes (``told``: a stop the node makes is what the robot did).
 
 Safe at the edges (issue 35): every command goes through ``guard`` (finite, within the artefact's
 speed limits, else a counted stop); goals beyond ``max_goal_m`` and odometry beyond
@@ -555,7 +560,9 @@ class PolicyNode:
                                          arm * lay.arm_reach if lay.arm else 0.0, "active"), lay)
         if why is not None:
             self.counts["unsafe_commands"] += 1
+            told(self.agent, np.zeros(3))
             return self._stop(command.state)
+        told(self.agent, np.array([v, w, arm if lay.arm else 0.0]))
         self.state = "active"
         return command
 
@@ -584,6 +591,20 @@ class PolicyNode:
             self.counts["stops"] += state.startswith("stopped")
         self.state = state
         return Command(0.0, 0.0, 0.0, state)
+
+
+def told(agent, action: np.ndarray) -> None:
+    """Tell ``agent``'s stack the command the robot was sent, ``[v, w, L]`` (fractions): the first
+    of the agent and the agents it wraps (``.policy``, front stages first) with a ``commanded``
+    hook (the shield's: its push check follows the arm the robot has out). None: nothing to tell."""
+    for _ in range(16):  # a stack is a handful of wrappers deep
+        if agent is None:
+            return
+        hook = getattr(agent, "commanded", None)
+        if callable(hook):
+            hook(action)
+            return
+        agent = getattr(agent, "policy", None)
 
 
 def _stamp_s(header) -> float | None:
