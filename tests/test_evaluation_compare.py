@@ -150,13 +150,14 @@ def test_an_agent_scores_the_same_whatever_its_place_in_the_eval_list():
 
 
 @pytest.mark.slow  # more than 5 s
-@pytest.mark.parametrize("senses", ["none", "realistic"])
+@pytest.mark.parametrize("senses", ["none", "realistic-frame"])
 def test_the_flagship_as_shipped_drives_namo_worlds_it_never_saw(capsys, senses):
     """``policies/namo-robust`` is the README's flagship, named alone: behind the rescue (with its
     own settings), the shield and the laser odometry its metadata ships, on the three NAMO floors
     of a held-out seed (300, never trained or tuned on) it reaches the goal without touching a
-    wall, with exact senses and with a robot's (``realistic``: noisy ranges and labels, latency,
-    drifting odometry; seeded evaluation: the same 12 trials every time; the full figures, real
+    wall, with exact senses and with a robot's (``realistic-frame``: noisy ranges and labels,
+    latency, drifting odometry, every error lasting one frame, the senses its published figures were
+    measured with; seeded evaluation: the same 12 trials every time; the full figures, real
     maps included, are in its README; the real maps are not in the repository, so no test drives
     them)."""
     shipped = Path(__file__).resolve().parent.parent / "policies" / "namo-robust"
