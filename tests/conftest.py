@@ -85,6 +85,26 @@ def run_pairs(agent, world, cfg):
 
 
 # -- waiting ---------------------------------------------------------------------------------------
+@pytest.fixture
+def make_env():
+    """``make_env(world="namo-office:3", noise=None, **env_config_fields)``: a ``NamoEnv`` with those
+    senses (exact by default), collisions counted without ending the episode; all closed at the end."""
+    from curlnav.sim import EnvConfig, NamoEnv
+    from curlnav.sim.config import SensorNoiseConfig
+
+    envs = []
+
+    def make(world="namo-office:3", noise=None, **cfg):
+        cfg.setdefault("end_on_base_collision", False)
+        env = NamoEnv(world, EnvConfig(sensor_noise=noise or SensorNoiseConfig(), **cfg))
+        envs.append(env)
+        return env
+
+    yield make
+    for env in envs:
+        env.close()
+
+
 def wait_for(what: str, check, timeout: float = 120.0, procs=(), every: float = 0.5):
     """Poll ``check()`` every ``every`` s until it returns a truthy value (returned). An OSError
     (a service not listening yet) counts as a falsy value. Fails when ``timeout`` s pass (with the

@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
 from curlnav.sim.config import PERSISTENT_FIELDS, SENSOR_NOISE_PRESETS, SensorNoiseConfig
@@ -31,21 +30,6 @@ def long_wall_room() -> World:
     grid = _walled_grid(20.0, 8.0, res)
     return World(name="long-wall", occupancy=grid, resolution=res, wall_height=1.0,
                  pairs=(StartGoal("p", 12.0, 2.0, 0.0, 18.0, 2.0),), source="test:long-wall")
-
-
-@pytest.fixture
-def make_env():
-    envs = []
-
-    def make(world=OFFICE, noise: SensorNoiseConfig | None = None, **cfg):
-        cfg.setdefault("end_on_base_collision", False)
-        env = NamoEnv(world, EnvConfig(sensor_noise=noise or SensorNoiseConfig(), **cfg))
-        envs.append(env)
-        return env
-
-    yield make
-    for env in envs:
-        env.close()
 
 
 def newest(env: NamoEnv, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

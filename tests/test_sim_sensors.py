@@ -26,21 +26,6 @@ def only(**values) -> SensorNoiseConfig:
     return SensorNoiseConfig("none", **values)
 
 
-@pytest.fixture
-def make_env():
-    envs = []
-
-    def make(world=OFFICE, noise: SensorNoiseConfig | None = None, **cfg):
-        cfg.setdefault("end_on_base_collision", False)
-        env = NamoEnv(world, EnvConfig(sensor_noise=noise or SensorNoiseConfig(), **cfg))
-        envs.append(env)
-        return env
-
-    yield make
-    for env in envs:
-        env.close()
-
-
 def newest(env: NamoEnv, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The newest range frame, label frame and goal frame of an observation."""
     cfg = env.config
