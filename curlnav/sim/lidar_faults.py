@@ -36,7 +36,7 @@ import math
 
 import numpy as np
 
-from .config import RobotConfig, SensorNoiseConfig
+from .config import PERSISTENT_FIELDS, RobotConfig, SensorNoiseConfig
 
 BLOCK_M = 0.5  # m, the side of a surface block that errs as one
 GLASS_RETURN_ANGLE = math.radians(20.0)  # glass returns only this near its normal
@@ -107,9 +107,7 @@ class LidarFaults:
     @staticmethod
     def wanted(noise: SensorNoiseConfig) -> bool:
         """Whether ``noise`` sets any error that persists (else the episode draws nothing for them)."""
-        return any(getattr(noise, name) > 0 for name in (
-            "block_label_error", "object_label_error", "dark_blocks", "glass_blocks", "phantom_blocks",
-            "mount_yaw", "mount_height", "arm_occlusion"))
+        return any(getattr(noise, name) > 0 for name in PERSISTENT_FIELDS)
 
     def apply(self, ranges: np.ndarray, labels: np.ndarray, hits: np.ndarray, bodies: np.ndarray,
               origin: tuple[float, float], arm_displacement: float) -> tuple[np.ndarray, np.ndarray]:
