@@ -89,8 +89,18 @@ class D4PGBuilder:
         if envs < 1:
             raise ValueError(f"an actor steps at least one environment, got {envs}")
         writer = VectorNStepWriter(self.layout, envs, self.config.d4pg.n_step, self.config.d4pg.discount)
-        return VectorEpisodeLoop([self.make_env() for _ in range(envs)], policy.batch, writer,
+        return VectorEpisodeLoop([self.make_env() for _ in range(envs)], self.make_acting_agent(policy).batch, writer,
                                  self.make_world_draws(actor_index), scenes=self.config.actor.scenes_per_process)
+
+    def make_acting_agent(self, policy: BehaviourPolicy) -> BehaviourPolicy:
+        """What an actor acts with: ``curlnav.nav.build_stack`` of the training stack round the behaviour
+        policy, the same builder ``curlnav eval``, ``policy run`` and ``ros2 run`` call. The training
+        stack is the network alone: one batched call steps an actor's K environments at once."""
+        from curlnav.nav import NavStack, build_stack
+        from curlnav.nav.stack import choose
+
+        stack = NavStack(controller=choose("controller", "policy", path="behaviour policy"), label="behaviour policy")
+        return build_stack(stack, self.config.env, controller=policy)[1]
 
     def make_behaviour_policy(self, actor_index: int = 0, actor_count: int = 1, stream: int = 0) -> BehaviourPolicy:
         """The policy actor ``actor_index`` of ``actor_count`` runs: random actions for its share

@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     from curlnav.bench.commands import add_commands as add_bench_commands
     from curlnav.bus.commands import add_commands as add_bus_commands
     from curlnav.evaluation.commands import add_commands as add_evaluation_commands
-    from curlnav.evaluation.commands import add_rollout_command
+    from curlnav.evaluation.commands import add_rollout_command, add_stack_command
     from curlnav.ros2.commands import add_ros2_commands
     from curlnav.run.commands import (
         add_ablation_commands,
@@ -70,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     add_training_commands(sub)  # train, config
     add_evaluation_commands(sub)  # eval, policy
+    add_stack_command(sub)  # stack show
     add_service_commands(sub)  # serve, pull, status
     add_bus_commands(sub)
     add_rollout_command(sub)

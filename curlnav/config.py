@@ -44,7 +44,7 @@ def _require(condition: bool, message: str) -> None:
         raise ConfigError(message)
 
 
-def _positive_numbers(obj: Any, prefix: str, names: list[str]) -> None:
+def positive_numbers(obj: Any, prefix: str, names: list[str]) -> None:
     for name in names:
         value = getattr(obj, name)
         _require(not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
@@ -102,7 +102,7 @@ class D4PGConfig:
         _require(isinstance(self.actor_saturation_penalty, (int, float)) and not isinstance(self.actor_saturation_penalty, bool)
                  and math.isfinite(self.actor_saturation_penalty) and 0 <= self.actor_saturation_penalty <= 10,
                  f"{p}.actor_saturation_penalty must be a number in [0, 10], got {shown(self.actor_saturation_penalty)}")
-        _positive_numbers(self, p, ["pool", "conv_filters", "n_step", "batch_size", "actor_lr", "critic_lr",
+        positive_numbers(self, p, ["pool", "conv_filters", "n_step", "batch_size", "actor_lr", "critic_lr",
                                     "target_update_period", "grad_clip_norm"])
         _require(isinstance(self.hidden, tuple) and 0 < len(self.hidden) <= MAX_HIDDEN_LAYERS
                  and all(isinstance(h, int) and not isinstance(h, bool) and 0 < h <= MAX_HIDDEN_WIDTH for h in self.hidden),
@@ -139,7 +139,7 @@ class ReplayConfig:
     importance_exponent: float = 0.4  # beta: importance weights (N P(i)) ** -beta, max-normalised
 
     def __post_init__(self) -> None:
-        _positive_numbers(self, "replay", ["capacity", "min_size", "tolerance", "insert_batch",
+        positive_numbers(self, "replay", ["capacity", "min_size", "tolerance", "insert_batch",
                                            "priority_exponent", "importance_exponent"])
         _require(not isinstance(self.samples_per_insert, bool) and isinstance(self.samples_per_insert, (int, float))
                  and math.isfinite(self.samples_per_insert) and self.samples_per_insert >= 0,
@@ -232,7 +232,7 @@ class EvaluationConfig:
     stop_at_success: float | None = None  # stop training once an evaluation reaches this rate
 
     def __post_init__(self) -> None:
-        _positive_numbers(self, "evaluation", ["every_s", "episodes", "max_episode_steps"])
+        positive_numbers(self, "evaluation", ["every_s", "episodes", "max_episode_steps"])
         _require(self.stop_at_success is None or 0 < self.stop_at_success <= 1,
                  f"evaluation.stop_at_success must be in (0, 1], got {self.stop_at_success!r}")
 
@@ -245,7 +245,7 @@ class BudgetConfig:
     max_env_steps: int | None = None  # environment steps over all actors
 
     def __post_init__(self) -> None:
-        _positive_numbers(self, "budget", ["minutes"])
+        positive_numbers(self, "budget", ["minutes"])
         _require(self.max_env_steps is None or (isinstance(self.max_env_steps, int) and self.max_env_steps > 0),
                  f"budget.max_env_steps must be a positive integer, got {self.max_env_steps!r}")
 

@@ -22,8 +22,8 @@ import numpy as np
 from curlnav.config import ExperimentConfig
 from curlnav.evaluation.compare import SEED_STRIDE, episode_pairs
 from curlnav.evaluation.protocol import EVAL_SEED, evaluate
-from curlnav.planners import make_planner
-from curlnav.planners.scan_match import ScanMatchedPolicy, compose, relative
+from curlnav.nav import make_planner
+from curlnav.nav.perception.scan_match import ScanMatchedPolicy, compose, relative
 from curlnav.sim import NamoEnv, get_world
 from curlnav.sim.config import SensorNoiseConfig
 
@@ -38,7 +38,7 @@ def main() -> int:
     parser.add_argument("--sensor-set", action="append", default=[])
     parser.add_argument("--tolerance-m", type=float, default=0.8, help="the goal tolerance (m)")
     parser.add_argument("--scan-match", action="store_true",
-                        help="measure the laser odometry of +scan-match (curlnav.planners.scan_match) instead")
+                        help="measure the laser odometry of +scan-match (curlnav.nav.perception.scan_match) instead")
     args = parser.parse_args()
     worlds = args.world or ["namo-office:300", "namo-indoor:300", "namo-auditorium:300"]
     noise = SensorNoiseConfig.from_strings(args.sensor_noise, args.sensor_set)

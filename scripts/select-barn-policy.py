@@ -9,7 +9,7 @@ the success, collision and timeout rates and the mean time of the successes; the
 the policy with the most successes (ties: the shorter mean time).
 
 A policy argument takes ``curlnav eval``'s suffixes: ``POLICY+shield`` checks it behind the safety
-shield (``curlnav.planners.shield``).
+shield (``curlnav.nav.safety.shield``).
 
 ``--sensor-noise PRESET`` drives them under a robot's senses (``curlnav eval``'s presets).
 
@@ -53,7 +53,7 @@ def main() -> int:
     env_config = jackal_env_config(ExperimentConfig().eval_env.replace(sensor_noise=noise))
     print(f"senses: {noise.senses}")
     load = policy_loader(env_config, load_policy)
-    from curlnav.planners import make_agent
+    from curlnav.nav import make_agent
 
     agents = {spec: make_agent(spec, env_config, load)[1] for spec in args.policies}
     from curlnav.evaluation.commands import _say_deploy_stacks

@@ -3,7 +3,7 @@
 #   bash scripts/validate-stack.sh AGENT [OUT_DIR]
 # e.g. bash scripts/validate-stack.sh policies/namo-robust+rescue+shield+scan-match /tmp/val-nrsm
 #
-# The sets (sessions 8-12 of docs/results/2026-11-27-namo-robust), 11 runs of `curlnav eval`:
+# The sets (the validation sets of docs/results/2026-11-27-namo-robust), 11 runs of `curlnav eval`:
 #   e90 r90 h90 e91 r91 h91  the NAMO office, indoor and auditorium floors at seeds 90 and 91 under
 #                            exact (e), realistic (r) and harsh (h) senses, 10 pairs x 2 ball placements
 #   sA sAr                   slam-office, slam-floor, slam-namo-indoor at seed 90, exact and realistic

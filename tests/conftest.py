@@ -64,7 +64,7 @@ class GoalSeeker:
         self.calls = 0
 
     def __call__(self, observation: np.ndarray) -> np.ndarray:
-        from curlnav.planners.local import goal_in_robot_frame
+        from curlnav.nav.geometry import goal_in_robot_frame
 
         self.calls += 1
         gx, gy = goal_in_robot_frame(observation[-3:])
@@ -524,3 +524,11 @@ def expected_stack(steps: list[int], episode: int = 0) -> np.ndarray:
     for i in range(REPLAY_LAYOUT.goal_frames):
         out[off + 3 * i: off + 3 * i + 3] = REPLAY_LAYOUT.newest_frame(frame(hist[-REPLAY_LAYOUT.goal_frames + i]))[2]
     return out
+
+
+def around(suffixes: str):
+    """The stack of roles ``suffixes`` (``"+rescue+shield"``) name, round a controller the caller
+    holds (``curlnav.ros2.commands.deployed`` puts its own in the stack's controller's place)."""
+    from curlnav.nav import parse_agent
+
+    return parse_agent("dwa" + suffixes)

@@ -135,7 +135,7 @@ def test_an_agent_scores_the_same_whatever_its_place_in_the_eval_list():
     from curlnav.config import ExperimentConfig
     from curlnav.evaluation.compare import Comparison, episode_pairs
     from curlnav.learner.artefact import load_policy
-    from curlnav.planners import make_agent
+    from curlnav.nav import make_agent
     from curlnav.sim import get_world
 
     env_config = ExperimentConfig().eval_env

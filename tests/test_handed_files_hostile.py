@@ -18,7 +18,7 @@ from conftest import run_capped as curlnav
 
 from curlnav.cli import main
 from curlnav.files import FileRefused, decimal_float, decimal_int, loads_json, loads_yaml, read_yaml
-from curlnav.planners import deploy_notice, deploy_stack
+from curlnav.nav import deploy_notice, deploy_stack
 from curlnav.sim.config import ConfigError, SensorNoiseConfig
 from curlnav.sim.robots import load_profile
 

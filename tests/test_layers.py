@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SETUPTOOLS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
 MAPPED = dict(SETUPTOOLS["package-dir"])  # curlnav.replay -> replay
 #: bottom first: a package may import itself and the packages before it, nothing after
-ORDER = ["proto", "files", "layout", "worlds", "sim", "config", "policy", "bus", "planners", "scheduler",
+ORDER = ["proto", "files", "layout", "worlds", "sim", "config", "policy", "bus", "nav", "scheduler",
          "replay", "learner", "actor", "ros2", "evaluation", "builder", "run", "bench", "cli"]
 #: narrower rules that stay: (importer, imported) -> the only module it may import there
 EXTRA = {("actor", "learner"): "curlnav.learner.networks"}  # an actor runs the networks, never the learner
@@ -183,7 +183,8 @@ def test_no_import_circle_between_modules():
 def test_every_package_is_in_the_order():
     rooms = {room for view in VIEWS.values() for room in map(view, modules())} - {None}
     assert sorted(rooms - set(ORDER)) == [], "place each new package in ORDER (CONTRIBUTING, Layers)"
-    assert sorted(set(SETUPTOOLS["packages"]) - {"curlnav"}) == sorted(f"curlnav.{r}" for r in rooms
+    top = {p for p in SETUPTOOLS["packages"] if p.count(".") == 1}  # sub-packages: test_sub_packages_are_listed
+    assert sorted(top) == sorted(f"curlnav.{r}" for r in rooms
                                                                        if (ROOT / "curlnav" / r).is_dir()
                                                                        or f"curlnav.{r}" in MAPPED)
 
@@ -228,3 +229,69 @@ def test_package_faces_name_what_they_offer():
             if missing:
                 wrong.append(f"{path.relative_to(ROOT)}: __all__ leaves out {', '.join(missing)}")
     assert not wrong, "\n".join(wrong)
+
+
+#: the navigation stack's rooms (``curlnav.nav.ROOM``), bottom first: the roles' shared parts, the
+#: roles in the order they wrap one another's inputs, then the stack and its builder; the package's
+#: face (``curlnav.nav``) sits on top
+NAV_ORDER = ["registry", "geometry", "roles", "progress", "perception", "safety", "global_planners", "controllers",
+             "recovery", "stack", "build"]
+
+
+def nav_room(module: str) -> str | None:
+    """``curlnav.nav.safety.shield`` -> ``safety``; ``curlnav.nav`` -> ``face``; outside -> None."""
+    parts = module.split(".")
+    if parts[:2] != ["curlnav", "nav"]:
+        return None
+    return parts[2] if len(parts) > 2 else "face"
+
+
+def test_the_navigation_stack_roles_import_only_roles_below_them():
+    """Inside ``curlnav.nav`` a role imports only the rooms below it (``NAV_ORDER``): a safety layer
+    never imports a controller, nothing imports the package's face, and no two rooms make a circle."""
+    upward, graph = [], {}
+    for module, path in modules().items():
+        a = nav_room(module)
+        if a is None:
+            continue
+        for line, name in imports(module):
+            target = target_module(name)
+            b = nav_room(target) if target else None
+            if b is None or a == b:
+                continue
+            graph.setdefault(a, set()).add(b)
+            where = f"{path.relative_to(ROOT)}:{line} imports {name}"
+            if b == "face" or (a != "face" and NAV_ORDER.index(b) > NAV_ORDER.index(a)):
+                upward.append(f"{a} -> {b} (above it): {where}")
+    assert not upward, "\n".join(upward)
+    assert strongly_connected(graph) == []
+    rooms = {nav_room(m) for m in modules()} - {None, "face"}
+    assert sorted(rooms - set(NAV_ORDER)) == [], "place each new room of curlnav.nav in NAV_ORDER"
+
+
+def test_no_private_name_is_imported_across_modules():
+    """``from a import _b``: a name its module keeps to itself, used elsewhere (the rescue took a
+    private of the local planners once); a shared helper is public where it lives."""
+    private = []
+    for module, path in modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module != "__future__":
+                private += [f"{path.relative_to(ROOT)}:{node.lineno} imports {alias.name} from {node.module}"
+                            for alias in node.names if alias.name.startswith("_") and not alias.name.startswith("__")]
+    assert not private, "\n".join(private)
+
+
+def test_no_package_holds_more_than_a_dozen_modules():
+    """A package a reader can take in: at most 12 modules besides its face; more is split by concern."""
+    count: dict[str, int] = {}
+    for module, path in modules().items():
+        if path.name != "__init__.py":
+            package = module.rpartition(".")[0]
+            count[package] = count.get(package, 0) + 1
+    assert {p: n for p, n in count.items() if n > 12} == {}
+
+
+def test_sub_packages_are_listed_for_installation():
+    """Every package folder is in pyproject.toml's packages: a regular install (the images') has it."""
+    folders = {m for m, path in modules().items() if path.name == "__init__.py"}
+    assert sorted(folders - set(SETUPTOOLS["packages"])) == []

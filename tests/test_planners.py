@@ -1,4 +1,4 @@
-"""The planner registry (``curlnav.planners.PLANNERS``): every planner is named in ``curlnav eval
+"""The planner registry (``curlnav.nav.PLANNERS``): every planner is named in ``curlnav eval
 --help``, every map-less one in ``curlnav ros2 run --help`` and runs in the ROS 2 node, every one
 drives an episode; and a new planner is one module plus one registry line."""
 
@@ -13,10 +13,9 @@ import numpy as np
 import pytest
 from conftest import goal_of, step
 
-from curlnav import planners
 from curlnav.cli import main
 from curlnav.evaluation.protocol import evaluate, evaluation_config
-from curlnav.planners import PLANNERS, Planner, agents_help, make_agent, make_planner, register
+from curlnav.nav import PLANNERS, Entry, agents_help, make_agent, make_planner, register, registry
 from curlnav.sim import get_world
 
 MAP_LESS = [name for name, p in PLANNERS.items() if p.map_less]
@@ -110,8 +109,8 @@ class Straight:
 def test_a_new_planner_is_one_module_and_one_registry_line(tmp_path, monkeypatch, capsys):
     (tmp_path / "straight_planner.py").write_text(textwrap.dedent(STRAIGHT))
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(planners, "PLANNERS", dict(PLANNERS))  # the registration ends with the test
-    register(Planner("straight", "straight_planner:Straight", "turns to the goal and drives at it", True))
+    monkeypatch.setitem(registry.ENTRIES, "controller", dict(registry.ENTRIES["controller"]))  # ends with the test
+    register(Entry("controller", "straight", "straight_planner:Straight", "turns to the goal and drives at it", True))
 
     assert "`straight` (turns to the goal and drives at it)" in help_of(capsys, monkeypatch, "eval")
     assert "`straight` (turns to the goal and drives at it)" in help_of(capsys, monkeypatch, "ros2", "run")
@@ -135,9 +134,9 @@ def test_a_new_planner_is_one_module_and_one_registry_line(tmp_path, monkeypatch
 
 
 def test_a_name_is_registered_once_and_an_unknown_one_is_refused(monkeypatch):
-    monkeypatch.setattr(planners, "PLANNERS", dict(PLANNERS))
+    monkeypatch.setitem(registry.ENTRIES, "controller", dict(registry.ENTRIES["controller"]))
     with pytest.raises(ValueError, match="registered already"):
-        register(Planner("dwa", "curlnav.planners.local:DynamicWindowPlanner", "again", True))
+        register(Entry("controller", "dwa", "curlnav.nav.controllers.local:DynamicWindowPlanner", "again", True))
     with pytest.raises(ValueError, match="planners: tare-l, dwa, oracle"):
         make_planner("nope", evaluation_config())
     assert type(make_planner("planner", evaluation_config())).__name__ == "StaticMapPlanner"  # the old name

@@ -1,4 +1,4 @@
-"""A policy behind a global plan (``curlnav.planners.global_plan``): through a doorway the robot fits
+"""A policy behind a global plan (``curlnav.nav.global_planners.global_plan``): through a doorway the robot fits
 by a few centimetres the plan's path tracker lines it up and drives it through, where a policy
 steering for a waypoint in the doorway's mouth wedges its corner on the jamb; the settings refuse
 bad values."""
@@ -11,8 +11,8 @@ from conftest import GoalSeeker, fill, walled_room
 from conftest import run_pairs as drive
 
 from curlnav.evaluation.protocol import evaluation_config
-from curlnav.planners.global_plan import GlobalPlanAgent, WaypointConfig
-from curlnav.planners.shield import ShieldedPolicy
+from curlnav.nav.global_planners.global_plan import GlobalPlanAgent, WaypointConfig
+from curlnav.nav.safety.shield import ShieldedPolicy
 from curlnav.sim import NamoEnv, StartGoal, World
 
 RES = 0.05  # m, the door world's cells
@@ -119,8 +119,8 @@ def test_a_robot_in_a_pocket_far_from_any_free_cell_gets_a_waypoint_and_the_plan
     cell once, and the waypoint is still given (it recursed without end before, ending the
     evaluation with a RecursionError), and not made again until the robot has moved, or has been
     back on the path."""
-    from curlnav.planners.global_plan import GlobalPlan
-    from curlnav.planners.oracle import GridPlanner
+    from curlnav.nav.global_planners.global_plan import GlobalPlan
+    from curlnav.nav.global_planners.oracle import GridPlanner
 
     grid = walled_room(20.0, 10.0, RES)
     fill(grid, 2.0, 2.0, 8.0, 8.0, RES)  # a 6 m block: its middle lies 3 m from the nearest free cell

@@ -1,4 +1,4 @@
-"""``+track`` (``curlnav.planners.label_filter``): on a NAMO floor, a segmenter's flickering false
+"""``+track`` (``curlnav.nav.perception.label_filter``): on a NAMO floor, a segmenter's flickering false
 movable runs are voted away while the balls and doors it labels stay movable, measured against the
 simulator's true labels; on exact labels almost nothing changes; the suffix stacks last."""
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from curlnav.layout import ObservationLayout
-from curlnav.planners import make_agent
-from curlnav.planners.label_filter import LabelFilterConfig, LabelFilteredPolicy
-from curlnav.planners.rescue import RescuedPolicy
-from curlnav.planners.shield import ShieldedPolicy
+from curlnav.nav import make_agent
+from curlnav.nav.perception.label_filter import LabelFilterConfig, LabelFilteredPolicy
+from curlnav.nav.recovery.rescue import RescuedPolicy
+from curlnav.nav.safety.shield import ShieldedPolicy
 from curlnav.sim import EnvConfig, NamoEnv, SensorNoiseConfig
 from curlnav.sim.controllers import GoalSeekingController
 

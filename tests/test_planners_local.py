@@ -13,9 +13,9 @@ import pytest
 from conftest import u_trap_world, walled_room
 
 from curlnav.evaluation.protocol import evaluate, evaluation_config, held_out_pairs
-from curlnav.planners.global_plan import GlobalPlanAgent
-from curlnav.planners.local import DynamicWindowPlanner, TareLocalPlanner
-from curlnav.planners.oracle import GridPlanner, StaticMapPlanner
+from curlnav.nav.controllers.local import DynamicWindowPlanner, TareLocalPlanner
+from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
+from curlnav.nav.global_planners.oracle import GridPlanner, StaticMapPlanner
 from curlnav.sim import NamoEnv, StartGoal, World
 from curlnav.worlds.pairs import clearance_map
 

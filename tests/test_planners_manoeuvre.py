@@ -1,4 +1,4 @@
-"""The manoeuvre behind a global plan (``curlnav.planners.manoeuvre``): a Husky that stands with a
+"""The manoeuvre behind a global plan (``curlnav.nav.recovery.manoeuvre``): a Husky that stands with a
 post a few centimetres before its nose, where no turn on the spot clears the map's walls, backs off,
 turns and drives on along the plan; a forward-only robot stays; every pose of the manoeuvre keeps
 off the walls (independent truth: the footprint against the occupied cells, sampled)."""
@@ -13,10 +13,10 @@ import pytest
 from conftest import GoalSeeker, run_pairs
 
 from curlnav.evaluation.protocol import evaluation_config
-from curlnav.planners.global_plan import GlobalPlanAgent
-from curlnav.planners.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
-from curlnav.planners.rescue import PlanTracker, RescueConfig, RescuedPolicy
-from curlnav.planners.shield import ShieldedPolicy, wall_tree
+from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
+from curlnav.nav.recovery.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
+from curlnav.nav.recovery.rescue import PlanTracker, RescueConfig, RescuedPolicy
+from curlnav.nav.safety.shield import ShieldedPolicy, wall_tree
 from curlnav.sim import StartGoal, World, get_world
 from curlnav.worlds.pairs import clearance_map
 
@@ -218,7 +218,7 @@ def test_map_less_rescues_back_up_only_where_the_artefact_asks():
     ``policies/barn-jackal`` asks for it, ``policies/namo-robust`` does not."""
     from pathlib import Path
 
-    from curlnav.planners import rescue_settings
+    from curlnav.nav import rescue_settings
 
     policies = Path(__file__).resolve().parent.parent / "policies"
     assert RescueConfig().reverse is False

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from curlnav.evaluation.protocol import evaluate, evaluation_config, held_out_pairs
-from curlnav.planners.oracle import GridPlanner, StaticMapPlanner, astar
+from curlnav.nav.global_planners.oracle import GridPlanner, StaticMapPlanner, astar
 from curlnav.sim import NamoEnv, get_world
 from curlnav.worlds.metrics import GridGraph
 from curlnav.worlds.namo import door_crossings

@@ -1,4 +1,4 @@
-"""``+rescue`` (``curlnav.planners.rescue``): a policy that stalls in front of a trap is taken round
+"""``+rescue`` (``curlnav.nav.recovery.rescue``): a policy that stalls in front of a trap is taken round
 it by ``dwa`` on a plan over its own scans, and hands back; a policy that makes progress is never
 overridden."""
 
@@ -11,11 +11,11 @@ from conftest import run_pairs as run
 
 from curlnav.evaluation.protocol import evaluation_config
 from curlnav.layout import ObservationLayout
-from curlnav.planners import make_agent
-from curlnav.planners.local import DynamicWindowPlanner
-from curlnav.planners.rescue import RescueConfig, RescuedPolicy
-from curlnav.planners.scan_map import ScanMapPlanAgent
-from curlnav.planners.shield import ShieldedPolicy
+from curlnav.nav import make_agent, parse_agent
+from curlnav.nav.controllers.local import DynamicWindowPlanner
+from curlnav.nav.global_planners.scan_map import ScanMapPlanAgent
+from curlnav.nav.recovery.rescue import RescueConfig, RescuedPolicy
+from curlnav.nav.safety.shield import ShieldedPolicy
 from curlnav.sim import NamoEnv
 
 
@@ -80,7 +80,7 @@ def test_rescue_stacks_between_the_plan_and_the_shield_and_map_less_planners_tak
     label, agent = make_agent("dwa+scan-plan", cfg, lambda spec: pytest.fail("dwa is no policy to load"))
     assert isinstance(agent, ScanMapPlanAgent) and isinstance(agent.policy, DynamicWindowPlanner)
     for spec in ("p+rescue+scan-plan", "p+shield+rescue", "p+rescue+rescue"):
-        with pytest.raises(ValueError, match="suffixes stack"):
+        with pytest.raises(ValueError, match="suffixes stack|named 2 times"):
             make_agent(spec, cfg, lambda s: GoalSeeker())
     for spec in ("dwa+global-plan", "dwa+global-plan+rescue"):
         with pytest.raises(ValueError, match="global plan is for policies"):
@@ -104,7 +104,7 @@ def test_the_rescues_dwa_backs_away_from_a_wall_too_near_to_turn_at_where_the_ro
     on a robot with a reverse gear, backs away."""
     import dataclasses
 
-    from curlnav.planners.local import DwaConfig
+    from curlnav.nav.controllers.local import DwaConfig
 
     reversing = evaluation_config()  # the Husky backs up at 0.5 m/s
     cfg = reversing.replace(robot=dataclasses.replace(reversing.robot, max_reverse_speed=0.0))
@@ -145,7 +145,7 @@ def test_an_artefact_named_alone_drives_with_the_helpers_its_metadata_ships_and_
 def test_the_global_plan_flag_keeps_an_artefacts_shipped_helpers_and_says_so_in_the_label(tmp_path):
     import json
 
-    from curlnav.planners.global_plan import GlobalPlanAgent
+    from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
 
     cfg = evaluation_config()
     artefact = tmp_path / "policy"
@@ -169,7 +169,7 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
     refused in one line naming the file."""
     import json
 
-    from curlnav.planners import deploy_notice, rescue_settings
+    from curlnav.nav import deploy_notice, rescue_settings
     from curlnav.ros2.commands import deployed
     from curlnav.ros2.node import ScanLayout
 
@@ -184,10 +184,10 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
         rescue = agent.policy if isinstance(agent, ShieldedPolicy) else agent
         assert isinstance(rescue, RescuedPolicy), spec
         assert rescue.config == RescueConfig(stall_steps=10), spec
-    node_agent = deployed(lambda obs: np.zeros(3), ScanLayout(), rescue=True, rescue_config=rescue_settings(str(artefact)))
+    node_agent = deployed(lambda obs: np.zeros(3), ScanLayout(), "husky", parse_agent(f"{artefact}+rescue"))
     assert isinstance(node_agent, RescuedPolicy) and node_agent.config.stall_steps == 10
     assert rescue_settings(str(meta)) == RescueConfig(stall_steps=10), "named by its metadata file"
-    assert "its rescue: stall_steps 10 (deploy_settings)" in deploy_notice(str(artefact), "+bare")
+    assert "its rescue: stall_steps 10" in deploy_notice(str(artefact), "+bare")
     monkeypatch.chdir(tmp_path)
     (tmp_path / "dwa").mkdir()
     (tmp_path / "dwa" / "metadata.json").write_text(meta.read_text())
@@ -196,7 +196,7 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
     assert rescue_settings(str(artefact)) is None, "a broken file is the policy loader's to report"
     meta.write_text(json.dumps({"deploy": "+rescue+shield"}))
     assert rescue_settings(str(artefact)) is None and make_agent(str(artefact), cfg, load)[1].policy.config == RescueConfig()
-    for settings, message in (({"rescue": {"stall_step": 10}}, "deploy_settings.rescue must be an object of"),
+    for settings, message in (({"rescue": {"stall_step": 10}}, "deploy_settings.rescue: no setting 'stall_step'; settings: max_steps"),
                               ({"shield": {}}, "at most the key 'rescue'"),
                               ({"rescue": {"stall_steps": 0}}, "stall_steps must be a whole number")):
         meta.write_text(json.dumps({"deploy": "+rescue+shield", "deploy_settings": settings}))
@@ -211,8 +211,8 @@ def test_behind_a_global_plan_the_rescue_follows_the_plan():
     plan on its own scans to the final goal. A policy that never moves, behind a global plan round
     a U of walls, is driven round it by the rescue alone, without a contact, along the plan; and
     ``make_agent`` builds that fallback for the flag and the suffix."""
-    from curlnav.planners.global_plan import GlobalPlanAgent
-    from curlnav.planners.rescue import PlanTracker, global_plan_fallback
+    from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
+    from curlnav.nav.recovery.rescue import PlanTracker, global_plan_fallback
 
     cfg = evaluation_config()
     world = u_trap_world()

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from curlnav.layout import ObservationLayout
-from curlnav.planners.local import DynamicWindowPlanner, TareLocalPlanner
-from curlnav.planners.scan_filter import ScanFilterConfig, ScanMemory
+from curlnav.nav.controllers.local import DynamicWindowPlanner, TareLocalPlanner
+from curlnav.nav.perception.scan_filter import ScanFilterConfig, ScanMemory
 from curlnav.sim import EnvConfig
 
 CFG = EnvConfig()
@@ -312,11 +312,11 @@ def test_a_wall_a_pushed_ball_runs_along_stays_an_obstacle():
 
 
 def test_the_rescues_scan_map_keeps_no_wall_where_a_ball_was_missed_and_keeps_a_wall_mislabelled_movable():
-    """The rescue plans on a map of its own scans (``curlnav.planners.scan_map``). A ball the
+    """The rescue plans on a map of its own scans (``curlnav.nav.global_planners.scan_map``). A ball the
     segmenter missed in two scans of ten must not become an occupied cell it plans round (it would
     route the robot away from the ball it should push); a wall it labelled movable in two scans of
     ten stays occupied."""
-    from curlnav.planners.scan_map import ScanMap, ScanMapConfig
+    from curlnav.nav.global_planners.scan_map import ScanMap, ScanMapConfig
 
     pose = (3.0, 1.5, 0.0)
     ball = (4.5, 2.2)  # ahead on the left, not hiding the wall straight ahead

@@ -1,4 +1,4 @@
-"""``+scan-match`` (``curlnav.planners.scan_match``): laser odometry against the simulator's true
+"""``+scan-match`` (``curlnav.nav.perception.scan_match``): laser odometry against the simulator's true
 pose. Two scans of the office floor give back the motion between them; on a drive under the
 ``harsh`` preset the estimate ends nearer the true pose than the wheels' odometry; on exact
 senses the goal the policy is shown is the environment's own, within centimetres; the suffix stacks last."""
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from curlnav.layout import ObservationLayout
-from curlnav.planners import make_agent
-from curlnav.planners.label_filter import LabelFilteredPolicy
-from curlnav.planners.local import goal_in_robot_frame
-from curlnav.planners.scan_match import ScanMatchConfig, ScanMatchedPolicy, compose, lines, match, relative
+from curlnav.nav import make_agent
+from curlnav.nav.geometry import goal_in_robot_frame
+from curlnav.nav.perception.label_filter import LabelFilteredPolicy
+from curlnav.nav.perception.scan_match import ScanMatchConfig, ScanMatchedPolicy, compose, lines, match, relative
 from curlnav.sim import EnvConfig, NamoEnv, SensorNoiseConfig
 from curlnav.sim.controllers import GoalSeekingController
 

@@ -1,4 +1,4 @@
-"""What a policy gets from the deploy-time helpers of ``curlnav.planners``: the safety shield
+"""What a policy gets from the deploy-time helpers of ``curlnav.nav``: the safety shield
 (``+shield``) keeps the base off walls whatever the policy asks, and the plan on a map of its own
 scans (``+scan-plan``) takes a goal-seeking policy round a trap it cannot see round."""
 
@@ -11,10 +11,10 @@ import pytest
 from conftest import run_pairs, u_trap_world
 
 from curlnav.evaluation.protocol import evaluate, evaluation_config
-from curlnav.planners import make_agent
-from curlnav.planners.local import goal_in_robot_frame
-from curlnav.planners.scan_map import ScanMapConfig, ScanMapPlanAgent
-from curlnav.planners.shield import ShieldConfig, ShieldedPolicy, footprint_clearance
+from curlnav.nav import make_agent
+from curlnav.nav.geometry import goal_in_robot_frame
+from curlnav.nav.global_planners.scan_map import ScanMapConfig, ScanMapPlanAgent
+from curlnav.nav.safety.shield import ShieldConfig, ShieldedPolicy, footprint_clearance
 from curlnav.sim import NamoEnv
 from curlnav.worlds.pairs import clearance_map
 
@@ -137,7 +137,7 @@ def test_eval_suffixes_stack_the_plan_and_the_shield_on_a_policy():
 def test_suffixes_in_another_order_or_two_plans_are_refused_in_one_line():
     cfg = evaluation_config()
     for spec in ("p+shield+scan-plan", "p+global-plan+scan-plan", "p+scan-plan+global-plan", "p+shield+shield"):
-        with pytest.raises(ValueError, match="suffixes stack|choose one"):
+        with pytest.raises(ValueError, match="suffixes stack|choose one|named 2 times"):
             make_agent(spec, cfg, lambda s: GoalSeeker(cfg))
     with pytest.raises(ValueError, match="choose one"):
         make_agent("p+scan-plan", cfg, lambda s: GoalSeeker(cfg), global_plan=True)
@@ -147,7 +147,7 @@ def test_the_scan_plan_waypoint_stays_ahead_of_the_robot_as_it_drives_along_the_
     """Between plans the waypoint advances with the robot: about ``distance_m`` ahead along the
     path from the nearest path point, never one already passed."""
     cfg = ScanMapConfig()
-    from curlnav.planners.scan_map import ScanMap, ScanMapPlan
+    from curlnav.nav.global_planners.scan_map import ScanMap, ScanMapPlan
 
     scan_map = ScanMap((5.0, 0.0), 20.0, cfg, np.linspace(-2, 2, 5), 10.0)
     plan = ScanMapPlan(scan_map, (10.0, 0.0), 0.215)
@@ -193,7 +193,7 @@ def test_astar_reaches_exactly_the_4_connected_free_region_the_scan_plan_checks_
     (``ndimage.label``); that is only right if A* finds a path exactly when both share a region."""
     from scipy import ndimage
 
-    from curlnav.planners.oracle import astar
+    from curlnav.nav.global_planners.oracle import astar
 
     rng = np.random.default_rng(3)
     found = {True: 0, False: 0}
@@ -327,7 +327,7 @@ def test_the_wall_outline_lies_on_the_faces_of_the_walls_that_face_free_space():
     """``wall_outline``: points every 2 cm (at most ``WALL_POINT_SPACING_M``) along each face between
     a wall cell and a free one, and along the grid's edge (the simulator's boundary walls); none
     elsewhere (independent truth: the faces of a 0.2 m post on a free map of 0.1 m cells)."""
-    from curlnav.planners.shield import WALL_POINT_SPACING_M, wall_outline
+    from curlnav.nav.safety.shield import WALL_POINT_SPACING_M, wall_outline
     from curlnav.sim import World
 
     grid = np.zeros((6, 8), dtype=bool)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import output_of, stop, wait_for
+from conftest import around, output_of, stop, wait_for
 
 cyclonedds = pytest.importorskip("cyclonedds")
 from cyclonedds.core import Policy, Qos  # noqa: E402
@@ -637,12 +637,12 @@ def test_eval_writes_every_episode_of_every_agent_as_mcap_with_ros2_schemas(tmp_
 def test_ros2_run_shield_slows_a_command_into_a_wall_and_passes_one_with_room():
     """``curlnav ros2 run POLICY --shield``: a policy that always asks for full speed ahead is passed
     unchanged in the open and held off a wall 0.8 m ahead of the Husky's centre (0.3 m from its bumper)."""
-    from curlnav.planners.shield import ShieldedPolicy
+    from curlnav.nav.safety.shield import ShieldedPolicy
     from curlnav.ros2.commands import deployed
     from curlnav.ros2.node import PolicyNode, ScanLayout
 
     layout = ScanLayout()
-    ahead = deployed(lambda obs: np.array([1.0, 0.0, 0.0]), layout, "husky", shield=True)
+    ahead = deployed(lambda obs: np.array([1.0, 0.0, 0.0]), layout, "husky", around("+shield"))
     assert isinstance(ahead, ShieldedPolicy)
     node = PolicyNode(ahead, layout)
     node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=8.0, y=0.0))))
@@ -661,12 +661,12 @@ def test_ros2_run_shield_slows_a_command_into_a_wall_and_passes_one_with_room():
 def test_ros2_run_rescue_drives_for_a_policy_that_stalls_and_not_before():
     """``curlnav ros2 run POLICY --rescue``: a policy that never moves is left alone for the stall
     window (40 steps), then dwa on the node's own scan map drives toward the goal."""
-    from curlnav.planners.rescue import RescuedPolicy
+    from curlnav.nav.recovery.rescue import RescuedPolicy
     from curlnav.ros2.commands import deployed
     from curlnav.ros2.node import PolicyNode, ScanLayout
 
     layout = ScanLayout()
-    rescued = deployed(lambda obs: np.array([0.0, 0.0, 0.0]), layout, "husky", rescue=True)
+    rescued = deployed(lambda obs: np.array([0.0, 0.0, 0.0]), layout, "husky", around("+rescue"))
     assert isinstance(rescued, RescuedPolicy)
     node = PolicyNode(rescued, layout)
     node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=8.0, y=0.0))))
@@ -693,7 +693,8 @@ def staged_node(goal_x: float, **stage):
 
     seen: list[np.ndarray] = []
     layout = ScanLayout()
-    staged = deployed(lambda obs: seen.append(obs) or np.array([0.0, 0.0, 0.0]), layout, "husky", **stage)
+    staged = deployed(lambda obs: seen.append(obs) or np.array([0.0, 0.0, 0.0]), layout, "husky",
+                      around("".join(f"+{k.replace('_', '-')}" for k, on in stage.items() if on)))
     node = PolicyNode(staged, layout)
     node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=goal_x, y=0.0))))
     return staged, node, seen
@@ -703,7 +704,7 @@ def test_ros2_run_track_drops_a_one_scan_movable_label_on_a_wall_the_policy_saw_
     """``curlnav ros2 run POLICY --track``: a wall the scans showed as static is labelled movable in
     one scan's intensities (a segmenter's error); the policy reads it static. A ball seen movable
     from its first scan stays movable."""
-    from curlnav.planners.label_filter import LabelFilteredPolicy
+    from curlnav.nav.perception.label_filter import LabelFilteredPolicy
 
     tracked, node, seen = staged_node(8.0, track=True)
     assert isinstance(tracked, LabelFilteredPolicy)
@@ -728,8 +729,8 @@ def test_ros2_run_scan_match_steers_by_the_scans_when_odom_drifts():
     """``curlnav ros2 run POLICY --scan-match``: in a walled room the robot drives 0.2 m a step
     while /odom, its wheels slipping, counts 0.25 m; after five steps the goal the policy is shown
     is where the scans put it (4 m ahead), not where the wheels do (3.75 m)."""
-    from curlnav.planners.local import goal_in_robot_frame
-    from curlnav.planners.scan_match import ScanMatchedPolicy
+    from curlnav.nav.geometry import goal_in_robot_frame
+    from curlnav.nav.perception.scan_match import ScanMatchedPolicy
 
     matched, node, seen = staged_node(5.0, scan_match=True)
     assert isinstance(matched, ScanMatchedPolicy)

@@ -1,6 +1,6 @@
 """Safety that does not trust the segmenter (issue 51): a return labelled movable near the base is
 an obstacle to the shield, its scan memory and the scan map unless the robot is deliberately
-pushing it (``curlnav.planners.push_check``). A segmenter that calls a wall movable in every frame
+pushing it (``curlnav.nav.safety.push_check``). A segmenter that calls a wall movable in every frame
 must not let the base drive into it; a ball that moves when pushed is still pushed.
 
 The truth is the simulator's own contacts (``ContactCounts.base_static``, counted in
@@ -13,14 +13,14 @@ import math
 
 import numpy as np
 import pytest
-from conftest import fill, walled_room
+from conftest import around, fill, walled_room
 
 from curlnav.evaluation.protocol import evaluation_config
 from curlnav.layout import ObservationLayout
-from curlnav.planners.push_check import PushCheck, PushConfig
-from curlnav.planners.scan_filter import ScanMemory
-from curlnav.planners.scan_map import ScanMapPlanAgent
-from curlnav.planners.shield import ShieldedPolicy
+from curlnav.nav.global_planners.scan_map import ScanMapPlanAgent
+from curlnav.nav.perception.scan_filter import ScanMemory
+from curlnav.nav.safety.push_check import PushCheck, PushConfig
+from curlnav.nav.safety.shield import ShieldedPolicy
 from curlnav.sim import Ball, NamoEnv, StartGoal, World
 from curlnav.sim.robots import load_profile
 
@@ -281,13 +281,13 @@ def node_at_a_wall(robot: str, labels: float, arm: float = 0.0):
     """``curlnav ros2 run POLICY --shield`` on ``robot`` (a policy always at full speed ahead, the arm
     at ``arm``) in front of a wall 0.3 m off the bumper whose intensities (movable labels) are
     ``labels``: (the command sent, the shield)."""
-    from curlnav.planners.shield import ShieldedPolicy
+    from curlnav.nav.safety.shield import ShieldedPolicy
     from curlnav.ros2.commands import deployed
     from curlnav.ros2.node import PolicyNode, ScanLayout
 
     env_config = JACKAL if robot == "jackal" else HUSKY
     layout = ScanLayout.from_env_config(env_config)
-    shield = deployed(Ahead(1.0, arm=arm), layout, robot, shield=True)
+    shield = deployed(Ahead(1.0, arm=arm), layout, robot, around("+shield"))
     assert isinstance(shield, ShieldedPolicy) and shield.push.arm == env_config.robot.arm
     node = PolicyNode(shield, layout)
     node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=8.0, y=0.0))))
@@ -321,11 +321,11 @@ def test_the_ros2_node_handles_movable_labels_as_evaluation_does():
 def test_the_ros2_node_tells_the_shield_behind_its_front_stages_what_it_sent():
     """``told``: the command the node publishes reaches the shield's push check through the stages
     in front of it (``--track``), so a stop the node makes retracts the arm the check reckons with."""
-    from curlnav.planners.label_filter import LabelFilteredPolicy
+    from curlnav.nav.perception.label_filter import LabelFilteredPolicy
     from curlnav.ros2.commands import deployed
     from curlnav.ros2.node import ScanLayout, told
 
-    stack = deployed(Ahead(), ScanLayout(), "husky", shield=True, track=True)
+    stack = deployed(Ahead(), ScanLayout(), "husky", around("+shield+track"))
     assert isinstance(stack, LabelFilteredPolicy)
     told(stack, np.array([0.5, 0.0, 1.0]))
     assert stack.policy.push.extension == pytest.approx(HUSKY.robot.arm_reach)

@@ -111,7 +111,8 @@ def test_a_profile_file_is_read_and_bad_ones_are_refused_naming_what(tmp_path):
                            ("name: r1\nlidar: {beams: -3}\n", "lidar.beams must be a positive number"),
                            ("name: r1\nlidar: {colour: red}\n", "unknown lidar key colour"),
                            ("name: r1\nbase_width: 0\n", "base_width must be a positive number"),
-                           ("name: r1\nwheels: 6\n", "unknown config key robot.wheels"),
+                           ("name: r1\nwheels: 6\n", "unknown key wheels in a robot profile; its keys: name, arm,"),
+                           ("name: r1\nwheels: 6\n", "max_reverse_speed, lidar (beams, fov_deg, range_m, height_m)"),
                            ("name: R 1\n", "robot.name must be"),
                            ("name: [a]\n", "robot.name must be a text"),
                            ("name: 5\n", "robot.name must be a text")]:

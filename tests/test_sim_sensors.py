@@ -5,6 +5,7 @@ its configured value, the presets, overrides and refusals, and the same seed giv
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -290,7 +291,8 @@ def test_the_presets_take_the_heading_from_an_imu_and_the_hash_says_which_headin
     gyro = apply_overrides(realistic, ["env.sensor_noise.gyro_bias=0.001"])
     assert config_hash(gyro) != config_hash(realistic)  # the gyro's magnitudes count with an IMU heading
     assert SensorNoiseConfig.from_strings("realistic", ["heading=wheels"]).describe() == "realistic heading=wheels"
-    with pytest.raises(ConfigError, match="sensor_noise.heading must be 'wheels' or 'imu', got 'gps'"):
+    with pytest.raises(ConfigError, match=re.escape("--sensor-set 'heading=gps': heading must be 'wheels' or 'imu', "
+                                                    "got 'gps'")):
         SensorNoiseConfig.from_strings("realistic", ["heading=gps"])
 
 
@@ -431,26 +433,30 @@ def test_any_field_overrides_the_preset_and_a_new_preset_carries_the_rest():
 
 
 @pytest.mark.parametrize("preset, items, fragment", [
-    ("loud", [], "sensor_noise.preset must be one of none, realistic, harsh, realistic-frame, harsh-frame"),
-    ("realistic", ["dropout=1.5"], "sensor_noise.dropout must be in [0, 1]"),
-    ("realistic", ["range_sigma=-0.01"], "sensor_noise.range_sigma must be in [0, 1]"),
-    ("realistic", ["range_sigma=nan"], "sensor_noise.range_sigma must be a number"),
-    ("realistic", ["latency_steps=1.5"], "sensor_noise.latency_steps must be a whole number"),
-    ("realistic", ["label_run=0.5"], "sensor_noise.label_run must be in [1, 1000]"),
-    ("realistic", ["dropout=0.6", "spurious=0.6"], "dropout + sensor_noise.spurious must be at most 1"),
-    ("realistic", ["wheel_slip=0.9"], "sensor_noise.wheel_slip must be in [0, 0.5]"),
-    ("realistic", ["colour=red"], "unknown sensor-noise field 'colour'"),
-    ("realistic", ["dropout"], "must look like field=value"),
+    ("loud", [], "--sensor-noise: unknown preset 'loud'; presets: none, realistic, harsh, realistic-frame, harsh-frame"),
+    ("realistic", ["dropout=1.5"], "--sensor-set 'dropout=1.5': dropout must be in [0, 1]"),
+    ("realistic", ["range_sigma=-0.01"], "--sensor-set 'range_sigma=-0.01': range_sigma must be in [0, 1]"),
+    ("realistic", ["range_sigma=nan"], "--sensor-set 'range_sigma=nan': range_sigma must be a number"),
+    ("realistic", ["latency_steps=1.5"], "--sensor-set 'latency_steps=1.5': latency_steps must be a whole number"),
+    ("realistic", ["label_run=0.5"], "--sensor-set 'label_run=0.5': label_run must be in [1, 1000]"),
+    ("realistic", ["dropout=0.6", "spurious=0.6"],
+     "--sensor-set 'dropout=0.6' 'spurious=0.6': dropout + spurious must be at most 1"),
+    ("realistic", ["wheel_slip=0.9"], "--sensor-set 'wheel_slip=0.9': wheel_slip must be in [0, 0.5]"),
+    ("realistic", ["colour=red"], "--sensor-set: unknown field 'colour'; fields: range_sigma,"),
+    ("realistic", ["dropout"], "--sensor-set takes FIELD=VALUE"),
 ])
-def test_bad_sensor_noise_values_are_refused_naming_the_field(preset, items, fragment):
+def test_bad_sensor_noise_values_are_refused_naming_the_option_and_the_field(preset, items, fragment):
+    """``from_strings`` reads the command line's --sensor-noise and --sensor-set: its refusals name the
+    option; an experiment's ``--set env.sensor_noise.FIELD=...`` is refused naming the config field."""
     with pytest.raises(ConfigError) as caught:
         SensorNoiseConfig.from_strings(preset, items)
     assert fragment in str(caught.value)
     assert "\n" not in str(caught.value)
     if "=" in "".join(items) or not items:  # the same refusal from an experiment's --set
-        with pytest.raises(ConfigError):
+        with pytest.raises(ConfigError) as library:
             apply_overrides(ExperimentConfig(), [f"env.sensor_noise.preset={preset}"]
                             + [f"env.sensor_noise.{item}" for item in items])
+        assert "sensor_noise." in str(library.value) and "--sensor" not in str(library.value)
 
 
 @pytest.mark.slow
@@ -459,6 +465,6 @@ def test_eval_takes_a_sensor_noise_preset_and_refuses_bad_ones_in_one_line(tmp_p
                        "--sensor-set", "dropout=0.05")
     assert done.returncode == 0, done.stderr[-1500:]
     assert "sensor noise: realistic dropout=0.05" in done.stdout
-    assert_one_line_error(run_curlnav("eval", "oracle", "--sensor-noise", "loud"), "sensor_noise.preset", "loud")
-    assert_one_line_error(run_curlnav("eval", "oracle", "--sensor-set", "dropout=2"), "sensor_noise.dropout")
-    assert_one_line_error(run_curlnav("eval", "oracle", "--sensor-set", "speed=2"), "unknown sensor-noise field")
+    assert_one_line_error(run_curlnav("eval", "oracle", "--sensor-noise", "loud"), "--sensor-noise: unknown preset 'loud'")
+    assert_one_line_error(run_curlnav("eval", "oracle", "--sensor-set", "dropout=2"), "--sensor-set 'dropout=2': dropout")
+    assert_one_line_error(run_curlnav("eval", "oracle", "--sensor-set", "speed=2"), "--sensor-set: unknown field 'speed'")

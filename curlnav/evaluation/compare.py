@@ -1,10 +1,10 @@
 """Compare agents on the same worlds, start/goal pairs and seeds: ``curlnav eval A B ...``.
 
 An agent is a policy (``obs -> action``: an artefact folder or a checkpoint), alone or behind a
-global plan (``curlnav.planners.global_plan.GlobalPlanAgent``), or a planner of the registry
-``curlnav.planners.PLANNERS`` (``curlnav.planners.make_agent`` makes either): the map-less
-``tare-l`` and ``dwa`` (``curlnav.planners.local``) and the ``oracle`` with the true
-map and pose (``curlnav.planners.oracle.StaticMapPlanner``). Every
+global plan (``curlnav.nav.global_planners.global_plan.GlobalPlanAgent``), or a planner of the registry
+``curlnav.nav.PLANNERS`` (``curlnav.nav.make_agent`` makes either): the map-less
+``tare-l`` and ``dwa`` (``curlnav.nav.controllers.local``) and the ``oracle`` with the true
+map and pose (``curlnav.nav.global_planners.oracle.StaticMapPlanner``). Every
 agent runs the evaluation protocol (``curlnav.evaluation.protocol.evaluate``: the evaluation environment,
 collisions counted and the trial goes on, 60 s limit) on every world's pairs, once per seed
 (a seed places the balls of worlds that re-place them on reset; the same for every agent).
@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from curlnav.evaluation.protocol import EVAL_SEED, StepRecorder, evaluate, held_out_pairs
-from curlnav.planners.oracle import GridPlanner, polyline_length
+from curlnav.nav.global_planners.oracle import GridPlanner, polyline_length
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
 from curlnav.worlds import real_maps
 from curlnav.worlds.pairs import draws_random_pairs
@@ -93,6 +93,11 @@ class Episode:
         out = {k: round(v, 4) if isinstance(v, float) else v for k, v in asdict(self).items()}
         del out["trajectory"]
         return out
+
+    @staticmethod
+    def columns() -> list[str]:
+        """The columns of ``episodes.csv``, in order (``row``'s keys)."""
+        return [f.name for f in fields(Episode) if f.name != "trajectory"]
 
 
 @dataclass(frozen=True)
@@ -173,30 +178,44 @@ class Comparison:
         if mcap is not None and recorder is None:
             raise ValueError("Comparison.run(mcap=...) needs a recorder(path, env, observation)")
         episodes: list[Episode] = []
-        names = _file_safe_labels(list(self.agents)) if mcap is not None else {}
+        names = mcap_agent_names(list(self.agents)) if mcap is not None else {}
         for world in self.worlds:
-            pairs = self.pairs[world.name]
             for label, agent in self.agents.items():
-                # A fresh environment per agent: PyBullet's solver keeps warm-start impulses across
-                # resets, so an agent run after another in the same environment would see physics
-                # perturbed (by about 1e-10 m, growing) by the other's episodes, and two agents
-                # with the same weights would score differently by their place in the list.
-                env = NamoEnv(world, self.env_config)
-                try:
-                    for k in range(seeds):
-                        base = EVAL_SEED + k * SEED_STRIDE
+                episodes += self.run_unit(world, label, agent, seeds, on_episode, mcap, recorder, names.get(label))
+        return episodes
 
-                        def record(i: int, info: dict, label=label, base=base, world=world, pairs=pairs) -> None:
-                            episodes.append(self._episode(label, world, pairs[i], base + i, info))
-                            if on_episode:
-                                on_episode(episodes[-1])
+    def run_unit(self, world: World, label: str, agent, seeds: int = 1,
+                 on_episode: Callable[[Episode], None] | None = None, mcap: str | Path | None = None,
+                 recorder: Callable[[Path, NamoEnv, np.ndarray], StepRecorder] | None = None,
+                 mcap_agent: str | None = None) -> list[Episode]:
+        """One agent on one world's pairs, ``seeds`` times, in one environment of its own: a unit
+        of ``run``, whose outcomes depend on nothing run before it (``curlnav.evaluation.parallel``
+        runs units in worker processes). ``mcap_agent``: the agent's part of the MCAP file names
+        (``mcap_agent_names`` of every label; default: the label made file-system safe)."""
+        if mcap is not None and recorder is None:
+            raise ValueError("Comparison.run(mcap=...) needs a recorder(path, env, observation)")
+        episodes: list[Episode] = []
+        pairs = self.pairs[world.name]
+        # A fresh environment per agent: PyBullet's solver keeps warm-start impulses across
+        # resets, so an agent run after another in the same environment would see physics
+        # perturbed (by about 1e-10 m, growing) by the other's episodes, and two agents
+        # with the same weights would score differently by their place in the list.
+        env = NamoEnv(world, self.env_config)
+        try:
+            for k in range(seeds):
+                base = EVAL_SEED + k * SEED_STRIDE
 
-                        steps = None if mcap is None else _mcap_recorder(recorder, Path(mcap), names[label],
-                                                                         world, pairs, k)
-                        evaluate(agent, world, pairs, self.env_config, seed=base, on_episode=record, env=env,
-                                 recorder=steps)
-                finally:
-                    env.close()
+                def record(i: int, info: dict, base=base) -> None:
+                    episodes.append(self._episode(label, world, pairs[i], base + i, info))
+                    if on_episode:
+                        on_episode(episodes[-1])
+
+                steps = None if mcap is None else _mcap_recorder(recorder, Path(mcap), mcap_agent or _file_safe(label),
+                                                                 world, pairs, k)
+                evaluate(agent, world, pairs, self.env_config, seed=base, on_episode=record, env=env,
+                         recorder=steps)
+        finally:
+            env.close()
         return episodes
 
     def _episode(self, agent: str, world: World, pair: StartGoal, seed: int, info: dict) -> Episode:
@@ -210,13 +229,34 @@ class Comparison:
                        int(info.get("base_collision_events", 0)), tuple(map(tuple, info["trajectory"])))
 
 
+@dataclass(frozen=True)
+class ComparisonPlan:
+    """What a comparison runs, made from plain data by one function (``curlnav eval``'s
+    ``curlnav.evaluation.commands.eval_plan``, from the parsed options) in the command and again
+    in every worker process (``curlnav.evaluation.parallel``): both build the worlds and the agents
+    the same way, and a worker builds only the world and the agent of the unit it runs."""
+
+    env_config: EnvConfig
+    worlds: tuple  # world specs in order, plain data: a name, a YAML path, FAMILY:SEED, a BARN world's number
+    world_of: Callable[[object], World]  # a world spec -> its World
+    pairs_of: Callable[[World], list[StartGoal]]  # a world's pairs for one seed
+    agents: tuple[str, ...]  # the AGENT arguments in order
+    agent_of: Callable[[str], tuple[str, object]]  # an AGENT argument -> (label, policy or EpisodeAgent)
+    seeds: int = 1  # runs of every pair (``Comparison.run``)
+    senses: str = "exact"  # what the trials sense with (``SensorNoiseConfig.senses``)
+    suite: Suite | None = None  # the suite that fixed the worlds and pairs, if one did
+    mcap: str | None = None  # a folder for an MCAP file per episode (``Comparison.run``'s ``mcap``)
+    recorder: Callable[[Path, NamoEnv, np.ndarray], StepRecorder] | None = None  # makes those files
+
+
 def _file_safe(text: str) -> str:
     """``text`` with every run of characters other than letters, digits, ``.``, ``_``, ``-`` as one ``_``."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._") or "_"
 
 
-def _file_safe_labels(labels: list[str]) -> dict[str, str]:
-    """A distinct file-system-safe name per agent label (``-2``, ``-3`` ... on a clash)."""
+def mcap_agent_names(labels: list[str]) -> dict[str, str]:
+    """The agents' part of their MCAP file names: a distinct file-system-safe name per agent
+    label (``-2``, ``-3`` ... on a clash, in the labels' order)."""
     out: dict[str, str] = {}
     for label in labels:
         name, n = _file_safe(label), 1
@@ -305,7 +345,7 @@ def write_csv(episodes: list[Episode], summaries: list[Summary], out: str | Path
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"episodes": out / "episodes.csv", "summary": out / "summary.csv"}
-    columns = {"episodes": [f.name for f in fields(Episode) if f.name != "trajectory"],
+    columns = {"episodes": Episode.columns(),
                "summary": [f.name for f in fields(Summary)]}
     rows = {"episodes": [e.row() for e in episodes], "summary": [asdict(s) for s in summaries]}
     for key, path in paths.items():

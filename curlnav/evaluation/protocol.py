@@ -14,10 +14,11 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol
 
 import numpy as np
 
+from curlnav.nav.roles import EpisodeAgent
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World, get_world
 from curlnav.sim.env import pair_key
 from curlnav.worlds.pairs import draws_random_pairs
@@ -70,16 +71,6 @@ def held_out_pairs(world: str | World, count: int = 50, seed: int = EVAL_SEED) -
 
 def excluded_keys(pairs: list[StartGoal]) -> set:
     return {pair_key(p.x, p.y, p.gx, p.gy) for p in pairs}
-
-
-@runtime_checkable
-class EpisodeAgent(Protocol):
-    """An agent that is told each episode's world and pair and sees the step's ``info`` (the
-    classical planner: ground-truth pose, static map). A plain policy is ``obs -> action``."""
-
-    def reset(self, world: World, pair: StartGoal) -> None: ...
-
-    def act(self, observation: np.ndarray, info: dict) -> np.ndarray: ...
 
 
 class StepRecorder(Protocol):

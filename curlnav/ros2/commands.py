@@ -7,7 +7,7 @@ import signal
 import sys
 import time
 
-from curlnav.planners import agents_help
+from curlnav.nav import agents_help
 
 
 def add_ros2_commands(sub) -> None:
@@ -20,20 +20,21 @@ def add_ros2_commands(sub) -> None:
     p.add_argument("agent", metavar="AGENT", help=agents_help(map_less_only=True))
     p.add_argument("--global-plan", action="store_true", help="follow /plan (nav_msgs/Path) waypoint by waypoint")
     p.add_argument("--scan-plan", action="store_true",
-                   help="follow an A* plan on a map of the node's own scans (curlnav.planners.scan_map; no /plan needed)")
+                   help="follow an A* plan on a map of the node's own scans (curlnav.nav.global_planners.scan_map; "
+                        "no /plan needed)")
     p.add_argument("--rescue", action="store_true",
                    help="let dwa on a plan over the node's own scans drive while the policy stalls "
-                        "(curlnav.planners.rescue)")
+                        "(curlnav.nav.recovery.rescue)")
     p.add_argument("--bare", action="store_true",
                    help="the network alone: without the helpers its artefact's metadata ships it with (deploy)")
     p.add_argument("--shield", action="store_true",
-                   help="check each command's arc against the scan before it goes out (curlnav.planners.shield): "
+                   help="check each command's arc against the scan before it goes out (curlnav.nav.safety.shield): "
                         "one into an obstacle is replaced by the nearest safe one")
     p.add_argument("--track", action="store_true",
                    help="vote the scan's movable labels (intensities) over the last scans before anything reads "
-                        "them (curlnav.planners.label_filter): a segmenter's one-frame errors are dropped")
+                        "them (curlnav.nav.perception.label_filter): a segmenter's one-frame errors are dropped")
     p.add_argument("--scan-match", action="store_true",
-                   help="laser odometry in front of everything (curlnav.planners.scan_match): the goal and the pose "
+                   help="laser odometry in front of everything (curlnav.nav.perception.scan_match): the goal and the pose "
                         "the helpers keep their maps in come from matching each scan to a reference scan, fused with "
                         "/odom")
     p.add_argument("--rate-hz", type=float, default=None, help="control rate (default: the policy's, 5 Hz)")
@@ -98,10 +99,11 @@ def _bus(args, max_sample_bytes: int | None = None):
 
 def _agent(name: str, robot: str = "husky"):
     """``(agent, layout)`` for ``curlnav ros2 run AGENT``: a map-less planner of the registry
-    (``curlnav.planners.PLANNERS``) on the evaluation environment's scan and robot profile
+    (``curlnav.nav.PLANNERS``) on the evaluation environment's scan and robot profile
     ``robot``, or a policy artefact with the layout of its metadata, refused (one line) when it
     was trained for another robot than ``robot``."""
-    from curlnav.planners import PLANNERS, canonical, make_planner
+    from curlnav.nav import canonical, make_planner
+    from curlnav.nav.registry import planners
     from curlnav.sim.robots import check_robot, load_profile
 
     profile = load_profile(robot)
@@ -110,9 +112,9 @@ def _agent(name: str, robot: str = "husky"):
 
     planner = canonical(name)
     if planner is not None:
-        if not PLANNERS[planner].map_less:
+        if not planners()[planner].map_less:
             raise ValueError(f"{name} needs the true map and pose, which the node has not; on a robot: a policy "
-                             f"artefact or a map-less planner ({', '.join(p.name for p in PLANNERS.values() if p.map_less)})")
+                             f"artefact or a map-less planner ({', '.join(p.name for p in planners().values() if p.map_less)})")
         from curlnav.config import ExperimentConfig
 
         env_config = profile.apply(ExperimentConfig().eval_env)
@@ -130,50 +132,58 @@ def _agent(name: str, robot: str = "husky"):
     return policy, layout
 
 
-def deployed(agent, layout, robot: str = "husky", scan_plan: bool = False, shield: bool = False,
-             rescue: bool = False, track: bool = False, scan_match: bool = False, rescue_config=None):
-    """``agent`` (a policy or a map-less planner, as ``_agent`` gives it) behind a plan on its own scans
-    (``scan_plan``), the rescue by ``dwa+scan-plan`` while it stalls (``rescue``), the safety
-    shield (``shield``), the label vote in front of them (``track``) and laser odometry in front
-    of all (``scan_match``), all built for what the node feeds it: the scan, frames and command
-    scale of ``layout`` on robot profile ``robot``; ``rescue_config``: the artefact's rescue settings
-    (``curlnav.planners.rescue_settings``; None: the defaults)."""
-    if not (scan_plan or shield or rescue or track or scan_match):
-        return agent
+def node_env_config(layout, robot: str = "husky"):
+    """The environment the node's stack is built for: the evaluation environment of robot profile
+    ``robot`` with the scan, frames and command scale of ``layout`` (what the node feeds it)."""
     import dataclasses
 
     from curlnav.config import ExperimentConfig
     from curlnav.sim.robots import load_profile
 
-    profile = load_profile(robot)
-    env = profile.apply(ExperimentConfig().eval_env)
-    env = env.replace(lidar_beams=layout.beams, lidar_fov=layout.fov_rad, lidar_max_range=layout.max_range_m,
-                      range_frames=layout.range_frames, label_frames=layout.label_frames,
-                      goal_frames=layout.goal_frames, control_period=layout.control_period_s,
-                      robot=dataclasses.replace(env.robot, max_linear_speed=layout.max_linear_speed,
-                                                max_angular_speed=layout.max_angular_speed,
-                                                max_reverse_speed=0.0))  # the node sends forward commands only
-    if scan_plan:
-        from curlnav.planners.scan_map import ScanMapPlanAgent
+    env = load_profile(robot).apply(ExperimentConfig().eval_env)
+    return env.replace(lidar_beams=layout.beams, lidar_fov=layout.fov_rad, lidar_max_range=layout.max_range_m,
+                       range_frames=layout.range_frames, label_frames=layout.label_frames,
+                       goal_frames=layout.goal_frames, control_period=layout.control_period_s,
+                       robot=dataclasses.replace(env.robot, max_linear_speed=layout.max_linear_speed,
+                                                 max_angular_speed=layout.max_angular_speed,
+                                                 max_reverse_speed=0.0))  # the node sends forward commands only
 
-        agent = ScanMapPlanAgent(agent, env)
-    if rescue:
-        from curlnav.planners.rescue import RescuedPolicy
 
-        agent = RescuedPolicy(agent, env, rescue_config)
-    if shield:
-        from curlnav.planners.shield import ShieldedPolicy
+def deployed(agent, layout, robot: str = "husky", stack=None):
+    """``agent`` (a policy or a map-less planner, as ``_agent`` gives it) inside ``stack`` (a
+    ``curlnav.nav.NavStack`` naming it as its controller; None: the agent alone), built by
+    ``curlnav.nav.build_stack`` for what the node feeds it (``node_env_config``). A plan on the true
+    map is the node's own (``/plan``, ``follow_plan``), never built here."""
+    if stack is None:
+        return agent
+    import dataclasses
 
-        agent = ShieldedPolicy(agent, env)
-    if track:
-        from curlnav.planners.label_filter import LabelFilteredPolicy
+    from curlnav.nav import build_stack
 
-        agent = LabelFilteredPolicy(agent, env)
-    if scan_match:
-        from curlnav.planners.scan_match import ScanMatchedPolicy
+    if stack.global_planner is not None and stack.global_planner.entry == "true-map":
+        stack = dataclasses.replace(stack, global_planner=None)
+    return build_stack(stack, node_env_config(layout, robot), controller=agent)[1]
 
-        agent = ScanMatchedPolicy(agent, env)
-    return agent
+
+def node_stack(args: argparse.Namespace):
+    """``(stack, follow_plan)`` of ``curlnav ros2 run``'s agent and flags: the flags spelled as an
+    agent argument's suffixes and parsed (``curlnav.nav.parse_agent``: an artefact named alone
+    drives with the stack it ships); ``follow_plan``: the policy follows ``/plan`` (``--global-plan``,
+    or a shipped plan on the true map)."""
+    from curlnav.nav import parse_agent
+
+    helpers = args.scan_plan or args.rescue or args.shield or args.track or args.scan_match
+    if args.bare and (helpers or args.global_plan):
+        raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue, --shield, "
+                         "--track and --scan-match")
+    flags = ((args.scan_plan, "+scan-plan"), (args.rescue, "+rescue"), (args.shield, "+shield"),
+             (args.track, "+track"), (args.scan_match, "+scan-match"), (args.bare, "+bare"))
+    stack = parse_agent(args.agent + "".join(suffix for given, suffix in flags if given))
+    planned = stack.global_planner.entry if stack.global_planner is not None else None
+    if args.global_plan and planned == "scan-map":
+        raise ValueError(f"{args.agent} ships with +scan-plan, which --global-plan replaces; add --bare, or "
+                         f"name the helpers yourself")
+    return stack, args.global_plan or planned == "true-map"
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -183,35 +193,23 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.scan_plan and args.global_plan:
         raise ValueError("--scan-plan and --global-plan both set the policy's waypoints; choose one")
     policy, layout = _agent(args.agent, args.robot)
-    helpers = args.scan_plan or args.rescue or args.shield or args.track or args.scan_match
-    if args.bare and (helpers or args.global_plan):
-        raise ValueError("--bare drives the network alone: drop --global-plan, --scan-plan, --rescue, --shield, "
-                         "--track and --scan-match")
-    if not (args.bare or helpers):
-        from curlnav.planners import deploy_notice, deploy_stack
+    stack, follow_plan = node_stack(args)
+    if not (args.bare or args.scan_plan or args.rescue or args.shield or args.track or args.scan_match):
+        from curlnav.nav import deploy_notice
 
-        stack = deploy_stack(args.agent)  # an artefact named alone (or with --global-plan) drives as it is shipped
-        if stack:
-            if args.global_plan and "+scan-plan" in stack:
-                raise ValueError(f"{args.agent} ships with +scan-plan, which --global-plan replaces; add --bare, or "
-                                 f"name the helpers yourself")
-            args.scan_plan, args.global_plan = "+scan-plan" in stack, args.global_plan or "+global-plan" in stack
-            args.rescue, args.shield, args.track = "+rescue" in stack, "+shield" in stack, "+track" in stack
-            args.scan_match = "+scan-match" in stack
-            print(deploy_notice(args.agent, "--bare: the network alone"))
-    from curlnav.planners import rescue_settings
-
-    policy = deployed(policy, layout, args.robot, args.scan_plan, args.shield, args.rescue, args.track,
-                      args.scan_match, rescue_settings(args.agent) if args.rescue else None)
+        notice = deploy_notice(args.agent, "--bare: the network alone", global_plan=args.global_plan)
+        if notice:
+            print(notice)
+    policy = deployed(policy, layout, args.robot, stack)
     config = NodeConfig(rate_hz=args.rate_hz or 1.0 / layout.control_period_s, silence_s=args.silence_s,
                         scan_frame=args.scan_frame, odom_frame=args.odom_frame, goal_tolerance_m=args.goal_tolerance,
                         give_up_s=args.give_up_s, max_goal_m=args.max_goal_m,
                         max_nan_fraction=args.max_nan_fraction)
     topics = remap(NODE_TOPICS, args.remap)
-    node = PolicyNode(policy, layout, config, follow_plan=args.global_plan)
+    node = PolicyNode(policy, layout, config, follow_plan=follow_plan)
     bus, domain = _bus(args, max_sample_bytes=NODE_MAX_SAMPLE_BYTES)
     print(f"curlnav ros2 run: {args.agent} on domain {domain}, {config.rate_hz:g} Hz; "
-          + ", ".join(f"{k} {t.name}" for k, t in topics.items() if k != "plan" or args.global_plan),
+          + ", ".join(f"{k} {t.name}" for k, t in topics.items() if k != "plan" or follow_plan),
           file=sys.stderr, flush=True)
     latency = run_node(node, bus, topics, stop=_stopper(args.duration_s), stats_every_s=args.stats_every_s)
     print(f"curlnav ros2 run: {dict(node.counts)}; {latency.summary()}", file=sys.stderr, flush=True)

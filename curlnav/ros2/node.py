@@ -1,4 +1,4 @@
-"""A policy artefact (or a map-less planner of ``curlnav.planners``) as a ROS 2 node: ``/scan`` +
+"""A policy artefact (or a map-less planner of ``curlnav.nav``) as a ROS 2 node: ``/scan`` +
 ``/odom`` + ``/goal_pose`` (+ ``/plan``) in, ``/cmd_vel`` + ``/arm_cmd`` + ``/goal_state`` out, at
 the policy's control rate.
 
@@ -11,9 +11,9 @@ is resampled to the policy's (241 beams over -120..+120 deg by default; per poli
 nearest return of the input beams in its 1-degree bin, the bin's beams uncovered by the input
 read as no return). The scanner is taken to sit at ``base_link``'s origin, facing forward.
 The labels are handled as in evaluation: a stack built by ``curlnav ros2 run --shield`` (and
-``--rescue``, ``--scan-plan``) is the evaluation's own (``curlnav.planners``), built for the robot
+``--rescue``, ``--scan-plan``) is the evaluation's own (``curlnav.nav``), built for the robot
 profile's arm, so a return labelled movable near the base is an obstacle unless the robot may push
-it (``curlnav.planners.push_check``); the node gives it the odometry pose and tells it each command
+it (``curlnav.nav.safety.push_check``); the node gives it the odometry pose and tells it each command
 it publishes (``told``: a stop the node makes is what the robot did).
 
 Safe at the edges (issue 35): every command goes through ``guard`` (finite, within the artefact's
@@ -37,7 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from curlnav.layout import goal_frame as layout_goal_frame
-from curlnav.planners.global_plan import GlobalPlan, WaypointConfig
+from curlnav.nav.global_planners.global_plan import GlobalPlan, WaypointConfig
+from curlnav.nav.progress import ProgressChecker
 
 #: A scan of more ranges is refused as malformed (work per message bounded; 2-D scanners give
 #: a few thousand: 3,600 at 0.1 degree over 360)
@@ -331,7 +332,7 @@ class PolicyNode:
     def __init__(self, policy, layout: ScanLayout | None = None, config: NodeConfig | None = None,
                  follow_plan: bool = False) -> None:
         self.policy = policy
-        # a planner (``curlnav.planners``: ``reset(world, pair)``, ``act(observation, info)``) gets
+        # a planner (``curlnav.nav``: ``reset(world, pair)``, ``act(observation, info)``) gets
         # the odometry pose as ``info["pose"]`` and a reset, without world or pair, on each new goal
         self.agent = policy if callable(getattr(policy, "act", None)) and callable(getattr(policy, "reset", None)) \
             else None
@@ -349,8 +350,7 @@ class PolicyNode:
         self._odom_t = -math.inf
         self._odom_last: tuple[float, float, float | None, float, object] | None = None  # x, y, stamp, t, source
         self._stacks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # ranges, labels, goals
-        self._best: float | None = None  # the least distance to go so far (m), and when it was made
-        self._best_t = -math.inf
+        self._progress = ProgressChecker(self.config.progress_m, self.config.give_up_s)  # clock: seconds
         self._ended_goal: tuple[float, float] | None = None
         self._stop_pending = False
         self._reset_agent = False  # the planner is reset before its first action for a goal
@@ -473,7 +473,7 @@ class PolicyNode:
         # a stop still pending for a goal that ended in the same pass is superseded by the new
         # goal's commands: left set, it would make the loop act on every pass, not at rate_hz
         self.goal, self._stacks, self._ended_goal, self._stop_pending = goal, None, None, False
-        self._best, self._best_t = None, -math.inf
+        self._progress.reset()
         self._reset_agent = self.agent is not None
 
     def _end(self, state: str) -> None:
@@ -481,7 +481,7 @@ class PolicyNode:
         if self.goal is not None:
             self._ended_goal, self._stop_pending = self.goal, True
         self.goal = self.plan = None
-        self._best = None
+        self._progress.reset()
         self.state = state
 
     @property
@@ -521,12 +521,10 @@ class PolicyNode:
             return None
         if self._pose is not None:  # progress, measured whether the robot may move or not
             to_go = self.to_go()
-            if self._best is None or to_go <= self._best - self.config.progress_m:
-                self._best, self._best_t = to_go, now
-            elif now - self._best_t > self.config.give_up_s:
+            if not self._progress.update(to_go, now) and self._progress.stalled(now):
                 self.counts["goals_given_up"] += 1
                 self._end(f"gave_up: no progress for {self.config.give_up_s:g} s "
-                          f"({self._best:.1f} m to go)")
+                          f"({self._progress.best:.1f} m to go)")
                 return self.act(now)
         reason = self.stop_reason(now)
         if reason is not None:

@@ -190,7 +190,7 @@ def table2_agents(out: Path) -> dict[str, Path]:
 def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | None:
     """The comparison on the unseen-world suite (cached in ``table2/``): every trained policy
     (S1+S2 also behind a global plan), ``tare-l``, ``dwa`` and the ``oracle``. The suite's
-    trials, fewer when the budget's pairs x seeds are fewer (``unseen`` is no longer used: the
+    trials, fewer when the budget's pairs x seeds are fewer (``unseen`` is ignored: the
     suite names its worlds)."""
     from curlnav.evaluation.compare import UNSEEN
 
@@ -214,8 +214,8 @@ def table2(out: Path, unseen: list[Path], budget: Budget, log=say) -> Path | Non
         table_ii,
         write_csv,
     )
-    from curlnav.planners import make_agent
-    from curlnav.planners.global_plan import GlobalPlanAgent
+    from curlnav.nav import make_agent
+    from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
     from curlnav.policy import PolicyArtefact
     from curlnav.sim import get_world
 

@@ -114,7 +114,7 @@ class SerialTrainer:
         self.policy.steps = self.counters["env_steps"]  # the warm-up is not repeated on resume
         if self.run_cfg.init_from or self.counters.get("init_from"):
             self.policy.steps = max(self.policy.steps, self.policy.warmup_steps)  # a trained policy acts at once
-        self.loop = EpisodeLoop(env, self.policy, builder.make_nstep_writer(),
+        self.loop = EpisodeLoop(env, builder.make_acting_agent(self.policy), builder.make_nstep_writer(),
                                 builder.make_world_draws(0, stream=self.counters["env_steps"]))
         self.recent: deque[tuple[bool, float, int]] = deque(maxlen=100)  # success, return, base collisions
         self.metrics: dict[str, float] = {}

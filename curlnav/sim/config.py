@@ -12,7 +12,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from curlnav.files import decimal_float, decimal_int
+from curlnav.files import decimal_float, decimal_int, shown
 
 
 class ConfigError(ValueError):
@@ -64,7 +64,7 @@ class RobotConfig:
     #: (action[0] in 0..1, as in the paper); a negative action[0], down to -max_reverse_speed /
     #: max_linear_speed, comes only from a stack's helpers (the rescue's DWA with
     #: ``RescueConfig.reverse``, the shield's recovery with ``reverse_recovery``, the manoeuvre behind a
-    #: global plan: ``curlnav.planners.manoeuvre``).
+    #: global plan: ``curlnav.nav.recovery.manoeuvre``).
     #: 0: the base drives forward only (a robot profile file's default).
     max_reverse_speed: float = field(default=0.5, metadata={"hash": "omit-default"})
 
@@ -199,6 +199,12 @@ SENSOR_NOISE_PRESETS: dict[str, dict[str, float | int]] = {
 }
 
 
+def _field_words(exc: ConfigError) -> str:
+    """A sensor-noise refusal's text without the ``sensor_noise.`` of its field names (for a command
+    line's ``--sensor-set FIELD=VALUE``, which names the fields bare)."""
+    return str(exc).replace("sensor_noise.", "")
+
+
 @dataclass(frozen=True)
 class SensorNoiseConfig:
     """How imperfect the robot's senses, odometry and drive are (``curlnav.sim.sensors``).
@@ -303,32 +309,50 @@ class SensorNoiseConfig:
 
     @staticmethod
     def from_strings(preset: str, items: list[str] | tuple[str, ...] = ()) -> SensorNoiseConfig:
-        """Preset ``preset`` with ``field=value`` overrides (the command line's ``--sensor-set``);
-        a malformed item, an unknown field or a bad value raises ``ConfigError`` naming it."""
+        """Preset ``preset`` with ``field=value`` overrides, as a command line gives them
+        (``--sensor-noise PRESET``, ``--sensor-set FIELD=VALUE`` repeated; every caller is one). A
+        refusal is a one-line ``ConfigError`` naming the option and what was given
+        (``--sensor-noise: unknown preset 'loud'; presets: none, realistic, ...``,
+        ``--sensor-set 'dropout=2': dropout must be in [0, 1], got 2.0``); ``from_preset`` and the
+        constructor, for values in hand, name the field (``sensor_noise.dropout ...``)."""
+        if not isinstance(preset, str) or preset not in SENSOR_NOISE_PRESETS:
+            raise ConfigError(f"--sensor-noise: unknown preset {shown(preset)}; presets: "
+                              f"{', '.join(SENSOR_NOISE_PRESETS)}")
+        known = SENSOR_NOISE_FIELDS + ("heading", "randomise")
         overrides: dict[str, Any] = {}
+        given: list[tuple[str, str, Any]] = []  # (item, field, value)
         for item in items:
             name, sep, raw = item.partition("=")
             name, raw = name.strip(), raw.strip()
             if not sep or not name or not raw:
-                raise ConfigError(f"a sensor-noise override must look like field=value, got {item!r}")
-            if name not in SENSOR_NOISE_FIELDS and name not in ("randomise", "heading"):
-                raise ConfigError(f"unknown sensor-noise field {name!r}; known: "
-                                  f"{', '.join(SENSOR_NOISE_FIELDS + ('heading', 'randomise'))}")
+                raise ConfigError(f"--sensor-set takes FIELD=VALUE (e.g. dropout=0.05), got {shown(item)}")
+            if name not in known:
+                raise ConfigError(f"--sensor-set: unknown field {shown(name)}; fields: {', '.join(known)}")
             if name == "heading":
-                overrides[name] = raw  # checked by the config: 'wheels' or 'imu'
-                continue
-            if name == "randomise":
+                value: Any = raw  # checked by the config: 'wheels' or 'imu'
+            elif name == "randomise":
                 if raw.lower() not in ("true", "false", "yes", "no", "1", "0", "on", "off"):
-                    raise ConfigError(f"sensor_noise.randomise must be true or false, got {raw!r}")
-                overrides[name] = raw.lower() in ("true", "yes", "1", "on")
-                continue
-            try:
-                value = decimal_int(raw) if name == "latency_steps" else decimal_float(raw)
-            except ValueError:
-                kind = "a whole number" if name == "latency_steps" else "a number"
-                raise ConfigError(f"sensor_noise.{name} must be {kind}, got {raw!r}") from None
+                    raise ConfigError(f"--sensor-set {shown(item)}: randomise must be true or false, "
+                                      f"got {shown(raw)}")
+                value = raw.lower() in ("true", "yes", "1", "on")
+            else:
+                try:
+                    value = decimal_int(raw) if name == "latency_steps" else decimal_float(raw)
+                except ValueError:
+                    kind = "a whole number" if name == "latency_steps" else "a number"
+                    raise ConfigError(f"--sensor-set {shown(item)}: {name} must be {kind}, "
+                                      f"got {shown(raw)}") from None
             overrides[name] = value
-        return SensorNoiseConfig.from_preset(preset, **overrides)
+            given.append((item, name, value))
+        for item, name, value in given:  # each alone on the preset, so the refusal names its item
+            try:
+                SensorNoiseConfig.from_preset(preset, **{name: value})
+            except ConfigError as exc:
+                raise ConfigError(f"--sensor-set {shown(item)}: {_field_words(exc)}") from None
+        try:
+            return SensorNoiseConfig.from_preset(preset, **overrides)
+        except ConfigError as exc:  # the items together (dropout + spurious above 1)
+            raise ConfigError(f"--sensor-set {' '.join(shown(i) for i in items)}: {_field_words(exc)}") from None
 
     def describe(self) -> str:
         """One line: the preset and the magnitudes that differ from it."""

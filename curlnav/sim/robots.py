@@ -101,13 +101,19 @@ def load_profile(spec: str) -> RobotProfile:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def profile_keys() -> list[str]:
+    """Every key a profile file may give: ``name``, the ``RobotConfig`` fields and ``lidar`` (with its own keys)."""
+    robot = sorted(f.name for f in dataclasses.fields(RobotConfig) if f.name != "name")
+    return ["name", *robot, f"lidar ({', '.join(LIDAR_KEYS)})"]
+
+
 def _robot_from_dict(data: dict) -> RobotConfig:
     """``RobotConfig`` from a profile file's fields; ``ConfigError`` naming an unknown or mistyped one."""
     fields = {f.name: f for f in dataclasses.fields(RobotConfig)}
     values: dict[str, Any] = {}
     for key, value in data.items():
         if key not in fields:
-            raise ConfigError(f"unknown config key robot.{key}; known: {', '.join(sorted(fields))}")
+            raise ConfigError(f"unknown key {str(key)[:40]} in a robot profile; its keys: {', '.join(profile_keys())}")
         if key == "name":
             values[key] = value
         elif key == "arm":

@@ -228,9 +228,9 @@ class Scene:
                               physicsClientId=c)
         # No joint of the robot may outrun twice its fastest top speed: Bullet's own cap (100 m/s or
         # rad/s) let a door squeezed between the base and its jamb launch the robot at 90 m/s through
-        # the outer wall of a floor (session 10, slam-floor:90). Bullet keeps one such cap per body,
-        # not per joint, so it is the largest of the base's speeds (m/s, rad/s) and the arm's;
-        # commands never ask for more than the top speeds.
+        # the outer wall of a floor (slam-floor:90, docs/results/2026-11-27-namo-robust). Bullet keeps
+        # one such cap per body, not per joint, so it is the largest of the base's speeds (m/s, rad/s)
+        # and the arm's; commands never ask for more than the top speeds.
         r = cfg.robot
         fastest = max(r.max_linear_speed, r.max_reverse_speed, r.max_angular_speed, r.arm_speed)
         pb.changeDynamics(self.robot, JOINT_X, maxJointVelocity=2.0 * fastest, physicsClientId=c)

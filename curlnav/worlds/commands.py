@@ -102,7 +102,11 @@ def _cmd_import_sdf(args: argparse.Namespace) -> int:
     rows, cols = world.occupancy.shape
     print(f"{out}: {kinds.count('box')} boxes and {kinds.count('cylinder')} cylinders of {args.world} on {cols} x {rows} "
           f"cells of {world.resolution:g} m ({world.size[0]:.2f} m x {world.size[1]:.2f} m, origin "
-          f"({world.origin[0]:g}, {world.origin[1]:g})); no start/goal pairs (add them to train or evaluate on it)")
+          f"({world.origin[0]:g}, {world.origin[1]:g}))")
+    print("start/goal pairs: none of its own, so curlnav eval, train and rollout draw seeded random ones on its free "
+          "space (as on a SLAM map); for fixed ones add 'pairs: [{name: p1, x: X, y: Y, yaw: 0, gx: GX, gy: GY}]' to "
+          "the YAML (docs/guide/worlds.md), or let curlnav worlds scatter-balls write drawn ones with balls on "
+          "their paths")
     if contents.unsupported:
         listed, more = contents.unsupported[:10], len(contents.unsupported) - 10  # each item is a short name
         print(f"skipped {len(contents.unsupported)} unsupported: {', '.join(listed)}{f' and {more} more' * (more > 0)}")
@@ -146,7 +150,7 @@ def add_commands(sub) -> None:
                                           "it cannot represent (meshes, heightmaps, spheres, planes other than the "
                                           "ground, tilted shapes, non-static models, includes) is named and "
                                           "refused (exit 2), or dropped with --skip-unsupported.")
-    p.add_argument("world", help="the SDF file (.world or .sdf)")
+    p.add_argument("world", help="the SDF file (.world or .sdf, or either xz-compressed: .world.xz)")
     p.add_argument("--out", default=None, help="world YAML to write, its image beside it (default: WORLD.yaml beside the SDF)")
     p.add_argument("--skip-unsupported", action="store_true", help="drop what cannot be represented, naming it")
     p.add_argument("--resolution", type=float, default=0.025, help="m per cell (default 0.025: a 0.075 m cylinder "

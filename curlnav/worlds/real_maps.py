@@ -183,17 +183,18 @@ def read_vendored(path: Path, max_bytes: int, what: str) -> bytes:
         raise WorldError(f"{path}: cannot be read ({exc.strerror or exc})") from None
 
 
-def unxz(packed: bytes, source: Path | str, max_bytes: int = MAX_IMAGE_BYTES) -> bytes:
+def unxz(packed: bytes, source: Path | str, max_bytes: int = MAX_IMAGE_BYTES, what: str = "a map image") -> bytes:
     """The bytes of one whole xz stream, decompressed incrementally (at most ``max_bytes`` + 1 bytes
     ever held). ``WorldError`` (one line naming ``source``) when the stream is not whole (empty,
-    truncated, not xz, bytes after its end) or decompresses to more than ``max_bytes``."""
+    truncated, not xz, bytes after its end) or decompresses to more than ``max_bytes`` (``what``'s
+    cap; ``curlnav.worlds.sdf`` reads a packed Gazebo world with it too)."""
     unpacker = lzma.LZMADecompressor(format=lzma.FORMAT_XZ)
     try:
         data = unpacker.decompress(packed, max_length=max_bytes + 1)
     except lzma.LZMAError as exc:
         raise WorldError(f"{source}: not a whole xz file ({exc}); refused") from None
     if len(data) > max_bytes:
-        raise WorldError(f"{source}: decompresses to more than {max_bytes >> 20} MiB (a map image's cap); refused")
+        raise WorldError(f"{source}: decompresses to more than {max_bytes >> 20} MiB ({what}'s cap); refused")
     if not unpacker.eof:
         raise WorldError(f"{source}: not a whole xz file (it ends early); refused")
     if unpacker.unused_data:

@@ -3,12 +3,15 @@
 ``read_sdf(path)`` walks a ``.world`` / ``.sdf`` file's models (nested models and links
 included), composes each collision's pose (model, link and collision ``<pose>``, with roll,
 pitch and yaw) and keeps the upright **boxes** and **cylinders** whose vertical extent meets
-``(0, MAX_HEIGHT]`` m (a ground robot meets nothing wholly underground or overhead). Everything
-else a collision may hold is *unsupported* and named (``kind 'model/link/collision'``): meshes,
-heightmaps, spheres, capsules, ellipsoids, polylines, images, planes other than the ground plane,
-tilted boxes and cylinders, models that are not static, ``<include>`` (a model from Gazebo's model
-path), actors, populations and roads. The ground plane (normal +z through z = 0) is dropped
-silently; so is the ``<state>`` snapshot (the poses it repeats are not the world's definition).
+``(0, MAX_HEIGHT]`` m (a ground robot meets nothing wholly underground or overhead). A file named
+``*.xz`` (``world_7.world.xz``, as the BARN worlds are vendored) is decompressed first, under
+``curlnav.worlds.real_maps``' caps for packed files (``MAX_PACKED_BYTES`` packed, ``unxz``) and
+``MAX_SDF_BYTES`` unpacked. Everything else a collision may hold is *unsupported* and named
+(``kind 'model/link/collision'``): meshes, heightmaps, spheres, capsules, ellipsoids, polylines,
+images, planes other than the ground plane, tilted boxes and cylinders, models that are not
+static, ``<include>`` (a model from Gazebo's model path), actors, populations and roads. The
+ground plane (normal +z through z = 0) is dropped silently; so is the ``<state>`` snapshot (the
+poses it repeats are not the world's definition).
 
 ``rasterise(shapes, resolution, origin, shape)`` marks a cell occupied when its centre lies inside
 a shape's footprint. ``world_from_sdf`` makes the ``World`` (no pairs: a plain map, as a SLAM
@@ -231,7 +234,13 @@ def read_sdf(path: str | Path) -> SdfContents:
     ``SdfError`` (one line) for a file that is not readable SDF."""
     path = Path(path)
     try:
-        data = read_capped(path, MAX_SDF_BYTES, "Gazebo SDF file")
+        if path.suffix == ".xz":  # a packed world (the BARN worlds as vendored): the real maps' caps
+            from curlnav.worlds.real_maps import MAX_PACKED_BYTES, unxz
+
+            data = unxz(read_capped(path, MAX_PACKED_BYTES, "packed Gazebo SDF file"), path, MAX_SDF_BYTES,
+                        "a Gazebo SDF file")
+        else:
+            data = read_capped(path, MAX_SDF_BYTES, "Gazebo SDF file")
         parser = ET.XMLParser(target=_NoDoctype())
         for start in range(0, len(data), 1 << 16):  # expat goes on to the end of a chunk after a refusal
             parser.feed(data[start:start + (1 << 16)])
@@ -242,6 +251,8 @@ def read_sdf(path: str | Path) -> SdfContents:
         raise SdfError(str(exc)) from None
     except SdfError as exc:
         raise SdfError(f"{path}: {exc}") from None
+    except WorldError as exc:  # unxz's refusal, naming the file
+        raise SdfError(str(exc)) from None
     except ET.ParseError as exc:
         raise SdfError(f"{path}: not well-formed XML ({exc})") from None
     if root.tag != "sdf":
@@ -369,10 +380,11 @@ def check_output(source: Path, out: Path) -> None:
 def import_sdf(source: str | Path, out: str | Path | None = None, resolution: float = DEFAULT_RESOLUTION,
                margin: float = DEFAULT_MARGIN, skip_unsupported: bool = False) -> tuple[Path, World, SdfContents]:
     """``world_from_sdf(source, ...)`` written as the world YAML ``out`` (default: ``source`` with
-    ``.yaml``) and its PGM beside it, named ``out``'s stem: ``(out, world, contents)``. The output is
-    checked before any work (``check_output``) and written whole (``save_world``)."""
+    ``.yaml``, its ``.xz`` dropped first) and its PGM beside it, named ``out``'s stem: ``(out,
+    world, contents)``. The output is checked before any work (``check_output``) and written whole
+    (``save_world``)."""
     source = Path(source)
-    out = Path(out) if out else source.with_suffix(".yaml")
+    out = Path(out) if out else (source.with_suffix("") if source.suffix == ".xz" else source).with_suffix(".yaml")
     check_output(source, out)
     world, contents = world_from_sdf(source, resolution, margin, skip_unsupported)
     world = world.with_changes(name=out.stem)

@@ -32,10 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from curlnav.planners import TRACK_SUFFIX
-from curlnav.planners.local import odometry
-from curlnav.planners.scan_filter import _NEIGHBOURS, cell_keys, to_frame
-from curlnav.planners.stage import FrontStage
+from curlnav.nav.geometry import NEIGHBOUR_OFFSETS, cell_keys, odometry, to_frame
+from curlnav.nav.perception.stage import FrontStage
+from curlnav.nav.registry import TRACK_SUFFIX
 from curlnav.sim import EnvConfig
 
 
@@ -84,7 +83,7 @@ class LabelFilteredPolicy(FrontStage):
         r = ranges.astype(np.float64)
         points = to_frame(np.stack([r * self.beam_cos, r * self.beam_sin], axis=1), pose)
         keys = cell_keys(points, self.config.cell_m)
-        self._cells.append((np.unique((keys[movable][:, None] + _NEIGHBOURS[None, :]).ravel()),
+        self._cells.append((np.unique((keys[movable][:, None] + NEIGHBOUR_OFFSETS[None, :]).ravel()),
                             np.unique(keys[returned & ~movable])))
         mine = keys[movable]
         votes = np.zeros(len(mine), dtype=np.int64)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from curlnav.layout import goal_frame
-from curlnav.planners.oracle import GridPlanner, PlannerConfig, StaticMapPlanner
+from curlnav.nav.global_planners.oracle import GridPlanner, PlannerConfig, StaticMapPlanner
 from curlnav.sim import EnvConfig, StartGoal, World
 from curlnav.worlds.pairs import clearance_map
 
@@ -160,7 +160,7 @@ class GlobalPlanAgent:
     corner on the jamb, where neither the shield nor a rescue can turn it; the tracker lines up
     first, as the path does. ``tracker`` (the oracle's settings but the plan's re-plan distance) is
     what a rescue in front drives (``track``,
-    ``curlnav.planners.rescue.global_plan_fallback``); both follow the plan itself, from the robot's
+    ``curlnav.nav.recovery.rescue.global_plan_fallback``); both follow the plan itself, from the robot's
     place on it. ``passage_steps`` counts the steps the tight spots' command was chosen over the
     policy's in the current episode (a rescue in front may still have sent its own, from
     ``tracker``); ``tracking`` says whether the last step's was."""

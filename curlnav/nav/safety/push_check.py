@@ -7,8 +7,8 @@ frame, and a shield that believes it lets the base drive into it (issue 51: ``po
 under ``--sensor-noise realistic`` collided with cylinders labelled movable). Real stacks keep
 their collision monitor on the raw returns and let a deliberate push through only under explicit
 conditions (Nav2's collision monitor). ``PushCheck`` holds those conditions in one place for the
-shield (``curlnav.planners.shield``), its scan memory (``curlnav.planners.scan_filter``) and the
-scan map (``curlnav.planners.scan_map``).
+shield (``curlnav.nav.safety.shield``), its scan memory (``curlnav.nav.perception.scan_filter``) and the
+scan map (``curlnav.nav.global_planners.scan_map``).
 
 Each scan, the movable returns within ``near_m`` of the base are cut into objects (runs of
 neighbouring beams without a range jump of ``jump_m``). An object is **pushable**, its returns no
@@ -66,7 +66,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from curlnav.planners.scan_filter import _NEIGHBOURS, cell_keys, from_frame, to_frame
+from curlnav.nav.geometry import NEIGHBOUR_OFFSETS, cell_keys, from_frame, to_frame
 from curlnav.sim import EnvConfig
 
 
@@ -270,7 +270,7 @@ class PushCheck:
         if min(stayed, pushed) > cfg.track_m:
             return False  # not in that scan, where it was nor moved with the base: nothing to compare
         self.pushes += 1
-        keys = np.unique((cell_keys(odom, cfg.cell_m)[:, None] + _NEIGHBOURS[None, :]).ravel())
+        keys = np.unique((cell_keys(odom, cfg.cell_m)[:, None] + NEIGHBOUR_OFFSETS[None, :]).ravel())
         if pushed + cfg.moved_m <= stayed:  # it moved with the push: start again
             for k in keys.tolist():
                 self._counts.pop(k, None)

@@ -1,12 +1,12 @@
 """A short manoeuvre onto the global plan's path for a robot that stands stuck beside it.
 
-Behind a global plan the rescue is the plan's path tracker (``curlnav.planners.rescue.PlanTracker``,
+Behind a global plan the rescue is the plan's path tracker (``curlnav.nav.recovery.rescue.PlanTracker``,
 regulated pure pursuit). Pure pursuit knows one way onto the path: turn toward it, the short way
 round, then drive. A base that stands with a post or a wall end a few centimetres off its
 corner, where the short turn sweeps that corner into it (or a post just before its nose, where
 either turn does), never gets there: the shield refuses the turn, its recovery turns the other way for a second,
-the tracker asks for the short turn again, and so on for the rest of the minute (validation,
-docs/results/2026-11-27-namo-robust, sessions 10 and 11).
+the tracker asks for the short turn again, and so on for the rest of the minute (seen on the
+validation floors: docs/results/archive.md).
 
 ``ManoeuvrePlanner`` plans what a driver does there, a multi-point turn: a search (weighted A*,
 as a lattice planner such as Nav2's Smac planners) over poses ``(x, y, yaw)``, each step one
@@ -14,7 +14,7 @@ control period of one command out of a small set (turns on the spot, slow forwar
 robot that can back up, slow backing arcs: the policies drive forward only, the Husky and the
 Jackal back up), to a pose on the path ahead, lined up with it, from where driving forward is
 clear. Every step is checked against the map's walls round the pose with the shield's own rule
-(``curlnav.planners.shield``: the footprint over the shield's horizon keeps ``margin_m``, a turn on
+(``curlnav.nav.safety.shield``: the footprint over the shield's horizon keeps ``margin_m``, a turn on
 the spot ``turn_margin_m``, and a base already nearer does not come nearer), so the shield lets the
 commands through where the map is right (it still checks them against the scan: a ball, a door).
 The search is bounded (``ManoeuvreConfig.max_expansions``); none found, the tracker drives as before.
@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from curlnav.config import _positive_numbers
-from curlnav.planners.local import arc_poses
-from curlnav.planners.shield import ArcRule, ShieldConfig, wall_tree, walls_near
+from curlnav.config import positive_numbers
+from curlnav.nav.geometry import arc_poses
+from curlnav.nav.safety.shield import ArcRule, ShieldConfig, wall_tree, walls_near
 from curlnav.sim import EnvConfig, World
 
 
@@ -78,7 +78,7 @@ class ManoeuvreConfig:
     deviation_rad: float = math.radians(15.0)
 
     def __post_init__(self) -> None:
-        _positive_numbers(self, "manoeuvre", ["ahead_min_m", "ahead_max_m", "goal_tolerance_m", "goal_heading_rad",
+        positive_numbers(self, "manoeuvre", ["ahead_min_m", "ahead_max_m", "goal_tolerance_m", "goal_heading_rad",
                                               "cell_m", "cell_rad", "still_m", "deviation_m", "deviation_rad",
                                               "estimate_weight"])
         if self.ahead_max_m <= self.ahead_min_m:

@@ -19,7 +19,7 @@ free, the robot's own scans marking and clearing cells), the map-less analogue o
 the BARN Challenge's baseline stack; asked to (``RescueConfig.reverse``), on a robot that can
 reverse, its DWA samples backing up too. It sees only what the policy's robot has: scan, labels,
 goal and odometry. Its scan map does not trust the segmenter where it knows better
-(``curlnav.planners.push_check``): a return labelled movable near a robot without an arm, or one
+(``curlnav.nav.safety.push_check``): a return labelled movable near a robot without an arm, or one
 that pushes showed staying put, is marked like a wall; its DWA's scan memory believes the labels (it
 pushes with the base), and the shield behind the rescue (``+rescue+shield``) does not. Behind a
 global plan (``POLICY+global-plan+rescue``), where the stack has the map and a localised pose, it is
@@ -38,9 +38,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from curlnav.layout import ObservationLayout
-from curlnav.planners import RESCUE_SUFFIX
-from curlnav.planners.local import goal_in_robot_frame
-from curlnav.planners.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
+from curlnav.nav.geometry import goal_in_robot_frame
+from curlnav.nav.progress import ProgressChecker
+from curlnav.nav.recovery.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, ManoeuvrePlanner
+from curlnav.nav.registry import RESCUE_SUFFIX
 from curlnav.sim import EnvConfig, StartGoal, World
 
 
@@ -54,10 +55,10 @@ class RescueConfig:
     #: the default (map-less) fallback's DWA may back up, on a robot that can
     #: (``RobotConfig.max_reverse_speed``); it checks a backing arc against its one-second scan
     #: memory only: the LiDAR does not see behind. Off unless asked (``policies/barn-jackal`` asks,
-    #: in its ``deploy_settings``): on the Husky's validation floors it gained nothing and raised
-    #: contacts (docs/results/2026-11-27-namo-robust, session 11). Behind a global plan the
+    #: in its stack): on the Husky's validation floors it gained nothing and raised contacts
+    #: (docs/results/archive.md). Behind a global plan the
     #: fallback's manoeuvre backs up whatever this says, checked against the map
-    #: (``curlnav.planners.manoeuvre``)
+    #: (``curlnav.nav.recovery.manoeuvre``)
     reverse: bool = False
 
     def __post_init__(self) -> None:
@@ -75,8 +76,8 @@ class RescueConfig:
 def default_fallback(env_config: EnvConfig, reverse: bool = False):
     """``dwa`` behind A* on the map of its own scans (``dwa+scan-plan``), backing up with ``reverse``
     where the robot can."""
-    from curlnav.planners.local import DwaConfig, DynamicWindowPlanner
-    from curlnav.planners.scan_map import ScanMapPlanAgent
+    from curlnav.nav.controllers.local import DwaConfig, DynamicWindowPlanner
+    from curlnav.nav.global_planners.scan_map import ScanMapPlanAgent
 
     return ScanMapPlanAgent(DynamicWindowPlanner(env_config, DwaConfig(reverse=reverse)), env_config, label="dwa")
 
@@ -88,7 +89,7 @@ def global_plan_fallback(planned):
     as a navigation stack pairs its global planner with a path-tracking controller (Nav2's
     regulated pure pursuit). It turns in place where the path lies behind the robot. A stack
     behind a global plan has the map and a localised pose; ``dwa`` steering for the waypoint ahead
-    (session 8) stood still where the policy had wedged the robot in a doorway's mouth at an
+    stood still where the policy had wedged the robot in a doorway's mouth at an
     angle: its sampled arcs all came within its margin of the jambs, and it never turns in place."""
     return PlanTracker(planned)
 
@@ -99,7 +100,7 @@ class PlanTracker:
     steers for the goal itself. Where the robot stands stuck beside the path (still for
     ``ManoeuvreConfig.still_steps`` steps: a post off its corner where pure pursuit's short turn
     sweeps into it), it drives a multi-point turn onto the path planned on the map
-    (``curlnav.planners.manoeuvre``; ``manoeuvre=None``: never)."""
+    (``curlnav.nav.recovery.manoeuvre``; ``manoeuvre=None``: never)."""
 
     label = "plan tracker"
 
@@ -168,8 +169,7 @@ class RescuedPolicy:
         self.rescues = 0
         self.rescue_steps = 0
         self._steps = 0
-        self._best = math.inf  # m, the least distance to the goal so far
-        self._best_at = 0  # the step it was reached
+        self.progress = ProgressChecker(self.config.progress_m, self.config.stall_steps)  # clock: control steps
         self._until = -1  # the last step the fallback drives (-1: the policy drives)
 
     @property
@@ -185,12 +185,11 @@ class RescuedPolicy:
         _, _, goal_frame = self.layout.newest_frame(np.asarray(observation))
         gx, gy = goal_in_robot_frame(goal_frame)
         to_go = math.hypot(gx, gy)
-        if math.isfinite(to_go) and (to_go < self._best - cfg.progress_m or not math.isfinite(self._best)):
-            self._best, self._best_at = to_go, self._steps
+        if self.progress.update(to_go, self._steps):
             self._until = -1  # nearer than ever: the policy drives again
-        elif self._until < self._steps and self._steps - self._best_at >= cfg.stall_steps:
+        elif self._until < self._steps and self.progress.stalled(self._steps):
             self._until = self._steps + cfg.max_steps - 1
-            self._best_at = self._steps + cfg.max_steps  # a new stall is counted after the rescue
+            self.progress.restart(self._steps + cfg.max_steps)  # a new stall is counted after the rescue
             self.rescues += 1
         # both every step: the fallback's map and scan memory, and whatever the policy keeps (a
         # plan's map, its frames), stay current for when each drives again

@@ -15,7 +15,7 @@ observation and odometry.
   returns (label 1) clear and mark nothing: a NAMO policy pushes them; each scan takes ``movable``
   once from every cell a movable return ends in, so that a ball the segmenter missed in a scan or
   two does not become a wall. ``ScanMapPlanAgent`` does not trust the segmenter where it knows
-  better (``curlnav.planners.push_check``, ``PushCheck.static``): a return labelled movable within
+  better (``curlnav.nav.safety.push_check``, ``PushCheck.static``): a return labelled movable within
   ``PushConfig.near_m`` is laid down as static on a robot without an arm (it pushes nothing: a
   pillar called movable in every frame is a pillar), and on one with an arm where pushes held it
   static (it stayed put under the arm). A movable object the arm may still push is left to the
@@ -23,7 +23,7 @@ observation and odometry.
   through the doors it pushes open (laying every unpushed door and ball near the Husky down as
   static took ``policies/namo-robust`` from 84 % to 70 % of the unseen suite, exact senses). A
   scan that arrives ``latency_steps`` late is laid down from the odometry pose of then.
-- ``ScanMapPlan``: A* (``curlnav.planners.oracle.astar``, unknown cells free) on the grid with
+- ``ScanMapPlan``: A* (``curlnav.nav.global_planners.oracle.astar``, unknown cells free) on the grid with
   every cell nearer than the robot's half-width plus ``margin_m`` to an occupied one blocked (no
   path: 0.8 of the half-width, as a gap the coarse grid narrows may still let the base through)
   and a cost rising toward the walls within ``inflation_m``, planned again every ``replan_steps``
@@ -49,10 +49,10 @@ import numpy as np
 from scipy import ndimage
 
 from curlnav.layout import ObservationLayout
-from curlnav.planners.global_plan import GlobalPlanAgent
-from curlnav.planners.local import goal_in_robot_frame, odometry
-from curlnav.planners.oracle import astar
-from curlnav.planners.push_check import PushCheck, PushConfig
+from curlnav.nav.geometry import goal_in_robot_frame, odometry
+from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
+from curlnav.nav.global_planners.oracle import astar
+from curlnav.nav.safety.push_check import PushCheck, PushConfig
 from curlnav.sim import EnvConfig, StartGoal, World
 
 
@@ -137,7 +137,7 @@ class ScanMap:
         direction = np.stack([np.cos(angles), np.sin(angles)], axis=1)
         returned = r < self.max_range - 1e-3
         # clearing: cells passed on the way to a return (not the return's own cell); a beam that returned
-        # nothing clears nothing (a dropout must not open a wall, as in curlnav.planners.scan_filter)
+        # nothing clears nothing (a dropout must not open a wall, as in curlnav.nav.perception.scan_filter)
         reach = np.where(returned, np.minimum(r - self.resolution, cfg.clear_range_m), -1.0)
         along = np.broadcast_to(self._distances[None, :], (len(r), len(self._distances)))
         along = np.where(along <= reach[:, None], along, np.nan)

@@ -2,7 +2,7 @@
 the true pose.
 
 ``StaticMapPlanner`` (``curlnav eval oracle``; ``planner`` is the old name) was the stand-in for
-TARE's local planner until the map-less baselines (``curlnav.planners.local``:
+TARE's local planner until the map-less baselines (``curlnav.nav.controllers.local``:
 ``tare-l``, ``dwa``) were written; it knows the static map and its pose exactly, so it bounds what
 a local planner could do from above. It drives the same robot through the same ``NamoEnv``
 interface, with the same action limits and the same observation:
@@ -29,7 +29,7 @@ interface, with the same action limits and the same observation:
 Use it like a policy: ``agent.reset(world, pair)`` at the start of an episode, then
 ``agent.act(observation, info) -> action`` each step (``curlnav.evaluation.protocol.evaluate`` does both).
 
-The same A* path feeds a learned local planner in ``curlnav.planners.global_plan``
+The same A* path feeds a learned local planner in ``curlnav.nav.global_planners.global_plan``
 (``GlobalPlanAgent``, ``GlobalPlan``).
 """
 

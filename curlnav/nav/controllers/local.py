@@ -9,7 +9,7 @@ nothing between episodes; ``reset(world, pair)`` ignores both arguments (the pro
 the planners push balls, boxes and doors with the base. The arm stays retracted (L = 0).
 
 Their scans go through a short memory of marked and cleared cells in the odometry frame
-(``curlnav.planners.scan_filter.ScanMemory``: spatial support, voting over the last 5 scans,
+(``curlnav.nav.perception.scan_filter.ScanMemory``: spatial support, voting over the last 5 scans,
 clearing by the beams that pass), as a real stack's costmap: range noise, dropouts and spurious
 returns do not stop them. ``scan_filter=None`` gives the raw-scan planners of before issue 37.
 
@@ -35,7 +35,7 @@ returns do not stop them. ``scan_filter=None`` gives the raw-scan planners of be
   it (ROS's goal distance, map-less), clearance and speed.
 
 Both are defeated by a trap deeper than their range (a U between start and goal), as the
-paper's TARE-L was; ``curlnav.planners.oracle.StaticMapPlanner`` (``oracle``), with the true
+paper's TARE-L was; ``curlnav.nav.global_planners.oracle.StaticMapPlanner`` (``oracle``), with the true
 map and pose, is the upper bound.
 """
 
@@ -43,156 +43,17 @@ from __future__ import annotations
 
 import functools
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
-from curlnav.layout import ObservationLayout
-from curlnav.planners.scan_filter import ScanFilterConfig, ScanMemory, from_frame, to_frame
+from curlnav.nav.geometry import arc_poses, footprint_clearance, odometry, wrap
+from curlnav.nav.perception.scan_agent import ScanAgent
+from curlnav.nav.perception.scan_filter import ScanFilterConfig
 from curlnav.sim import EnvConfig, StartGoal, World
 
 TARE_LABEL = "tare-l"
 DWA_LABEL = "dwa"
-
-
-def goal_in_robot_frame(goal_frame: np.ndarray) -> tuple[float, float]:
-    """``(dx, dy)`` (m, robot frame) from one goal frame ``[sign(dx) log(1+|dx|), sign(dy)
-    log(1+|dy|), bearing]`` of the observation."""
-    g = np.asarray(goal_frame, dtype=np.float64)
-    return float(np.sign(g[0]) * np.expm1(abs(g[0]))), float(np.sign(g[1]) * np.expm1(abs(g[1])))
-
-
-def odometry(info: dict) -> tuple[float, float, float]:
-    """The robot's own pose estimate ``(x, y, yaw)`` (m, rad) in ``info``: ``info["odometry"]``
-    where the environment gives one (it drifts under sensor noise), else ``info["pose"]`` (the
-    ROS 2 node's ``/odom``)."""
-    return info.get("odometry", info["pose"])
-
-
-def wrap(angle: float | np.ndarray) -> float | np.ndarray:
-    """Angle (rad) wrapped to [-pi, pi)."""
-    return (np.asarray(angle) + math.pi) % (2 * math.pi) - math.pi
-
-
-def arc_poses(v: np.ndarray, w: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(x, y, th)``, each ``(N, T)``: where each command ``(v[i], w[i])`` (m/s, rad/s), driven as a
-    constant arc from the origin of the robot frame heading +x, has the base at the ``times``
-    ``(T,)`` (s): position (m) and heading (rad), in that frame."""
-    v = np.asarray(v, dtype=np.float64)
-    w = np.asarray(w, dtype=np.float64)
-    times = np.asarray(times, dtype=np.float64)
-    th = w[:, None] * times[None, :]
-    straight = np.abs(w) < 1e-6
-    safe_w = np.where(straight, 1.0, w)[:, None]
-    x = np.where(straight[:, None], v[:, None] * times[None, :], v[:, None] * np.sin(th) / safe_w)
-    y = np.where(straight[:, None], 0.0, v[:, None] * (1.0 - np.cos(th)) / safe_w)
-    return x, y, th
-
-
-def footprint_clearance(points: np.ndarray, v: np.ndarray, w: np.ndarray, times: np.ndarray,
-                        half_length: float, half_width: float, signed: bool = False) -> np.ndarray:
-    """For each command ``(v[i], w[i])`` (m/s, rad/s) driven from the origin of the robot frame as a
-    constant arc: the least distance (m) from the base's rectangle (``half_length`` x
-    ``half_width``, m, centred on the base) to any of ``points`` ``(n, 2)`` (m, robot frame) at the
-    ``times`` (s) along it; 0 where a point lies inside the rectangle (``signed``: minus its depth
-    inside, the distance to the nearest side), ``inf`` without points."""
-    v = np.asarray(v, dtype=np.float64)
-    w = np.asarray(w, dtype=np.float64)
-    if len(points) == 0:
-        return np.full(v.shape, np.inf)
-    chunk = max(1, 2_000_000 // max(1, v.size * len(times)))  # points at a time: a few tens of MB per array
-    if len(points) > chunk:  # a dense map's walls: thousands of points round the base
-        return np.min([footprint_clearance(points[i:i + chunk], v, w, times, half_length, half_width, signed)
-                       for i in range(0, len(points), chunk)], axis=0)
-    x, y, th = arc_poses(v, w, times)  # (N, T)
-    c, s = np.cos(th)[..., None], np.sin(th)[..., None]
-    px = points[None, None, :, 0] - x[..., None]
-    py = points[None, None, :, 1] - y[..., None]
-    qx, qy = c * px + s * py, -s * px + c * py  # (N, T, n) in each pose's frame
-    gap = np.hypot(np.maximum(np.abs(qx) - half_length, 0.0), np.maximum(np.abs(qy) - half_width, 0.0))
-    if signed:
-        depth = np.minimum(half_length - np.abs(qx), half_width - np.abs(qy))  # > 0 inside
-        gap = np.where(depth > 0.0, -depth, gap)
-    return gap.min(axis=(1, 2))
-
-
-class ScanAgent:
-    """What both map-less planners share: the beams, the footprint and the static points they
-    plan against. ``act(observation, info) -> [v, w, L]`` (fractions of the robot's limits).
-
-    ``scan_filter``: the short memory of marked and cleared cells the scans go through
-    (``curlnav.planners.scan_filter``), as a real stack's costmap; None plans against the raw
-    newest scan (the baselines before issue 37, which collapse under sensor noise)."""
-
-    label = "scan agent"
-
-    def __init__(self, env_config: EnvConfig | None = None,
-                 scan_filter: ScanFilterConfig | None = ScanFilterConfig()) -> None:
-        self.env_config = env_config or EnvConfig()
-        self.layout = ObservationLayout.from_env_config(self.env_config)
-        robot = self.env_config.robot
-        self.half_length, self.half_width = robot.base_length / 2, robot.base_width / 2  # m
-        self.beam_angles = np.linspace(-self.env_config.lidar_fov / 2, self.env_config.lidar_fov / 2,
-                                       self.env_config.lidar_beams)  # rad, beam 0 on the right
-        self.memory = None if scan_filter is None else ScanMemory(self.beam_angles, self.env_config.lidar_max_range,
-                                                                   scan_filter)
-        latency = getattr(getattr(self.env_config, "sensor_noise", None), "latency_steps", 0) or 0
-        self._poses: deque[tuple[float, float, float]] = deque(maxlen=int(latency) + 1)  # odometry, oldest first
-
-    def reset(self, world: World, pair: StartGoal) -> None:
-        """Start an episode. The world and pair are not used: no map, no goal but the observation's;
-        the scan memory and the odometry history are emptied."""
-        self._poses.clear()
-        if self.memory is not None:
-            self.memory.reset()
-
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        raise TypeError(f"{type(self).__name__} needs odometry: call act(observation, info)")
-
-    def static_points(self, observation: np.ndarray) -> np.ndarray:
-        """``(n, 2)`` robot-frame points (m) of the newest scan's beams that hit a static obstacle
-        (label 0, short of the maximum range)."""
-        ranges, labels, _ = self.layout.newest_frame(np.asarray(observation))
-        static = (labels < 0.5) & (ranges < self.env_config.lidar_max_range - 1e-3)
-        r = ranges[static].astype(np.float64)
-        a = self.beam_angles[static]
-        return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
-
-    def sense(self, observation: np.ndarray, info: dict) -> tuple[np.ndarray, float, float]:
-        """What to plan against now: ``(points, gx, gy)``, the static obstacle points ``(n, 2)``
-        and the goal, in the robot frame of now (m). Call once per control step: the scan goes
-        into the memory (without one: the newest scan's static points).
-
-        An observation late by ``latency_steps`` control periods (``EnvConfig.sensor_noise``; a
-        robot reads it from the scan's stamp) was seen from the odometry pose of that many steps
-        ago: its points and goal are moved into the frame of the odometry now, as a stack's
-        transform buffer does."""
-        pose = odometry(info)
-        self._poses.append(pose)
-        seen_from = self._poses[0]
-        ranges, labels, _ = self.layout.newest_frame(np.asarray(observation))
-        if self.memory is None:
-            points = self.static_points(observation)
-        else:
-            points = self.memory.update(ranges, labels, seen_from)
-        goal = np.array([self.goal(observation)])
-        if seen_from != pose:
-            points = from_frame(to_frame(points, seen_from), pose)
-            goal = from_frame(to_frame(goal, seen_from), pose)
-        return points, float(goal[0, 0]), float(goal[0, 1])
-
-    def goal(self, observation: np.ndarray) -> tuple[float, float]:
-        """The goal ``(dx, dy)`` in the robot frame (m), from the newest goal frame."""
-        _, _, goal = self.layout.newest_frame(np.asarray(observation))
-        return goal_in_robot_frame(goal)
-
-    def action(self, v: float, w: float) -> np.ndarray:
-        """``[v, w, 0]`` from m/s and rad/s, clipped to the robot's limits (arm retracted; backing
-        up only as far as the robot can)."""
-        robot = self.env_config.robot
-        return np.array([float(np.clip(v / robot.max_linear_speed, -robot.reverse_fraction, 1.0)),
-                         float(np.clip(w / robot.max_angular_speed, -1.0, 1.0)), 0.0], dtype=np.float32)
 
 
 # -- TARE's local planner ------------------------------------------------------------------------------
@@ -450,7 +311,7 @@ class DwaConfig:
     margin_m: float = 0.1  # a trajectory is dropped when its footprint comes this close to a static point
     ignore_beyond_m: float = 2.6  # static points further than this cannot matter within sim_time_s
     #: also sample backing up (down to the robot's ``max_reverse_speed``; ROS's negative min_vel_x):
-    #: off for the baseline, on for the rescue (``curlnav.planners.rescue``) where its
+    #: off for the baseline, on for the rescue (``curlnav.nav.recovery.rescue``) where its
     #: ``RescueConfig.reverse`` asks (``policies/barn-jackal``'s does), to get a robot out of a spot
     #: where no forward arc keeps the margin
     reverse: bool = False
@@ -480,7 +341,7 @@ class DynamicWindowPlanner(ScanAgent):
 
     def commanded(self, action: np.ndarray) -> None:
         """The command ``[v, w, L]`` (fractions) the robot was sent this step, when another agent
-        chose it (``curlnav.planners.rescue``): the next window is centred on it."""
+        chose it (``curlnav.nav.recovery.rescue``): the next window is centred on it."""
         robot = self.env_config.robot
         v, w = float(action[0]), float(action[1])
         if math.isfinite(v) and math.isfinite(w):

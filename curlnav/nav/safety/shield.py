@@ -8,7 +8,7 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
 
 - each control step the policy proposes ``[v, w, L]`` (fractions of the robot's limits);
 - the static obstacle points it is checked against are the scan's, through the same short memory
-  of marked and cleared cells as the map-less planners' (``curlnav.planners.scan_filter``), so
+  of marked and cleared cells as the map-less planners' (``curlnav.nav.perception.scan_filter``), so
   the space behind the robot, outside the LiDAR's field of view, is remembered for a second;
 - the command is simulated as an arc of constant ``(v, w)`` for ``horizon_s`` (the command is
   held one control period; the rest is the room needed to stop or turn away next step) and the
@@ -24,7 +24,7 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
   of a turn on the spot is known to the centimetre, with no speed to stop from. Map-less, turns
   keep ``margin_m``: there the scan memory alone says where the walls are, and on the validation
   floors the smaller margin bought nothing and added contacts under ``harsh`` senses
-  (docs/results/2026-11-27-namo-robust, session 10);
+  (docs/results/archive.md);
 - a policy that keeps asking for a blocked command is stuck behind it (it cannot back out: its
   speed is 0..1 of the top speed, forward). After ``stuck_steps`` replacements in a row that
   barely move the base, the shield drives ``recovery_steps`` steps itself, each the admissible
@@ -36,7 +36,7 @@ check of each command); ``ShieldedPolicy`` is that check for any ``obs -> action
 
 The shield uses what the policy's own robot has: the observation (scan, labels, goal) and
 odometry (``info["odometry"]``, else ``info["pose"]``, over the memory's 5 scans only). It does not
-trust the segmenter (``curlnav.planners.push_check``): a return labelled movable near the base is an
+trust the segmenter (``curlnav.nav.safety.push_check``): a return labelled movable near the base is an
 obstacle like any other unless it is pushable: the robot has an arm, and the object lies on the arm's
 side (ahead of the bumper, within the arm's reach) and pushes have not shown it staying put, or a
 push showed it moving. A pushable return is no obstacle to a command at pushing speed
@@ -59,10 +59,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from curlnav.planners import SHIELD_SUFFIX
-from curlnav.planners.local import ScanAgent, footprint_clearance, odometry
-from curlnav.planners.push_check import PushCheck, PushConfig
-from curlnav.planners.scan_filter import ScanFilterConfig, ScanMemory, from_frame, to_frame
+from curlnav.nav.geometry import footprint_clearance, from_frame, odometry, to_frame
+from curlnav.nav.perception.scan_agent import ScanAgent
+from curlnav.nav.perception.scan_filter import ScanFilterConfig, ScanMemory
+from curlnav.nav.registry import SHIELD_SUFFIX
+from curlnav.nav.safety.push_check import PushCheck, PushConfig
 from curlnav.sim import EnvConfig, StartGoal, World
 from curlnav.sim.geometry import wall_faces
 
@@ -177,7 +178,7 @@ class ArcRule:
     """The shield's rule for the arcs a base may drive from where it stands (module docstring):
     ``near`` ``(n, 2)`` are the points (m, robot frame) the base does not touch, ``touched`` the walls
     on or inside its outline, ``pushable`` the returns of an object the robot may push
-    (``curlnav.planners.push_check``). An arc is admissible when its footprint keeps ``margin_m``
+    (``curlnav.nav.safety.push_check``). An arc is admissible when its footprint keeps ``margin_m``
     from ``near`` (a turn on the spot ``turn_margin_m``), or no less than it keeps now, presses no
     deeper into ``touched`` (signed clearance) and, faster than ``push_speed`` (m/s), keeps
     ``margin_m`` from ``pushable`` (a push goes at pushing speed). ``v``, ``w``: m/s, rad/s

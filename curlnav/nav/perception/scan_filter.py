@@ -31,7 +31,7 @@ one missing beam opens a wall. ``ScanMemory`` does the same for ``tare-l`` and `
   the planners go round, or the shield stops at while it is pushed (they push balls);
 - **labels doubted near the base** (with a push check, ``ScanMemory(push=...)``: the shield's
   memory): a return labelled movable within the push check's ``near_m`` counts as static unless
-  the robot may push it (``curlnav.planners.push_check``); a segmenter that calls a pillar movable
+  the robot may push it (``curlnav.nav.safety.push_check``); a segmenter that calls a pillar movable
   in every frame does not hide it. What the memory kept of an object while it was doubted (a ball
   seen before it came within the arm's reach) is dropped where the object is pushable now
   (``PushCheck.follows``). Without a push check (the map-less baselines ``tare-l`` and ``dwa``,
@@ -53,8 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-_KEY = 1 << 31  # cell keys: ix * _KEY + iy, cells of +-2**30 * cell_m (1e8 m at 0.1 m)
-_NEIGHBOURS = np.array([dx * _KEY + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1)], dtype=np.int64)
+from curlnav.nav.geometry import NEIGHBOUR_OFFSETS, cell_keys, from_frame, to_frame
 
 
 @dataclass(frozen=True)
@@ -82,33 +81,12 @@ class ScanFilterConfig:
                 raise ValueError(f"scan filter: {name} must be a positive number, got {value!r}")
 
 
-def cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
-    """The cell of ``cell_m`` (m) a side of each ``(n, 2)`` point (m), as one int64 key
-    (``ix * _KEY + iy``; a cell's 8 neighbours are its key plus ``_NEIGHBOURS``)."""
-    return np.floor(points[:, 0] / cell_m).astype(np.int64) * _KEY + np.floor(points[:, 1] / cell_m).astype(np.int64)
-
-
-def to_frame(points: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
-    """``(n, 2)`` points (m) of the frame at ``pose`` (x, y, yaw: m, rad) in the frame ``pose`` is in."""
-    x, y, yaw = pose
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.stack([x + c * points[:, 0] - s * points[:, 1], y + s * points[:, 0] + c * points[:, 1]], axis=1)
-
-
-def from_frame(points: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
-    """The inverse of ``to_frame``: ``(n, 2)`` points (m) seen from ``pose``."""
-    x, y, yaw = pose
-    c, s = math.cos(yaw), math.sin(yaw)
-    dx, dy = points[:, 0] - x, points[:, 1] - y
-    return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1)
-
-
 class ScanMemory:
     """The filter of the module docstring for one scanner: ``update(ranges, labels, pose)`` once
     per control step returns the static obstacle points to plan against (robot frame, m).
 
     ``beam_angles``: ``(beams,)`` rad, beam 0 on the right; ``max_range``: m, the reading of a
-    beam that returns nothing; ``push``: a ``curlnav.planners.push_check.PushCheck`` that says which
+    beam that returns nothing; ``push``: a ``curlnav.nav.safety.push_check.PushCheck`` that says which
     movable labels near the base to believe (None: all of them)."""
 
     def __init__(self, beam_angles: np.ndarray, max_range: float, config: ScanFilterConfig | None = None,
@@ -183,7 +161,7 @@ class ScanMemory:
                             cell_keys(to_frame(local[movable], pose), cfg.label_cell_m)))
         self._doubted.append(doubted[near])
 
-        def counter(key_sets, neighbours=_NEIGHBOURS):
+        def counter(key_sets, neighbours=NEIGHBOUR_OFFSETS):
             """votes(keys): in how many of the remembered scans each cell (or a neighbour) was hit."""
             spread = [np.unique((k[:, None] + neighbours[None, :]).ravel()) for k in key_sets]
             cells, counts = np.unique(np.concatenate([np.zeros(0, np.int64), *spread]), return_counts=True)

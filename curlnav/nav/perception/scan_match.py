@@ -14,7 +14,7 @@ beside the wheels. ``ScanMatchedPolicy`` (the suffix ``+scan-match``) does the s
   points on no line (a corner, a door jamb, a furniture leg, seen by at least ``line_points``
   beams) take part point to point (``corner_points``), as PL-ICP matchers keep them: along a
   corridor the walls' lines say nothing, and without them the wheels' drift went uncorrected
-  there (session 12, the oracle's routes on the seed-90 validation floors under ``harsh`` senses:
+  there (the oracle's routes on the seed-90 validation floors under ``harsh`` senses:
   97 % of the scans matched against 67 %, and 7 of 30 estimates ended more than 0.8 m off
   against 13);
 - scans are matched to a reference scan, not each to the one before (which adds up the noise of
@@ -50,9 +50,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from curlnav.layout import goal_frame
-from curlnav.planners import SCAN_MATCH_SUFFIX
-from curlnav.planners.local import goal_in_robot_frame, odometry
-from curlnav.planners.stage import FrontStage
+from curlnav.nav.geometry import goal_in_robot_frame, odometry
+from curlnav.nav.perception.stage import FrontStage
+from curlnav.nav.registry import SCAN_MATCH_SUFFIX
 from curlnav.sim import EnvConfig
 
 Pose = tuple[float, float, float]  # x, y (m), yaw (rad)
