@@ -17,6 +17,13 @@ MAX_BEAMS = 1 << 16  # beams of one scan
 MAX_FRAMES = 256  # range, label or goal frames of one observation
 
 
+def beam_angles(fov_rad: float, beams: int) -> np.ndarray:
+    """``(beams,)`` LiDAR beam angles (rad) evenly over ``fov_rad`` centred ahead, beam 0 on the
+    right (the most negative); one beam looks straight ahead. Every part that reads a scan (the
+    simulator's LiDAR, its sensor model, the navigation stack's roles, the ROS 2 node) uses these."""
+    return np.linspace(-fov_rad / 2, fov_rad / 2, beams) if beams > 1 else np.zeros(1)
+
+
 def goal_frame(x: float, y: float, yaw: float, gx: float, gy: float) -> np.ndarray:
     """One goal frame, ``[sign(dx) log(1+|dx|), sign(dy) log(1+|dy|), atan2(dy, dx)]`` (float32),
     of the point ``(gx, gy)`` seen from the pose ``(x, y, yaw)`` (m, rad; ``dx`` ahead, ``dy`` to

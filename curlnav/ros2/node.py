@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from curlnav.layout import beam_angles
 from curlnav.layout import goal_frame as layout_goal_frame
 from curlnav.nav.global_planners.global_plan import GlobalPlan, WaypointConfig
 from curlnav.nav.progress import ProgressChecker
@@ -147,7 +148,7 @@ class ScanLayout:
     @property
     def angles(self) -> np.ndarray:
         """(beams,) policy beam angles (rad), beam 0 on the right."""
-        return np.linspace(-self.fov_rad / 2, self.fov_rad / 2, self.beams)
+        return beam_angles(self.fov_rad, self.beams)
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from curlnav.layout import beam_angles
 from curlnav.worlds.world import Ball, Box, Door, World
 
 from .bullet import import_pybullet
@@ -193,8 +194,7 @@ class Scene:
         self._tmp = tempfile.TemporaryDirectory(prefix="curlnav-urdf-")
         self._build()
         beams = cfg.lidar_beams
-        self.beam_angles = (np.linspace(-cfg.lidar_fov / 2, cfg.lidar_fov / 2, beams)
-                            if beams > 1 else np.zeros(1))
+        self.beam_angles = beam_angles(cfg.lidar_fov, beams)
         self._static_ranges = np.empty(beams, dtype=np.float64)
         self.last_bodies = np.full(beams, -1)  # the movable body each beam of the last scan hit (-1: none)
         self._no_boxes = np.zeros((0, 15))

@@ -44,6 +44,8 @@ from collections import deque
 
 import numpy as np
 
+from curlnav.layout import beam_angles
+
 from .config import EnvConfig, SensorNoiseConfig
 from .lidar_faults import LidarFaults
 
@@ -194,9 +196,8 @@ class SensorModel:
         #: drawn for them, so the frame-by-frame presets' streams are as before they existed)
         self.faults: LidarFaults | None = None
         if LidarFaults.wanted(noise):
-            beam_angles = (np.linspace(-cfg.lidar_fov / 2, cfg.lidar_fov / 2, cfg.lidar_beams)
-                           if cfg.lidar_beams > 1 else np.zeros(1))
-            self.faults = LidarFaults(noise, rng, cfg.robot, beam_angles, cfg.lidar_max_range)
+            self.faults = LidarFaults(noise, rng, cfg.robot, beam_angles(cfg.lidar_fov, cfg.lidar_beams),
+                                      cfg.lidar_max_range)
 
     @property
     def mount(self) -> tuple[float, float]:

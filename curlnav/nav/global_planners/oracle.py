@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from curlnav.layout import ObservationLayout
+from curlnav.layout import ObservationLayout, beam_angles
 from curlnav.sim import EnvConfig, StartGoal, World
 from curlnav.worlds.pairs import clearance_map
 
@@ -212,8 +212,7 @@ class StaticMapPlanner:
         self.layout = ObservationLayout.from_env_config(self.env_config)
         robot = self.env_config.robot
         self._half_length, self._half_width = robot.base_length / 2, robot.base_width / 2
-        self._beam_angles = np.linspace(-self.env_config.lidar_fov / 2, self.env_config.lidar_fov / 2,
-                                        self.env_config.lidar_beams)
+        self._beam_angles = beam_angles(self.env_config.lidar_fov, self.env_config.lidar_beams)
         self._planners: dict[int, GridPlanner] = {}
         self.world: World | None = None
         self.pair: StartGoal | None = None

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from curlnav.layout import ObservationLayout
+from curlnav.layout import ObservationLayout, beam_angles
 from curlnav.nav.geometry import goal_in_robot_frame, odometry
 from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
 from curlnav.nav.global_planners.oracle import astar
@@ -280,8 +280,7 @@ class ScanMapPlanAgent(GlobalPlanAgent):
         self.label = f"{label} + scan-map plan"
         self.map_config = config or ScanMapConfig()
         self.layout = ObservationLayout.from_env_config(self.env_config)
-        self.beam_angles = np.linspace(-self.env_config.lidar_fov / 2, self.env_config.lidar_fov / 2,
-                                       self.env_config.lidar_beams)
+        self.beam_angles = beam_angles(self.env_config.lidar_fov, self.env_config.lidar_beams)
         latency = getattr(getattr(self.env_config, "sensor_noise", None), "latency_steps", 0) or 0
         self._poses: deque[tuple[float, float, float]] = deque(maxlen=int(latency) + 1)
         self.map: ScanMap | None = None

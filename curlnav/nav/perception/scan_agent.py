@@ -8,7 +8,7 @@ from collections import deque
 
 import numpy as np
 
-from curlnav.layout import ObservationLayout
+from curlnav.layout import ObservationLayout, beam_angles
 from curlnav.nav.geometry import from_frame, goal_in_robot_frame, odometry, to_frame
 from curlnav.nav.perception.scan_filter import ScanFilterConfig, ScanMemory
 from curlnav.sim import EnvConfig, StartGoal, World
@@ -30,8 +30,7 @@ class ScanAgent:
         self.layout = ObservationLayout.from_env_config(self.env_config)
         robot = self.env_config.robot
         self.half_length, self.half_width = robot.base_length / 2, robot.base_width / 2  # m
-        self.beam_angles = np.linspace(-self.env_config.lidar_fov / 2, self.env_config.lidar_fov / 2,
-                                       self.env_config.lidar_beams)  # rad, beam 0 on the right
+        self.beam_angles = beam_angles(self.env_config.lidar_fov, self.env_config.lidar_beams)  # rad, beam 0 on the right
         self.memory = None if scan_filter is None else ScanMemory(self.beam_angles, self.env_config.lidar_max_range,
                                                                    scan_filter)
         latency = getattr(getattr(self.env_config, "sensor_noise", None), "latency_steps", 0) or 0

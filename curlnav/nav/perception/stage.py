@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from curlnav.layout import ObservationLayout
+from curlnav.layout import ObservationLayout, beam_angles
 from curlnav.sim import EnvConfig, StartGoal, World
 
 
@@ -32,7 +32,7 @@ class FrontStage:
         self.layout = ObservationLayout.from_env_config(self.env_config)
         self.label = label or f"{getattr(policy, 'label', 'policy')}{self.suffix}"
         fov, beams = self.env_config.lidar_fov, self.env_config.lidar_beams
-        angles = np.linspace(-fov / 2, fov / 2, beams)  # rad, beam 0 on the right
+        angles = beam_angles(fov, beams)  # rad, beam 0 on the right
         self.beam_cos, self.beam_sin = np.cos(angles), np.sin(angles)
         self.max_range = self.env_config.lidar_max_range  # m, the reading of a beam that returns nothing
         latency = getattr(getattr(self.env_config, "sensor_noise", None), "latency_steps", 0) or 0

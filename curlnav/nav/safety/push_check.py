@@ -66,6 +66,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from curlnav.layout import beam_angles
 from curlnav.nav.geometry import NEIGHBOUR_OFFSETS, cell_keys, from_frame, to_frame
 from curlnav.sim import EnvConfig
 
@@ -141,7 +142,7 @@ class PushCheck:
         self.half_length, self.half_width = robot.base_length / 2, robot.base_width / 2  # m
         self.arm_reach = float(robot.arm_reach) if self.arm else 0.0  # m
         self.arm_width = float(robot.arm_width) if self.arm else 0.0  # m
-        angles = np.linspace(-env_config.lidar_fov / 2, env_config.lidar_fov / 2, env_config.lidar_beams)
+        angles = beam_angles(env_config.lidar_fov, env_config.lidar_beams)
         self._cos, self._sin = np.cos(angles), np.sin(angles)  # beam 0 on the right
         self.max_range = float(env_config.lidar_max_range)
         self.reset()
