@@ -38,7 +38,7 @@ order=(e90 r90 h90 e91 r91 h91 sA sB sAr sBr tmaze-p4)
 run_set() {  # one set: its CSVs and log under $out/NAME
     local name=$1
     # shellcheck disable=SC2086  # the set's options are words
-    if ! "$curlnav" eval "$agent" ${sets[$name]} --out "$out/$name" > "$out/$name.log" 2>&1; then
+    if ! "$curlnav" eval "$agent" ${sets[$name]} --jobs 1 --out "$out/$name" > "$out/$name.log" 2>&1; then
         echo "[validate] $name failed: see $out/$name.log" >&2
         return 1
     fi

@@ -76,7 +76,9 @@ def test_eval_puts_the_planner_and_a_policy_side_by_side_on_the_same_pairs_and_s
 
 def test_the_one_policy_form_of_eval_still_works(capsys, untrained_policy):
     assert main(["eval", str(untrained_policy), "--world", str(T_MAZE), "--pair", "p4", "--episodes", "2"]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    out = capsys.readouterr().out.splitlines()
+    trials, lines = [line for line in out if line.startswith("trial ")], [line for line in out if not line.startswith("trial ")]
+    assert len(trials) == 2  # a line per trial as it finishes, then the summary
     assert len(lines) == 1 and lines[0].startswith(f"{untrained_policy} on t-maze-0: ")
     assert "over 2 episodes" in lines[0]
 

@@ -137,10 +137,17 @@ def _eval_agents(plan) -> dict:
     return agents
 
 
-def _run_trials(comparison, plan, options: dict, jobs: int, rows_file: Path | None, columns: list[str],
-                row_of: Callable):
-    """Every trial of ``comparison`` in ``jobs`` processes (``curlnav.evaluation.parallel.run_trials``:
-    the workers make the plan with ``eval_plan``), a line each as it finishes (flushed) and its row
+def _worker_pool(plan, options: dict, jobs: int):
+    """The worker processes of ``--jobs`` (none for one job or one unit), started before this process
+    builds its worlds and agents, so that they load meanwhile; each makes the plan with ``eval_plan``."""
+    from curlnav.evaluation.parallel import WorkerPool, worker_count
+
+    return WorkerPool(f"{__name__}:eval_plan", options, worker_count(jobs, plan))
+
+
+def _run_trials(comparison, plan, pool, rows_file: Path | None, columns: list[str], row_of: Callable):
+    """Every trial of ``comparison``, in the workers of ``pool`` if it has any
+    (``curlnav.evaluation.parallel.run_trials``), a line each as it finishes (flushed) and its row
     (``row_of(episode)``) appended to ``rows_file`` at once."""
     from curlnav.evaluation.parallel import Progress, RowStream, run_trials
 
@@ -151,7 +158,7 @@ def _run_trials(comparison, plan, options: dict, jobs: int, rows_file: Path | No
             rows.write(row_of(episode))  # first: a trial's printed line means its row is in the file
             print(progress.line(episode), flush=True)
 
-        return run_trials(comparison, plan, jobs, f"{__name__}:eval_plan", options, on_trial)
+        return run_trials(comparison, plan, pool, on_trial)
 
 
 def _ended(trials, out: Path | None) -> int:
@@ -196,14 +203,15 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         return _eval_barn(options, jobs)
     plan = eval_plan(options, say=print)
     suite = plan.suite
-    worlds = [plan.world_of(spec) for spec in plan.worlds]
-    for world in worlds:
-        check_pairs_possible(world)
-    agents = _eval_agents(plan)
-    comparison = Comparison(agents, worlds, plan.pairs_of, plan.env_config)
     out = Path(args.out) if args.out else None
-    trials = _run_trials(comparison, plan, options, jobs, out / "episodes.csv" if out else None, Episode.columns(),
-                         Episode.row)
+    with _worker_pool(plan, options, jobs) as pool:
+        worlds = [plan.world_of(spec) for spec in plan.worlds]
+        for world in worlds:
+            check_pairs_possible(world)
+        agents = _eval_agents(plan)
+        comparison = Comparison(agents, worlds, plan.pairs_of, plan.env_config)
+        trials = _run_trials(comparison, plan, pool, out / "episodes.csv" if out else None, Episode.columns(),
+                             Episode.row)
     episodes = trials.episodes
     summaries = summarise(episodes, senses=plan.senses)
     for s in summaries:
@@ -233,16 +241,16 @@ def _eval_barn(options: dict, jobs: int) -> int:
     from curlnav.evaluation.barn import BarnTrial, reference_line, summarise, write_csv
     from curlnav.evaluation.compare import Comparison
 
-    plan = eval_plan(options, say=print)
-    comparison = Comparison(_eval_agents(plan), [plan.world_of(n) for n in plan.worlds], plan.pairs_of,
-                            plan.env_config)
-
     def trial_of(e) -> BarnTrial:
         return BarnTrial.of(e.agent, int(e.world.rsplit("-", 1)[1]), e.success, e.base_collisions, e.time_s)
 
+    plan = eval_plan(options, say=print)
     out = Path(options["out"]) if options["out"] else None
-    run = _run_trials(comparison, plan, options, jobs, out / "barn-trials.csv" if out else None,
-                      [f.name for f in dataclasses.fields(BarnTrial)], lambda e: dataclasses.asdict(trial_of(e)))
+    with _worker_pool(plan, options, jobs) as pool:
+        comparison = Comparison(_eval_agents(plan), [plan.world_of(n) for n in plan.worlds], plan.pairs_of,
+                                plan.env_config)
+        run = _run_trials(comparison, plan, pool, out / "barn-trials.csv" if out else None,
+                          [f.name for f in dataclasses.fields(BarnTrial)], lambda e: dataclasses.asdict(trial_of(e)))
     trials = [trial_of(e) for e in run.episodes]
     summaries = summarise(trials, senses=plan.senses)
     print(reference_line())

@@ -3,19 +3,19 @@
 The units of work are the comparison's (world, agent) pairs (``Comparison.run_unit``: one agent on
 one world's pairs and seeds, in an environment of its own, so its outcomes depend on nothing run
 before it). ``run_trials`` runs them in the calling process (one job, or one unit: ``Comparison.run``,
-as always) or in ``jobs`` worker processes (``serve``, in a Python of their own), handing the
-next unit to whichever worker finishes one; it calls ``on_trial`` as each trial finishes and returns
-the finished trials in the order one process runs them, also when SIGINT or a failed worker stopped
-the run.
+as always) or in the worker processes of a ``WorkerPool`` (``serve``, each in a Python of its own;
+``worker_count`` of them), handing the next unit to whichever worker finishes one; it calls
+``on_trial`` as each trial finishes and returns the finished trials in the order one process runs
+them, also when SIGINT or a failed worker stopped the run. The pool starts before the caller builds
+its worlds and agents, so that the workers load meanwhile.
 
 Messages between the processes are JSON lines (nothing is pickled):
 
-- parent -> worker, on its stdin: first the job, ``{"plan": "MODULE:FUNCTION", "options": {...}}``:
-  the worker builds the comparison's plan (``ComparisonPlan``) with ``FUNCTION(options)``, the
-  function the command built its own with, from the same options (``"parent"``: the parent's pid);
-  then a unit at a time,
-  ``{"unit": n, "world": SPEC, "agent": SPEC, "label": LABEL, "pairs": [...], "seeds": K,
-  "mcap_agent": NAME}``.
+- parent -> worker, on its stdin: first the job, ``{"plan": "MODULE:FUNCTION", "options": {...},
+  "parent": PID}``: the worker builds the comparison's plan (``ComparisonPlan``) with
+  ``FUNCTION(options)``, the function the command built its own with, from the same options, and
+  makes each agent once; then a unit at a time, ``{"unit": n, "world": SPEC, "agent": SPEC,
+  "label": LABEL, "pairs": [...], "seeds": K, "mcap_agent": NAME}``.
 - worker -> parent, on its stdout: ``{"unit": n, "index": i, "episode": {...}}`` per finished trial
   (``episode_message``), ``{"unit": n, "done": true}`` after the unit's last, or ``{"unit": n,
   "error": "..."}`` when it failed (the worker then exits).
@@ -24,7 +24,8 @@ A worker ends as soon as its stdin closes, even mid-episode (the parent is done 
 interrupted or died); on Linux it also dies with the parent. It ignores SIGINT: a Ctrl-C in a terminal
 reaches the whole process group, and the parent decides. Its stderr is the parent's. Thread pools are
 one thread in a worker (``OMP_NUM_THREADS=1`` and the like, read as the libraries load): N workers
-share N cores instead of fighting over them.
+share N cores instead of fighting over them; outcomes are the same as with one job (checked on the
+BARN suite and on NAMO worlds under realistic senses).
 """
 
 from __future__ import annotations
@@ -196,13 +197,19 @@ class WorkerFailed(Exception):
         self.reason = reason
 
 
-def run_trials(comparison: Comparison, plan: ComparisonPlan, jobs: int, plan_function: str, options: dict,
+def worker_count(jobs: int, plan: ComparisonPlan) -> int:
+    """Worker processes for ``jobs`` jobs: none (the trials run in the calling process) for one job
+    or one unit, else one per job up to one per unit."""
+    units = len(plan.worlds) * len(plan.agents)
+    return 0 if jobs <= 1 or units <= 1 else min(jobs, units)
+
+
+def run_trials(comparison: Comparison, plan: ComparisonPlan, pool: WorkerPool | None = None,
                on_trial: Callable[[Episode], None] | None = None) -> Trials:
-    """Every trial of ``comparison`` (made from ``plan``), ``on_trial(episode)`` as each finishes. With
-    ``jobs`` > 1 and more than one unit, in ``min(jobs, units)`` worker processes that build the plan
-    with ``plan_function`` (``MODULE:FUNCTION``) from ``options`` (JSON-able), as the caller built
-    ``plan``; else here. SIGINT and a failed worker stop the run (every worker has ended when this
-    returns): the trials that finished are returned, with why it stopped."""
+    """Every trial of ``comparison`` (made from ``plan``), ``on_trial(episode)`` as each finishes: in
+    the workers of ``pool`` when it has any, else here (``Comparison.run``). SIGINT and a failed
+    worker stop the run (every worker has ended when this returns): the trials that finished are
+    returned, with why it stopped."""
     total = comparison.episode_count(plan.seeds)
     units = units_of(len(plan.worlds), len(plan.agents))
     finished: dict[tuple[int, int], Episode] = {}
@@ -213,19 +220,20 @@ def run_trials(comparison: Comparison, plan: ComparisonPlan, jobs: int, plan_fun
             on_trial(episode)
 
     try:
-        if jobs <= 1 or len(units) <= 1:
+        if pool is None or not pool.workers:
             comparison.run(plan.seeds, on_episode=lambda e: keep((0, len(finished)), e), mcap=plan.mcap,
                            recorder=plan.recorder)
         else:
-            job = {"plan": plan_function, "options": options}
-            run_units(job, unit_messages(comparison, plan), jobs,
-                      lambda unit, index, message: keep((unit, index), episode_of(message)))
+            pool.run(unit_messages(comparison, plan),
+                     lambda unit, index, message: keep((unit, index), episode_of(message)))
     except KeyboardInterrupt:
         return Trials(in_run_order(finished), total, "interrupted")
     except WorkerFailed as failed:
-        unit = units[failed.unit]
-        label, world = list(comparison.agents)[unit.agent], comparison.worlds[unit.world].name
-        return Trials(in_run_order(finished), total, f"the worker running {label} on {world} failed: {failed.reason}")
+        which = "a worker"
+        if 0 <= failed.unit < len(units):
+            unit = units[failed.unit]
+            which = f"the worker running {list(comparison.agents)[unit.agent]} on {comparison.worlds[unit.world].name}"
+        return Trials(in_run_order(finished), total, f"{which} failed: {failed.reason}")
     return Trials(in_run_order(finished), total)
 
 
@@ -281,52 +289,76 @@ class _Worker:
                 self.proc.wait()
 
 
-def run_units(job: dict, units: list[dict], jobs: int, on_episode: Callable[[int, int, dict], None]) -> None:
-    """Run every unit message of ``units`` in ``min(jobs, len(units))`` worker processes started
-    with ``job``, the next unit to whichever worker finishes one; ``on_episode(unit, index,
-    episode message)`` for each trial as it finishes. Raises ``WorkerFailed`` when a worker fails
-    or dies; KeyboardInterrupt passes through. Every worker has ended when it returns or raises."""
-    todo = deque(units)
-    events: queue.Queue = queue.Queue()
-    workers: list[_Worker] = []
-    try:
-        for _ in range(min(jobs, len(units))):
-            workers.append(_Worker(len(workers), job, events))
-        for worker in workers:
-            worker.give(todo.popleft())
-        running = len(workers)
-        while running:
-            try:
-                number, line = events.get(timeout=1.0)
-            except queue.Empty:
-                continue
-            worker = workers[number]
-            if line is None:  # its stdout closed: it ended
-                running -= 1
-                status = worker.proc.wait()
-                if worker.unit is not None:
-                    raise WorkerFailed(worker.unit, worker.error or f"its process ended (status {status})")
-                continue
-            try:
-                message = json.loads(line)
-            except ValueError:
-                raise WorkerFailed(worker.unit if worker.unit is not None else -1,
-                                   f"it wrote a line that is not a message: {line[:200]!r}") from None
-            if "episode" in message:
-                on_episode(message["unit"], message["index"], message["episode"])
-            elif message.get("done"):
-                worker.unit = None
-                if todo:
-                    worker.give(todo.popleft())
-                else:
-                    worker.close()
-            elif "error" in message:
-                worker.error = message["error"]
-    finally:
-        for worker in workers:
+class WorkerPool:
+    """``size`` worker processes, started at once so that they load while the caller builds its
+    comparison; each builds the plan with ``plan_function`` (``MODULE:FUNCTION``) from ``options``
+    (JSON-able), as the caller built its own. ``run`` hands them units; every worker has ended when
+    ``run`` returns or raises, or when the pool closes (a ``with`` block's end)."""
+
+    def __init__(self, plan_function: str, options: dict, size: int) -> None:
+        self.events: queue.Queue = queue.Queue()
+        self.workers: list[_Worker] = []
+        try:
+            for number in range(size):
+                self.workers.append(_Worker(number, {"plan": plan_function, "options": options}, self.events))
+        except BaseException:
+            self.close()
+            raise
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End every worker (stdin closed, then SIGTERM and SIGKILL for one still running)."""
+        for worker in self.workers:
             worker.close()
-        for worker in workers:
+        for worker in self.workers:
             worker.stop()
+
+    def run(self, units: list[dict], on_episode: Callable[[int, int, dict], None]) -> None:
+        """Run every unit message of ``units``, the next to whichever worker finishes one;
+        ``on_episode(unit, index, episode message)`` for each trial as it finishes. Raises
+        ``WorkerFailed`` when a worker fails or dies; KeyboardInterrupt passes through."""
+        todo = deque(units)
+        try:
+            busy = self.workers[:len(units)]
+            for worker in self.workers[len(units):]:
+                worker.close()  # more workers than units
+            for worker in busy:
+                worker.give(todo.popleft())
+            running = len(self.workers)
+            while running:
+                try:
+                    number, line = self.events.get(timeout=1.0)
+                except queue.Empty:
+                    continue
+                worker = self.workers[number]
+                if line is None:  # its stdout closed: it ended
+                    running -= 1
+                    status = worker.proc.wait()
+                    if worker.unit is not None:
+                        raise WorkerFailed(worker.unit, worker.error or f"its process ended (status {status})")
+                    continue
+                try:
+                    message = json.loads(line)
+                except ValueError:
+                    raise WorkerFailed(worker.unit if worker.unit is not None else -1,
+                                       f"it wrote a line that is not a message: {line[:200]!r}") from None
+                if "episode" in message:
+                    on_episode(message["unit"], message["index"], message["episode"])
+                elif message.get("done"):
+                    worker.unit = None
+                    if todo:
+                        worker.give(todo.popleft())
+                    else:
+                        worker.close()
+                elif "error" in message:
+                    worker.error = message["error"]
+        finally:
+            self.close()
 
 
 def _die_with(parent: int) -> None:
@@ -395,6 +427,19 @@ def run_unit(plan: ComparisonPlan, message: dict, send: Callable[[dict], None]) 
                         mcap=plan.mcap, recorder=plan.recorder, mcap_agent=message["mcap_agent"])
 
 
+def _warm(job: dict) -> ComparisonPlan | None:
+    """The job's plan, with each agent made once, while the parent still builds its comparison (a
+    policy's first load in a process runs its checks); None where that fails: the first unit makes
+    it again and reports what fails."""
+    try:
+        plan = _plan_function(job["plan"])(job["options"])
+        for spec in plan.agents:
+            plan.agent_of(spec)
+    except Exception:  # noqa: BLE001 - reported by the unit that needs it
+        return None
+    return plan
+
+
 def serve() -> int:
     """A worker's life: the job, then units until stdin closes (``os._exit`` there, mid-unit or not)."""
     channel = os.fdopen(os.dup(1), "w", buffering=1)  # the parent's pipe: messages only
@@ -415,7 +460,7 @@ def serve() -> int:
     threading.Thread(target=read, daemon=True).start()
     job = json.loads(lines.get())
     _die_with(job["parent"])
-    plan = None
+    plan = _warm(job)
     while True:
         message = json.loads(lines.get())
         try:
