@@ -196,7 +196,8 @@ def test_an_artefacts_rescue_settings_reach_its_rescue_wherever_it_drives_and_ba
     assert rescue_settings(str(artefact)) is None, "a broken file is the policy loader's to report"
     meta.write_text(json.dumps({"deploy": "+rescue+shield"}))
     assert rescue_settings(str(artefact)) is None and make_agent(str(artefact), cfg, load)[1].policy.config == RescueConfig()
-    for settings, message in (({"rescue": {"stall_step": 10}}, "deploy_settings.rescue: no setting 'stall_step'; settings: max_steps"),
+    for settings, message in (({"rescue": {"stall_step": 10}},
+                               "deploy_settings.rescue: no setting 'stall_step'; settings: max_steps"),
                               ({"shield": {}}, "at most the key 'rescue'"),
                               ({"rescue": {"stall_steps": 0}}, "stall_steps must be a whole number")):
         meta.write_text(json.dumps({"deploy": "+rescue+shield", "deploy_settings": settings}))
