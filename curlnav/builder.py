@@ -123,7 +123,7 @@ class D4PGBuilder:
         """The training environment (episodes end at a base collision). On the experiment's own
         world, the evaluation protocol's held-out pairs are never drawn for training
         (``excluded_pairs``: those keys when the caller already has them, else drawn here)."""
-        from curlnav.worlds.heldout import check_training_world
+        from curlnav.worlds.core.heldout import check_training_world
 
         check_training_world(world if world is not None else self.config.curriculum.world)  # never a held-out seed
         from curlnav.sim import NamoEnv  # here: the learner and the replay need no simulator

@@ -90,8 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     from curlnav.bus.service import ConfigMismatch
     from curlnav.bus.transport import RouterUnreachable
     from curlnav.policy import ArtefactError
-    from curlnav.worlds.metrics import MetricsError
-    from curlnav.worlds.world import WorldError
+    from curlnav.worlds.core.world import WorldError
+    from curlnav.worlds.difficulty.metrics import MetricsError
 
     try:
         return int(args.func(args) or 0)

@@ -27,7 +27,7 @@ A world entry may be a distribution of generated worlds instead of one world (is
 ``{family: barn-3x3, seeds: [0, 99], params: {fill_pct: [0.1, 0.3]}, every: 4}`` or
 ``t-maze-doors:0-99``. Actors draw a world of it per episode (``curlnav.worlds.distribution``);
 the curriculum counts it as one task under its key. Seeds of 100 and above are held out
-(``curlnav.worlds.heldout``): a stage or ``evaluate`` target that names one is refused at load.
+(``curlnav.worlds.core.heldout``): a stage or ``evaluate`` target that names one is refused at load.
 ``check_curriculum`` checks a distribution's first world (its sub-step pairs, if any).
 
 Options beyond the paper (each one off unless the file sets it):
@@ -208,9 +208,9 @@ def load_curriculum(path: str | Path) -> Curriculum:
 def _stage_world(path: Path, where: str, world: str | dict) -> str:
     """A stage's world entry as the name actors are assigned: a world file relative to the
     curriculum, a built-in name, ``FAMILY:SEED``, or a distribution's canonical key. Held-out
-    seeds (``curlnav.worlds.heldout``) are refused: nobody trains or tunes on them."""
+    seeds (``curlnav.worlds.core.heldout``) are refused: nobody trains or tunes on them."""
+    from curlnav.worlds.core.heldout import is_held_out
     from curlnav.worlds.distribution import DistributionError, WorldDistribution, is_distribution
-    from curlnav.worlds.heldout import is_held_out
 
     try:
         if isinstance(world, dict):
@@ -254,7 +254,7 @@ def check_curriculum(curriculum: Curriculum, source: str | Path = "") -> None:
     world of every stage loads, and every sub-step pair exists in each world of its stage.
     Raises ``CurriculumError`` (one line naming the file, stage and world) otherwise."""
     from curlnav.worlds.builtin import get_world
-    from curlnav.worlds.world import WorldError
+    from curlnav.worlds.core.world import WorldError
 
     where = f"{source or curriculum.name}"
     extra = [w for w, _ in curriculum.evaluate if all(w not in s.worlds for s in curriculum.stages)]

@@ -2,7 +2,7 @@
 """The BARN suite's scores over the worlds' difficulty: a PNG and a Markdown table.
 
 Reads ``barn-trials.csv`` (``curlnav eval ... --suite barn --out DIR``); the difficulty of a world is
-BARN's five metrics (``curlnav.worlds.metrics.barn_metrics`` on its grid and its reference path),
+BARN's five metrics (``curlnav.worlds.difficulty.metrics.barn_metrics`` on its grid and its reference path),
 z-scored over the 300 worlds and combined as ``distance + visibility + characteristic dimension``
 taken negatively plus ``dispersion + tortuosity`` (higher: harder; BARN publishes no weights).
 
@@ -18,8 +18,8 @@ from collections import defaultdict
 
 import numpy as np
 
-from curlnav.worlds import barn
-from curlnav.worlds.metrics import barn_metrics
+from curlnav.worlds.barn_challenge import barn
+from curlnav.worlds.difficulty.metrics import barn_metrics
 
 SIGNS = np.array([-1.0, -1.0, 1.0, -1.0, 1.0])  # distance, visibility, dispersion, char. dimension, tortuosity
 BINS = 5

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Worlds that look like SLAM maps: each source world beside its degraded version (a PNG).
 
-Left, the source as its generator makes it; middle, the family's world (``curlnav.worlds.degrade``),
+Left, the source as its generator makes it; middle, the family's world (``curlnav.worlds.procedural.degrade``),
 drawn as a ROS map is (free white, occupied black, unknown grey), with its doors, balls, starts
 and goals; right, 6 m x 4 m of it round a door, holes in the walls red. Prints each world's
 generation time and what the degradations changed.
@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from curlnav.worlds.degrade import degrade_layers, wall_thickness
 from curlnav.worlds.families import generate
-from curlnav.worlds.namo import namo_indoor, namo_office
-from curlnav.worlds.slam_like import SLAM_RESOLUTION, floor_plan
+from curlnav.worlds.procedural.degrade import degrade_layers, wall_thickness
+from curlnav.worlds.procedural.namo import namo_indoor, namo_office
+from curlnav.worlds.procedural.slam_like import SLAM_RESOLUTION, floor_plan
 
 EXAMPLES = [  # (title of the source, source, family, seed)
     ("namo-office:4", lambda: namo_office(4), "slam-namo-office", 4),
@@ -30,7 +30,7 @@ EXAMPLES = [  # (title of the source, source, family, seed)
 
 def draw_slam_map(ax, world, unknown: np.ndarray) -> None:
     """``world`` as a ROS map: free white, occupied black, unknown grey; then its objects."""
-    from curlnav.worlds.picture import draw_world
+    from curlnav.worlds.core.picture import draw_world
 
     draw_world(ax, world, pairs=world.pairs)
     width, height = world.size
@@ -45,7 +45,7 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from curlnav.worlds.picture import draw_world
+    from curlnav.worlds.core.picture import draw_world
 
     out = sys.argv[1] if len(sys.argv) > 1 else "docs/images/slam-like-worlds.png"
     fig, axes = plt.subplots(len(EXAMPLES), 3, figsize=(20, 5.0 * len(EXAMPLES)), dpi=90,

@@ -30,7 +30,7 @@ from curlnav.config import ExperimentConfig  # noqa: E402
 from curlnav.evaluation.barn import jackal_env_config, policy_loader  # noqa: E402
 from curlnav.evaluation.compare import Comparison  # noqa: E402
 from curlnav.learner.artefact import load_policy  # noqa: E402
-from curlnav.worlds.barn_course import barn_course  # noqa: E402
+from curlnav.worlds.barn_challenge.barn_course import barn_course  # noqa: E402
 
 
 def main() -> int:

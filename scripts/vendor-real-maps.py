@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Vendor the real buildings' SLAM maps of ``curlnav.worlds.real_maps.MAPS`` into ``curlnav/worlds/data/real/``.
+"""Vendor the real buildings' SLAM maps of ``curlnav.worlds.real.real_maps.MAPS`` into ``curlnav/worlds/data/real/``.
 
 For every map, from its repository at its commit (``git cat-file``, bytes as stored):
 
@@ -12,7 +12,7 @@ For every map, from its repository at its commit (``git cat-file``, bytes as sto
 - ``<name>/SOURCE.md`` (``--update`` only): repository, commit and date, paths, licence, why the map is real;
 - ``MANIFEST.sha256`` (``--update`` only): the sha256 of every original file (``<name>/<file>``, the image as the PGM).
 
-Each map is loaded once written (``curlnav.worlds.real_maps.map_world``), and the suite's pairs and
+Each map is loaded once written (``curlnav.worlds.real.real_maps.map_world``), and the suite's pairs and
 balls drawn (``task``), so a map that cannot hold the suite stops the script.
 
 Every map is fetched and every fetched file checked against the committed ``MANIFEST.sha256`` before
@@ -25,7 +25,7 @@ read through an empty repository of this script's whose ``objects/info/alternate
 mirror's object folder (the mirror's config, refs, replace refs, hooks and grafts are never read, so
 no ``gpg.program``, pager or fsmonitor it names runs), with ``git cat-file`` alone (plumbing that
 calls no helper), replace refs off, the system's and the user's git config ignored. A blob is sized
-before it is read: a map image above ``curlnav.worlds.real_maps.MAX_IMAGE_BYTES``, a YAML or licence
+before it is read: a map image above ``curlnav.worlds.real.real_maps.MAX_IMAGE_BYTES``, a YAML or licence
 above ``MAX_TEXT_BYTES`` is refused (a 3.5 GB blob in a 3.7 MB mirror took 2.7 GB, then MemoryError).
 Each refusal (no git directory, a missing or corrupt object, a blob too large, a git failure with
 git's own words, bytes not in the manifest) is one line on stderr and exit 2, with nothing written.
@@ -55,9 +55,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from curlnav.files import shown  # noqa: E402
-from curlnav.worlds import real_maps  # noqa: E402
-from curlnav.worlds.real_maps import MAPS, MAX_IMAGE_BYTES, MAX_TEXT_BYTES, RealMap  # noqa: E402
-from curlnav.worlds.world import WorldError  # noqa: E402
+from curlnav.worlds.core.world import WorldError  # noqa: E402
+from curlnav.worlds.real import real_maps  # noqa: E402
+from curlnav.worlds.real.real_maps import MAPS, MAX_IMAGE_BYTES, MAX_TEXT_BYTES, RealMap  # noqa: E402
 
 GIT_TIMEOUT_S = 300  # one git command, a clone's fetch of a blob on demand included
 _COMMITTER = re.compile(rb"committer .*> (\d{1,12}) ([+-])(\d\d)(\d\d)")

@@ -12,7 +12,7 @@ from conftest import assert_one_line_error, run_curlnav
 
 from curlnav.config import ExperimentConfig
 from curlnav.evaluation.barn import BarnTrial, check_robot, jackal_env_config, summarise
-from curlnav.worlds import barn
+from curlnav.worlds.barn_challenge import barn
 
 LAST_LINE = re.compile(r"^barn: (\S+) success (\d+\.\d)%, collisions (\d+\.\d)%, timeouts (\d+\.\d)%, "
                        r"mean time (\d+\.\d|-) s, score (\d\.\d{4}) over (\d+) worlds; senses (.+)$")

@@ -13,9 +13,9 @@ from curlnav.cli import main
 from curlnav.evaluation.compare import Episode, summarise
 from curlnav.layout import ObservationLayout
 from curlnav.sim import EnvConfig
+from curlnav.worlds.difficulty.rank import path_points, world_paths
 from curlnav.worlds.families import FAMILIES, generate
-from curlnav.worlds.namo import NAMO_FAMILIES, door_crossings
-from curlnav.worlds.rank import path_points, world_paths
+from curlnav.worlds.procedural.namo import NAMO_FAMILIES, door_crossings
 
 T_MAZE = Path(__file__).resolve().parent.parent / "scheduler" / "curricula" / "worlds" / "t-maze-0.yaml"
 PLANNER = "oracle"  # `planner` is the old name of the oracle, still accepted

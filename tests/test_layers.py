@@ -295,3 +295,43 @@ def test_sub_packages_are_listed_for_installation():
     """Every package folder is in pyproject.toml's packages: a regular install (the images') has it."""
     folders = {m for m, path in modules().items() if path.name == "__init__.py"}
     assert sorted(folders - set(SETUPTOOLS["packages"])) == []
+
+
+#: ``curlnav.worlds`` inside, bottom first: its sub-packages, then the modules at its top (``top``:
+#: the family registry, levels, distributions, the resolver, the commands); its face sits above them all
+WORLDS_ORDER = ["core", "difficulty", "procedural", "real", "barn_challenge", "top"]
+
+
+def worlds_room(module: str) -> str | None:
+    """``curlnav.worlds.core.world`` -> ``core``; ``curlnav.worlds.builtin`` -> ``top``;
+    ``curlnav.worlds`` -> ``face``; outside -> None."""
+    parts = module.split(".")
+    if parts[:2] != ["curlnav", "worlds"]:
+        return None
+    if len(parts) == 2:
+        return "face"
+    return parts[2] if (ROOT / "curlnav" / "worlds" / parts[2]).is_dir() else "top"
+
+
+def test_the_worlds_sub_packages_import_only_those_below_them():
+    """Inside ``curlnav.worlds`` a sub-package imports only those below it (``WORLDS_ORDER``): the
+    world model imports no metric, a generator nothing of the real maps or the BARN Challenge,
+    nothing imports the package's face, and no two make a circle."""
+    upward, graph = [], {}
+    for module, path in modules().items():
+        a = worlds_room(module)
+        if a is None:
+            continue
+        for line, name in imports(module):
+            target = target_module(name)
+            b = worlds_room(target) if target else None
+            if b is None or a == b:
+                continue
+            graph.setdefault(a, set()).add(b)
+            where = f"{path.relative_to(ROOT)}:{line} imports {name}"
+            if b == "face" or (a != "face" and WORLDS_ORDER.index(b) > WORLDS_ORDER.index(a)):
+                upward.append(f"{a} -> {b} (above it): {where}")
+    assert not upward, "\n".join(upward)
+    assert strongly_connected(graph) == []
+    rooms = {worlds_room(m) for m in modules()} - {None, "face"}
+    assert sorted(rooms - set(WORLDS_ORDER)) == [], "place each new sub-package of curlnav.worlds in WORLDS_ORDER"

@@ -14,10 +14,10 @@ from conftest import assert_one_line_error, run_curlnav
 
 from curlnav.sim.config import ConfigError, RobotConfig, SensorNoiseConfig
 from curlnav.sim.robots import LIDAR_KEYS
-from curlnav.worlds import barn
-from curlnav.worlds.real_maps import MAX_PACKED_BYTES
-from curlnav.worlds.sdf import MAX_SDF_BYTES, SdfError, read_sdf, world_from_sdf
-from curlnav.worlds.world import load_world
+from curlnav.worlds.barn_challenge import barn
+from curlnav.worlds.core.world import load_world
+from curlnav.worlds.real.real_maps import MAX_PACKED_BYTES
+from curlnav.worlds.real.sdf import MAX_SDF_BYTES, SdfError, read_sdf, world_from_sdf
 
 pytestmark = pytest.mark.slow  # each test runs the command line in a process of its own
 

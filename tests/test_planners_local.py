@@ -17,7 +17,7 @@ from curlnav.nav.controllers.local import DynamicWindowPlanner, TareLocalPlanner
 from curlnav.nav.global_planners.global_plan import GlobalPlanAgent
 from curlnav.nav.global_planners.oracle import GridPlanner, StaticMapPlanner
 from curlnav.sim import NamoEnv, StartGoal, World
-from curlnav.worlds.pairs import clearance_map
+from curlnav.worlds.core.pairs import clearance_map
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -18,7 +18,7 @@ from curlnav.nav.recovery.manoeuvre import ManoeuvreConfig, ManoeuvreDriver, Man
 from curlnav.nav.recovery.rescue import PlanTracker, RescueConfig, RescuedPolicy
 from curlnav.nav.safety.shield import ShieldedPolicy, wall_tree
 from curlnav.sim import StartGoal, World, get_world
-from curlnav.worlds.pairs import clearance_map
+from curlnav.worlds.core.pairs import clearance_map
 
 #: a pose in the validation world ``slam-office:91`` (seed 91: validation, never an evaluation
 #: suite's) where ``policies/namo-robust`` behind the plan stood for 50 s (session 11): a speck of

@@ -12,8 +12,8 @@ import pytest
 from curlnav.evaluation.protocol import evaluate, evaluation_config, held_out_pairs
 from curlnav.nav.global_planners.oracle import GridPlanner, StaticMapPlanner, astar
 from curlnav.sim import NamoEnv, get_world
-from curlnav.worlds.metrics import GridGraph
-from curlnav.worlds.namo import door_crossings
+from curlnav.worlds.difficulty.metrics import GridGraph
+from curlnav.worlds.procedural.namo import door_crossings
 
 T_MAZE = Path(__file__).resolve().parent.parent / "scheduler" / "curricula" / "worlds" / "t-maze-0.yaml"
 

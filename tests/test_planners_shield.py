@@ -16,7 +16,7 @@ from curlnav.nav.geometry import goal_in_robot_frame
 from curlnav.nav.global_planners.scan_map import ScanMapConfig, ScanMapPlanAgent
 from curlnav.nav.safety.shield import ShieldConfig, ShieldedPolicy, footprint_clearance
 from curlnav.sim import NamoEnv
-from curlnav.worlds.pairs import clearance_map
+from curlnav.worlds.core.pairs import clearance_map
 
 
 class GoalSeeker:

@@ -11,7 +11,7 @@ import pytest
 from curlnav.run.experiment import BUDGETS, fig4_plan, write_experiment_report
 from curlnav.run.record import EVAL_FIELDS, CsvLog
 from curlnav.sim import get_world
-from curlnav.worlds.rank import rank, write_outputs
+from curlnav.worlds.difficulty.rank import rank, write_outputs
 
 
 def _eval_rows(run_dir, successes):

@@ -19,9 +19,9 @@ from curlnav.sim.env import NamoEnv
 from curlnav.sim.geometry import face_segments, merge_cells_into_rectangles, wall_faces
 from curlnav.sim.scene import GROUP_STATIC, RAY_MASK, Scene, StaticGeometryError
 from curlnav.worlds.builtin import get_world
+from curlnav.worlds.core.pairs import footprint_free
+from curlnav.worlds.core.world import RandomPairs, StartGoal, World
 from curlnav.worlds.families import FAMILIES, generate
-from curlnav.worlds.pairs import footprint_free
-from curlnav.worlds.world import RandomPairs, StartGoal, World
 
 CFG = EnvConfig()
 POSES_PER_WORLD = 12
@@ -295,7 +295,7 @@ def test_building_world_after_world_keeps_no_memory_behind():
     import gc
     import tracemalloc
 
-    from curlnav.worlds.barn_course import barn_course
+    from curlnav.worlds.barn_challenge.barn_course import barn_course
 
     env = NamoEnv(barn_course(0), CFG)
     try:

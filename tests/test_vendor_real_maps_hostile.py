@@ -1,7 +1,7 @@
 """Issue 55: ``scripts/vendor-real-maps.py --mirrors DIR`` against hostile git mirrors. A mirror is
 files someone else made: git runs nothing its config names (a ``gpg.program`` ran through
 ``log.showSignature`` and a replace ref), follows none of its replace refs, reads no blob above the
-caps of ``curlnav.worlds.real_maps`` (a 3.5 GB blob took 2.7 GB, then MemoryError), and every
+caps of ``curlnav.worlds.real.real_maps`` (a 3.5 GB blob took 2.7 GB, then MemoryError), and every
 refusal is one line, exit 2, with nothing written (a later map's failure left the earlier maps
 written).
 
@@ -24,8 +24,8 @@ from pathlib import Path
 
 import pytest
 
-from curlnav.worlds import real_maps
-from curlnav.worlds.real_maps import RealMap
+from curlnav.worlds.real import real_maps
+from curlnav.worlds.real.real_maps import RealMap
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "scripts" / "vendor-real-maps.py"

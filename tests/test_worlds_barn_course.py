@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from curlnav.worlds import barn
-from curlnav.worlds.barn_course import _challenge_grids, barn_course, passable
+from curlnav.worlds.barn_challenge import barn
+from curlnav.worlds.barn_challenge.barn_course import _challenge_grids, barn_course, passable
 from curlnav.worlds.distribution import DistributionError, WorldDistribution
 from curlnav.worlds.families import generate
 
@@ -47,7 +47,7 @@ def test_no_training_course_is_a_challenge_world_and_every_course_is_passable():
 
 def test_the_test_set_is_never_drawn_even_when_the_automaton_makes_it(monkeypatch):
     """Force the automaton to give a challenge grid first: the course takes the next draw."""
-    import curlnav.worlds.barn_course as course
+    import curlnav.worlds.barn_challenge.barn_course as course
 
     draws = iter([barn.grid(17), barn.grid(17), np.pad(np.zeros((28, 30), bool), ((1, 1), (0, 0)),
                                                        constant_values=True)])

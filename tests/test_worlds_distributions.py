@@ -13,8 +13,8 @@ from conftest import episode_loop, one_episode
 from curlnav.config import CurriculumConfig, ExperimentConfig
 from curlnav.scheduler.curriculum import CurriculumError, check_curriculum, load_curriculum
 from curlnav.sim import NamoEnv, get_world
+from curlnav.worlds.core.heldout import HELD_OUT_FROM, HeldOutSeedError, held_out_seeds, training_seeds
 from curlnav.worlds.distribution import DistributionError, WorldDistribution, WorldDraws
-from curlnav.worlds.heldout import HELD_OUT_FROM, HeldOutSeedError, held_out_seeds, training_seeds
 
 BARN = "{family: barn-3x3, seeds: [0, 99], params: {fill_pct: [0.10, 0.30], smooth_iter: [3, 4]}, every: 4}"
 TINY = "t-maze:0-9(every=2,pool=2)"  # t-maze worlds build in milliseconds

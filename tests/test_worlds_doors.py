@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from curlnav.sim import NamoEnv, get_world, load_world, save_world
+from curlnav.worlds.difficulty.rank import path_points, world_paths
 from curlnav.worlds.families import generate
-from curlnav.worlds.namo import closed_door_grid, door_crossings, opening_direction, reachable
-from curlnav.worlds.rank import path_points, world_paths
+from curlnav.worlds.procedural.namo import closed_door_grid, door_crossings, opening_direction, reachable
 
 
 def test_a_closed_door_blocks_the_corridor_it_hangs_in():

@@ -12,9 +12,7 @@ import pytest
 
 from curlnav.bench.metrics import barn_parameter_grid
 from curlnav.sim import StartGoal, World
-from curlnav.worlds.families import FAMILIES, generate
-from curlnav.worlds.generators import barn_cellular_automaton, cspace
-from curlnav.worlds.metrics import (
+from curlnav.worlds.difficulty.metrics import (
     GridGraph,
     MetricMaps,
     MetricsError,
@@ -27,7 +25,9 @@ from curlnav.worlds.metrics import (
     tortuosity,
     visibility_map,
 )
-from curlnav.worlds.rank import measure, rank
+from curlnav.worlds.difficulty.rank import measure, rank
+from curlnav.worlds.families import FAMILIES, generate
+from curlnav.worlds.procedural.generators import barn_cellular_automaton, cspace
 
 S2 = math.sqrt(2)
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from curlnav.worlds import levels as levels_module
+from curlnav.worlds.difficulty.rank import rank
 from curlnav.worlds.distribution import DistributionError, WorldDistribution, WorldDraws
 from curlnav.worlds.levels import LevelSampler, difficulty_order
-from curlnav.worlds.rank import rank
 
 TMAZE = "t-maze-doors:0-19(levels=plr)"  # t-maze-doors worlds build and measure in milliseconds
 

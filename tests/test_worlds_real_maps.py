@@ -24,11 +24,11 @@ from scipy import ndimage
 
 from curlnav.cli import main
 from curlnav.evaluation.compare import SUITES
-from curlnav.worlds import real_maps
 from curlnav.worlds.builtin import get_world
-from curlnav.worlds.pairs import FOOTPRINT_MARGIN, HUSKY_FOOTPRINT, footprint_free
-from curlnav.worlds.rank import path_points, world_paths
-from curlnav.worlds.world import WorldError, map_server_values
+from curlnav.worlds.core.pairs import FOOTPRINT_MARGIN, HUSKY_FOOTPRINT, footprint_free
+from curlnav.worlds.core.world import WorldError, map_server_values
+from curlnav.worlds.difficulty.rank import path_points, world_paths
+from curlnav.worlds.real import real_maps
 
 #: kept apart for an independent check of the suite: no map may come from them
 FORBIDDEN = ("turtlebot/turtlebot_apps", "utexas-bwi/bwi_common", "mit-racecar/racecar_simulator",
@@ -112,7 +112,7 @@ def test_an_unknown_real_map_is_one_line_naming_the_maps():
 
 # -- the suite -------------------------------------------------------------------------------------
 def check_task(world) -> None:
-    """The suite's promises for one task world (see curlnav.worlds.real_maps)."""
+    """The suite's promises for one task world (see curlnav.worlds.real.real_maps)."""
     assert [p.name for p in world.pairs] == [f"p{i + 1}" for i in range(real_maps.PAIRS)]
     assert len(world.balls) == real_maps.BALLS and all(b.region is None for b in world.balls)
     free, graph = real_maps.cspace_graph(world)
@@ -178,7 +178,7 @@ def test_eval_offers_the_real_suite_and_refuses_to_change_it(capsys):
 def test_nobody_trains_or_tunes_on_the_real_suites_maps(tmp_path):
     """A real map as the training world, a curriculum stage or a validation target is refused."""
     from curlnav.scheduler.curriculum import CurriculumError, load_curriculum
-    from curlnav.worlds.heldout import HeldOutSeedError, check_training_world
+    from curlnav.worlds.core.heldout import HeldOutSeedError, check_training_world
 
     with pytest.raises(HeldOutSeedError, match="real:willow-garage is a map of the real suite"):
         check_training_world("real:willow-garage")

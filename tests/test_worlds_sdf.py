@@ -11,9 +11,9 @@ import pytest
 from conftest import assert_one_line_error, run_curlnav
 from scipy import ndimage
 
-from curlnav.worlds import barn
-from curlnav.worlds.sdf import SdfError, world_from_sdf
-from curlnav.worlds.world import load_world
+from curlnav.worlds.barn_challenge import barn
+from curlnav.worlds.core.world import load_world
+from curlnav.worlds.real.sdf import SdfError, world_from_sdf
 
 GROUND = """<model name='ground_plane'><static>1</static><link name='link'><collision name='collision'>
 <geometry><plane><normal>0 0 1</normal><size>100 100</size></plane></geometry></collision></link></model>"""
@@ -155,7 +155,7 @@ def test_a_malformed_file_is_refused_in_one_line(tmp_path, text, fragment):
 
 def expected_grid(n: int, world) -> np.ndarray:
     """The BARN lattice drawn on ``world``'s grid: a cell is blocked when its centre lies within
-    0.075 m of a lattice cylinder's centre (written here, apart from curlnav.worlds.sdf)."""
+    0.075 m of a lattice cylinder's centre (written here, apart from curlnav.worlds.real.sdf)."""
     rows, cols = world.occupancy.shape
     xs = world.origin[0] + (np.arange(cols) + 0.5) * world.resolution
     ys = world.origin[1] + (np.arange(rows) + 0.5) * world.resolution
@@ -205,7 +205,7 @@ def test_a_barn_world_through_the_command_line(tmp_path):
 def test_the_vendored_grids_have_the_barn_sets_published_difficulty():
     """BARN's five metrics on the 300 grids (in the path files' orientation) and their reference
     paths: the ranges recomputed from the BARN set (docs: difficulty metrics), to two decimals."""
-    from curlnav.worlds.metrics import barn_metrics
+    from curlnav.worlds.difficulty.metrics import barn_metrics
 
     metrics = np.array([barn_metrics(barn.grid(n), barn.path_cells(n)) for n in range(barn.COUNT)])
     published = {"distance": (1.18, 2.13, 6.96), "visibility": (2.92, 5.28, 12.16), "dispersion": (0.65, 4.51, 6.13),

@@ -11,7 +11,7 @@ from conftest import assert_one_line_error, run_capped
 from test_worlds_sdf import box, cylinder, sdf
 
 from curlnav.cli import main
-from curlnav.worlds.sdf import SdfError, world_from_sdf
+from curlnav.worlds.real.sdf import SdfError, world_from_sdf
 
 MESH = ("<model name='{name}'><static>1</static><link name='l'><collision name='c'><geometry><mesh><uri>m.dae</uri>"
         "</mesh></geometry></collision></link></model>")
@@ -117,7 +117,7 @@ def test_the_input_is_never_overwritten_by_its_own_output(tmp_path, capsys, name
 
 
 def test_a_failed_write_leaves_nothing_behind(tmp_path, capsys, monkeypatch):
-    import curlnav.worlds.world as world_module
+    import curlnav.worlds.core.world as world_module
 
     def full_disk(*args, **kwargs):
         raise OSError(28, "No space left on device")  # the image written, then the disk fills

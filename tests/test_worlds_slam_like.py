@@ -1,4 +1,4 @@
-"""Worlds that look like SLAM maps (issue 37): ``curlnav.worlds.degrade`` and the ``slam-floor`` and
+"""Worlds that look like SLAM maps (issue 37): ``curlnav.worlds.procedural.degrade`` and the ``slam-floor`` and
 ``slam-namo-*`` families. The truths they are held to: the C-space grid searched by Dijkstra
 (pairs connected with the doors open, none round the closed doors), the source world resampled
 (what was removed and what added), obstacle runs counted by a plain loop, and the simulator."""
@@ -12,15 +12,15 @@ import pytest
 from scipy import ndimage
 
 from curlnav.sim import NamoEnv
-from curlnav.worlds.degrade import MAX_GAP, degrade, degrade_layers, obstacle_runs, wall_thickness
+from curlnav.worlds.core.heldout import HeldOutSeedError, check_training_world
+from curlnav.worlds.core.pairs import HUSKY_FOOTPRINT, check_pairs_possible, clearance_map, footprint_free
+from curlnav.worlds.difficulty.metrics import inflate
+from curlnav.worlds.difficulty.rank import CSPACE_RADIUS_M, world_paths
 from curlnav.worlds.distribution import DistributionError, WorldDistribution, WorldDraws
 from curlnav.worlds.families import generate
-from curlnav.worlds.heldout import HeldOutSeedError, check_training_world
-from curlnav.worlds.metrics import inflate
-from curlnav.worlds.namo import door_segment, namo_auditorium, namo_indoor, namo_office, reachable
-from curlnav.worlds.pairs import HUSKY_FOOTPRINT, check_pairs_possible, clearance_map, footprint_free
-from curlnav.worlds.rank import CSPACE_RADIUS_M, world_paths
-from curlnav.worlds.slam_like import SLAM_RESOLUTION, floor_plan
+from curlnav.worlds.procedural.degrade import MAX_GAP, degrade, degrade_layers, obstacle_runs, wall_thickness
+from curlnav.worlds.procedural.namo import door_segment, namo_auditorium, namo_indoor, namo_office, reachable
+from curlnav.worlds.procedural.slam_like import SLAM_RESOLUTION, floor_plan
 
 SOURCES = {"slam-floor": floor_plan, "slam-namo-office": namo_office, "slam-namo-indoor": namo_indoor,
            "slam-namo-auditorium": namo_auditorium}

@@ -16,8 +16,8 @@ from PIL import Image
 
 from curlnav.cli import main
 from curlnav.sim import NamoEnv, WorldError, load_world, save_world
-from curlnav.worlds.pairs import PairSampler, check_pairs_possible, footprint_cells, sample_pairs
-from curlnav.worlds.world import map_server_values
+from curlnav.worlds.core.pairs import PairSampler, check_pairs_possible, footprint_cells, sample_pairs
+from curlnav.worlds.core.world import map_server_values
 
 ROOT = Path(__file__).resolve().parents[1]
 BARN_3X3 = ROOT / "scheduler" / "curricula" / "worlds" / "barn-3x3-0.yaml"
@@ -189,8 +189,8 @@ def test_drawn_starts_leave_the_robot_footprint_free_at_its_yaw():
 
 # -- balls on shortest paths -------------------------------------------------------------
 def test_scatter_balls_puts_n_balls_on_free_cells_near_the_shortest_paths(tmp_path):
-    from curlnav.worlds.rank import path_points, world_paths
-    from curlnav.worlds.scatter import scatter_balls
+    from curlnav.worlds.difficulty.rank import path_points, world_paths
+    from curlnav.worlds.procedural.scatter import scatter_balls
 
     pixels = walled_room(60, 120)
     pixels[:40, 60:62] = 0

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from curlnav.sim.config import EnvConfig
-    from curlnav.worlds.world import World
+    from curlnav.worlds.core.world import World
 
 HELP = "environment steps/s on one core vs a bare PyBullet loop"
 DEFAULT_WORLDS = ("bench-36m", "barn-3x3:0", "slam-office:0")
@@ -69,7 +69,7 @@ def _pin_to_one_core() -> str:
 def _start_pose(world: World, cfg: EnvConfig) -> tuple[float, float, float]:
     import numpy as np
 
-    from curlnav.worlds.pairs import check_pairs_possible
+    from curlnav.worlds.core.pairs import check_pairs_possible
 
     if world.pairs:
         pair = world.pairs[0]

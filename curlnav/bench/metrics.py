@@ -34,9 +34,9 @@ def barn_parameter_grid(per_setting: int = 25) -> tuple[np.ndarray, list[int]]:
     """Metrics of ``per_setting`` worlds for each fill_pct x smooth_iter setting of BARN's set."""
     import numpy as np
 
-    from curlnav.worlds.generators import barn
-    from curlnav.worlds.metrics import MetricMaps
-    from curlnav.worlds.rank import world_paths
+    from curlnav.worlds.difficulty.metrics import MetricMaps
+    from curlnav.worlds.difficulty.rank import world_paths
+    from curlnav.worlds.procedural.generators import barn
 
     rows, lengths = [], []
     for fi, fill in enumerate((0.15, 0.20, 0.25, 0.30)):
@@ -52,9 +52,9 @@ def barn_parameter_grid(per_setting: int = 25) -> tuple[np.ndarray, list[int]]:
 def run_metrics_bench(per_setting: int = 25, repeats: int = 5) -> None:
     import numpy as np
 
-    from curlnav.worlds.generators import barn_3x3
-    from curlnav.worlds.metrics import METRIC_NAMES
-    from curlnav.worlds.rank import measure
+    from curlnav.worlds.difficulty.metrics import METRIC_NAMES
+    from curlnav.worlds.difficulty.rank import measure
+    from curlnav.worlds.procedural.generators import barn_3x3
 
     print(f"machine: {platform.machine()} cpus={os.cpu_count()} python={platform.python_version()}")
     world = barn_3x3(seed=0, pairs=10)

@@ -1,6 +1,6 @@
 """The BARN Challenge as a suite: ``curlnav eval AGENT... --suite barn [--worlds A-B]``.
 
-The challenge's 300 static worlds (``curlnav.worlds.barn``, vendored), its start, goal, success
+The challenge's 300 static worlds (``curlnav.worlds.barn_challenge.barn``, vendored), its start, goal, success
 radius, time limit, collision rule and score (github.com/Daffan/the-barn-challenge, ``run.py``),
 driven in **curlnav's simulator, not Gazebo**: PyBullet contacts, an exact LiDAR ray cast on the
 occupancy grid (cylinders drawn at 0.025 m), commands at 5 Hz (``control_period``) instead of a
@@ -19,7 +19,7 @@ scan through the ROS 2 node's resampler (``ResampledScanPolicy``).
 Outcome per trial as ``run.py`` decides it: *collided* when the base touched an obstacle (any
 collision ends the trial, and a collision takes precedence over reaching the goal), else
 *succeeded* within ``GOAL_RADIUS`` of the goal before ``TIME_LIMIT``, else *timeout*. Score:
-``success * OT / clip(T, 2 OT, 8 OT)`` (``curlnav.worlds.barn.score``); the mean time is, as the
+``success * OT / clip(T, 2 OT, 8 OT)`` (``curlnav.worlds.barn_challenge.barn.score``); the mean time is, as the
 challenge's ``report_test.py`` takes it, over the worlds with a success.
 """
 
@@ -38,7 +38,7 @@ from curlnav.sim import EnvConfig
 from curlnav.sim.config import RobotConfig
 from curlnav.sim.robots import PROFILES
 from curlnav.sim.robots import check_robot as check_artefact_robot
-from curlnav.worlds import barn
+from curlnav.worlds.barn_challenge import barn
 
 #: the challenge's own move_base DWA in Gazebo, from its README (50 worlds x 10 runs)
 REFERENCE = {"agent": "the challenge's DWA (move_base, Gazebo; its README: 50 worlds x 10 runs)", "success": 0.88,

@@ -93,7 +93,7 @@ def _barn_plan(options: dict, say: Callable[[str], None]):
     from curlnav.config import ExperimentConfig
     from curlnav.evaluation.barn import jackal_env_config
     from curlnav.evaluation.compare import ComparisonPlan
-    from curlnav.worlds import barn
+    from curlnav.worlds.barn_challenge import barn
 
     if options["robot"] not in (None, "jackal"):
         raise ValueError(f"--suite barn drives the Jackal (the challenge's robot); drop --robot {options['robot']}")
@@ -195,7 +195,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         table_ii,
         write_csv,
     )
-    from curlnav.worlds.pairs import check_pairs_possible
+    from curlnav.worlds.core.pairs import check_pairs_possible
 
     args.agents = agent_specs(args)
     options, jobs = _eval_options(args)

@@ -37,8 +37,8 @@ import numpy as np
 from curlnav.evaluation.protocol import EVAL_SEED, StepRecorder, evaluate, held_out_pairs
 from curlnav.nav.global_planners.oracle import GridPlanner, polyline_length
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
-from curlnav.worlds import real_maps
-from curlnav.worlds.pairs import draws_random_pairs
+from curlnav.worlds.core.pairs import draws_random_pairs
+from curlnav.worlds.real import real_maps
 
 DEFAULT_EPISODES = 50  # held-out pairs per world when neither pairs nor episodes are given
 SEED_STRIDE = 100_000  # seed k's episodes place their balls from EVAL_SEED + k * SEED_STRIDE + i
@@ -444,7 +444,7 @@ UNSEEN = Suite(
           "a door; their balls stay put), barn-3x3 at seed 300 (4 held-out pairs x 2 placements of its 8 balls), "
           "slam-office at seed 300 (a 92 m x 72 m SLAM-like floor without balls, 8 held-out pairs 10-20 m apart)")
 #: ``curlnav eval AGENT... --suite real``: nine real buildings as SLAM stacks mapped them, vendored
-#: whole (``curlnav.worlds.real_maps.MAPS``: sources, licences, how unknown cells count); on each, 6 pairs
+#: whole (``curlnav.worlds.real.real_maps.MAPS``: sources, licences, how unknown cells count); on each, 6 pairs
 #: 6-20 m apart (shortest path at most 30 m, within the 60 s limit) and 8 balls on their shortest
 #: paths, all from one seed: 54 trials per agent.
 REAL = Suite(

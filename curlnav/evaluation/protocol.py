@@ -21,7 +21,7 @@ import numpy as np
 from curlnav.nav.roles import EpisodeAgent
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World, get_world
 from curlnav.sim.env import pair_key
-from curlnav.worlds.pairs import draws_random_pairs
+from curlnav.worlds.core.pairs import draws_random_pairs
 
 EVAL_SEED = 1_000_003  # seeds of held-out pairs live far from training seeds
 

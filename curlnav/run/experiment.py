@@ -117,7 +117,7 @@ def prepare_worlds(out: Path, log=say) -> tuple[list[Path], list[Path]]:
 def ranking(out: Path, worlds: list[Path], log=say) -> list[dict]:
     """The five metrics, difficulty and easy/hard class of each Table I world (cached)."""
     from curlnav.sim import get_world
-    from curlnav.worlds.rank import rank, write_outputs
+    from curlnav.worlds.difficulty.rank import rank, write_outputs
 
     path = out / "ranking" / "ranking.json"
     if not path.exists():

@@ -164,7 +164,7 @@ class SerialTrainer:
         """The held-out pairs of every curriculum world that draws random pairs."""
         from curlnav.evaluation.protocol import excluded_keys, held_out_pairs
         from curlnav.sim import get_world
-        from curlnav.worlds.pairs import draws_random_pairs
+        from curlnav.worlds.core.pairs import draws_random_pairs
 
         worlds = {w for s in self.curriculum.curriculum.stages for w in s.worlds}
         worlds |= {w for w, _ in self.curriculum.curriculum.evaluate}

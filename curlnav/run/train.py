@@ -86,8 +86,8 @@ def check_before_start(experiment: ExperimentConfig) -> None:
     (never a held-out seed), that it can draw pairs, and with a curriculum every world of every stage and every named
     sub-step pair."""
     from curlnav.sim import get_world
-    from curlnav.worlds.heldout import check_training_world
-    from curlnav.worlds.pairs import check_pairs_possible
+    from curlnav.worlds.core.heldout import check_training_world
+    from curlnav.worlds.core.pairs import check_pairs_possible
 
     check_training_world(experiment.curriculum.world)  # a held-out FAMILY:SEED: refused before any service starts
     world = get_world(experiment.curriculum.world)

@@ -4,7 +4,7 @@
 configs and worlds of this package and needs no simulator installed."""
 
 from curlnav.worlds.builtin import BUILTIN_WORLDS, get_world
-from curlnav.worlds.world import Ball, Box, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world, save_world
+from curlnav.worlds.core.world import Ball, Box, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world, save_world
 
 from .config import ConfigError, EnvConfig, RewardConfig, RobotConfig, SensorNoiseConfig
 

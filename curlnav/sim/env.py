@@ -47,8 +47,8 @@ from scipy import ndimage
 
 from curlnav.layout import goal_frame
 from curlnav.worlds.builtin import get_world
-from curlnav.worlds.pairs import PairSampler, check_pairs_possible, pair_key  # noqa: F401  (pair_key: public here too)
-from curlnav.worlds.world import StartGoal, World
+from curlnav.worlds.core.pairs import PairSampler, check_pairs_possible, pair_key  # noqa: F401  (pair_key: public here too)
+from curlnav.worlds.core.world import StartGoal, World
 
 from .config import EnvConfig
 from .scene import Scene, connect
@@ -158,7 +158,7 @@ class NamoEnv(gym.Env):
         ``options``: ``world`` (built-in name, YAML path or ``World``) and ``pair`` (index or
         name of one of the world's start/goal pairs, or a ``StartGoal``). Without a pair, one
         is drawn: at random on the C-space grid if the world has ``random_pairs`` or no pairs of
-        its own (``curlnav.worlds.pairs``), else among its pairs. Unknown worlds and pairs raise
+        its own (``curlnav.worlds.core.pairs``), else among its pairs. Unknown worlds and pairs raise
         ``WorldError`` / ``KeyError``.
         """
         super().reset(seed=seed)

@@ -13,8 +13,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
-from curlnav.worlds.picture import draw_world, rotated_rect  # noqa: E402
-from curlnav.worlds.world import StartGoal, World  # noqa: E402
+from curlnav.worlds.core.picture import draw_world, rotated_rect  # noqa: E402
+from curlnav.worlds.core.world import StartGoal, World  # noqa: E402
 
 
 class DrawableEnv(Protocol):

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from curlnav.layout import beam_angles
-from curlnav.worlds.world import Ball, Box, Door, World
+from curlnav.worlds.core.world import Ball, Box, Door, World
 
 from .bullet import import_pybullet
 from .config import EnvConfig

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .world import Ball, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world
+from curlnav.worlds.core.world import Ball, Door, RandomPairs, Region, StartGoal, World, WorldError, load_world
 
 
 def _walled_grid(width_m: float, height_m: float, resolution: float) -> np.ndarray:
@@ -114,7 +114,7 @@ def get_world(spec: str | os.PathLike | World) -> World:
     (``t-maze:0``, ``barn-3x3:12``: ``curlnav.worlds.families``), a world distribution's key
     (``barn-3x3:0-99(fill_pct=0.1~0.3)``: its first world, ``curlnav.worlds.distribution``),
     ``real:NAME`` for a real building's vendored SLAM map with the ``real`` suite's pairs and balls
-    (``curlnav.worlds.real_maps``), or a ``World`` (returned as is).
+    (``curlnav.worlds.real.real_maps``), or a ``World`` (returned as is).
 
     Raises ``WorldError`` naming the forms and the known built-ins when ``spec`` is none of them.
     """
@@ -139,7 +139,7 @@ def get_world(spec: str | os.PathLike | World) -> World:
             _CACHE[key] = distribution.world(distribution.lo)
         return _CACHE[key]
     if key.startswith("real:"):  # a vendored real map (its task is cached there)
-        from curlnav.worlds import real_maps
+        from curlnav.worlds.real import real_maps
 
         return real_maps.task(key.removeprefix("real:"))
     family, sep, seed = key.rpartition(":")

@@ -19,8 +19,8 @@ def parse_params(items: list[str] | None) -> dict:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
+    from curlnav.worlds.core.world import save_world
     from curlnav.worlds.families import generate
-    from curlnav.worlds.world import save_world
 
     out = Path(args.out)
     for seed in range(args.seed, args.seed + args.count):
@@ -38,8 +38,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
 
     from curlnav.worlds.builtin import get_world
-    from curlnav.worlds.picture import draw_world
-    from curlnav.worlds.rank import measure, measured_pairs, path_points, world_paths
+    from curlnav.worlds.core.picture import draw_world
+    from curlnav.worlds.difficulty.rank import measure, measured_pairs, path_points, world_paths
 
     world = get_world(args.world)
     pairs = measured_pairs(world)
@@ -64,8 +64,8 @@ def _cmd_show(args: argparse.Namespace) -> int:
 
 def _cmd_scatter_balls(args: argparse.Namespace) -> int:
     from curlnav.worlds.builtin import get_world
-    from curlnav.worlds.scatter import scatter_balls
-    from curlnav.worlds.world import save_world
+    from curlnav.worlds.core.world import save_world
+    from curlnav.worlds.procedural.scatter import scatter_balls
 
     world = get_world(args.world)
     out = Path(args.out)
@@ -82,7 +82,7 @@ def _cmd_rank(args: argparse.Namespace) -> int:
     import time
 
     from curlnav.worlds.builtin import get_world
-    from curlnav.worlds.rank import rank, ranking_table, write_outputs
+    from curlnav.worlds.difficulty.rank import rank, ranking_table, write_outputs
 
     worlds = [get_world(spec) for spec in args.worlds]
     t0 = time.perf_counter()
@@ -95,7 +95,7 @@ def _cmd_rank(args: argparse.Namespace) -> int:
 
 
 def _cmd_import_sdf(args: argparse.Namespace) -> int:
-    from curlnav.worlds.sdf import import_sdf
+    from curlnav.worlds.real.sdf import import_sdf
 
     out, world, contents = import_sdf(args.world, args.out, args.resolution, args.margin, args.skip_unsupported)
     kinds = [s.kind for s in contents.shapes]

@@ -7,7 +7,7 @@ In a curriculum file a stage's ``worlds`` may hold, beside world files and names
     - t-maze-doors:0-99            # the same without parameters: FAMILY:LO-HI
 
 - ``seeds: [LO, HI]`` (inclusive) must stay below the family's held-out seeds
-  (``curlnav.worlds.heldout``: 100 and above are never trained on).
+  (``curlnav.worlds.core.heldout``: 100 and above are never trained on).
 - ``params``: keyword arguments of the family's generator. ``[lo, hi]`` of two numbers is a
   range (integers if both are, inclusive), any other list a choice, anything else a fixed value.
   A seed's parameters are drawn from the seed alone, so a distribution holds exactly one world
@@ -36,10 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from curlnav.worlds.world import World
-
-from .heldout import check_training_seed, check_training_world, held_out_from
-from .levels import LEVEL_SAMPLERS, LevelSampler
+from curlnav.worlds.core.heldout import check_training_seed, check_training_world, held_out_from
+from curlnav.worlds.core.world import World
+from curlnav.worlds.levels import LEVEL_SAMPLERS, LevelSampler
 
 DEFAULT_EVERY = 1  # episodes per fresh world
 DEFAULT_POOL = 4  # fresh worlds the episodes between fresh draws are spread over
@@ -111,7 +110,7 @@ class ParamRange:
 
 
 def _generator_params(family: str) -> set[str]:
-    from .families import FAMILIES
+    from curlnav.worlds.families import FAMILIES
 
     if family not in FAMILIES:
         raise DistributionError(f"unknown world family {_show(family)}; choose from {', '.join(sorted(FAMILIES))}")
@@ -231,7 +230,7 @@ class WorldDistribution:
 
     def world(self, seed: int) -> World:
         """The distribution's world of ``seed``; a seed outside ``lo..hi`` or held out is refused."""
-        from .families import generate
+        from curlnav.worlds.families import generate
 
         check_training_seed(self.family, seed)
         if seed not in self.seeds:

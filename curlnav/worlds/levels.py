@@ -6,7 +6,7 @@ sampler per distribution and feeds it the outcome of every episode on a drawn wo
 
 - ``uniform`` (default): every training seed alike.
 - ``difficulty`` (the paper's ordering): the seeds are ranked once by the BARN difficulty of their
-  worlds (``curlnav.worlds.rank``: ``z(Tortuosity) - z(Distance)`` across the distribution's
+  worlds (``curlnav.worlds.difficulty.rank``: ``z(Tortuosity) - z(Distance)`` across the distribution's
   seeds), and fresh worlds come from a *frontier* of the easiest ones. The frontier starts at a
   quarter of the seeds (at least ``pool``) and widens by a tenth of them whenever the last
   ``WIDEN_WINDOW`` episodes on its worlds succeed at least ``WIDEN_AT``.
@@ -90,7 +90,7 @@ _ORDERS: dict[str, list[int]] = {}
 
 
 def _measure_order(dist) -> list[int]:
-    from .rank import measure, zscore
+    from curlnav.worlds.difficulty.rank import measure, zscore
 
     seeds = list(dist.seeds)
     log.info("ranking the %d worlds of %s by difficulty (once; cached)", len(seeds), dist.key)

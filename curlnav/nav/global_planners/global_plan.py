@@ -18,7 +18,7 @@ import numpy as np
 from curlnav.layout import goal_frame
 from curlnav.nav.global_planners.oracle import GridPlanner, PlannerConfig, StaticMapPlanner
 from curlnav.sim import EnvConfig, StartGoal, World
-from curlnav.worlds.pairs import clearance_map
+from curlnav.worlds.core.pairs import clearance_map
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ from scipy import ndimage
 
 from curlnav.layout import ObservationLayout, beam_angles
 from curlnav.sim import EnvConfig, StartGoal, World
-from curlnav.worlds.pairs import clearance_map
+from curlnav.worlds.core.pairs import clearance_map
 
 ORACLE_LABEL = "oracle"
 PLANNER_LABEL = ORACLE_LABEL  # the old name

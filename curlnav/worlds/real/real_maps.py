@@ -11,19 +11,19 @@ each map's ``SOURCE.md`` (repository, commit, paths, licence, why the map is rea
 check. Maps are used whole, never cropped.
 
 **Unknown cells.** ``map_server`` gives a pixel between the thresholds the value -1 (unknown), and
-``curlnav.worlds.world`` makes every cell that is not free (0) an obstacle in the simulator: a wall
+``curlnav.worlds.core.world`` makes every cell that is not free (0) an obstacle in the simulator: a wall
 for the LiDAR and the base, like an occupied cell. Space that no scan saw free is not space the
 robot knows, so it never starts, plans or drives there (AMCL and a cost map's static layer read a
 map the same way). Beyond a SLAM map's outer walls everything is unknown, so the building is closed.
 
 **The suite's task on a map** (``task(name)``, the world ``real:<name>``): ``PAIRS`` start/goal pairs
-drawn from ``SEED`` with ``curlnav.worlds.pairs.PairSampler`` on the C-space grid (the map's own
+drawn from ``SEED`` with ``curlnav.worlds.core.pairs.PairSampler`` on the C-space grid (the map's own
 cells whose centre lies more than ``CLEARANCE`` m from every obstacle cell: the Husky's half-width
 0.335 m plus a margin), start and goal in one connected region, ``MIN_DISTANCE``-``MAX_DISTANCE`` m
 apart in a straight line, the Husky's footprint free at the start, and a shortest path on that grid
 (8-connected) of at most ``MAX_PATH_M``, so that a trial fits the evaluation's 60 s at 1 m/s with
 room to turn; then ``BALLS`` balls (0.25 m, 0.5 kg) scattered on the pairs' shortest paths by
-``curlnav.worlds.scatter.scatter_balls`` from the same seed. Same code, same maps: same tasks.
+``curlnav.worlds.procedural.scatter.scatter_balls`` from the same seed. Same code, same maps: same tasks.
 
 **Reading the vendored files** (anyone may have put them there): each is read only if it is a regular
 file (a link is refused), at most ``MAX_TEXT_BYTES`` for a YAML or licence, ``MAX_PACKED_BYTES`` for
@@ -51,13 +51,13 @@ import numpy as np
 from scipy.sparse import csgraph
 
 from curlnav.files import FileRefused, read_capped, shown
-from curlnav.worlds.heldout import REAL_PREFIX
-from curlnav.worlds.metrics import GridGraph
-from curlnav.worlds.pairs import PairSampler, cspace_free, pair_key
-from curlnav.worlds.scatter import scatter_balls
-from curlnav.worlds.world import RandomPairs, StartGoal, World, WorldError, load_world
+from curlnav.worlds.core.heldout import REAL_PREFIX
+from curlnav.worlds.core.pairs import PairSampler, cspace_free, pair_key
+from curlnav.worlds.core.world import RandomPairs, StartGoal, World, WorldError, load_world
+from curlnav.worlds.difficulty.metrics import GridGraph
+from curlnav.worlds.procedural.scatter import scatter_balls
 
-DATA = Path(__file__).resolve().parent / "data" / "real"
+DATA = Path(__file__).resolve().parent.parent / "data" / "real"
 MANIFEST = DATA / "MANIFEST.sha256"
 SPEC_PREFIX = REAL_PREFIX  # a world argument ``real:<name>`` is ``task(name)``, never trained on (heldout)
 SEED = 2026  # draws every map's pairs and balls
@@ -187,7 +187,7 @@ def unxz(packed: bytes, source: Path | str, max_bytes: int = MAX_IMAGE_BYTES, wh
     """The bytes of one whole xz stream, decompressed incrementally (at most ``max_bytes`` + 1 bytes
     ever held). ``WorldError`` (one line naming ``source``) when the stream is not whole (empty,
     truncated, not xz, bytes after its end) or decompresses to more than ``max_bytes`` (``what``'s
-    cap; ``curlnav.worlds.sdf`` reads a packed Gazebo world with it too)."""
+    cap; ``curlnav.worlds.real.sdf`` reads a packed Gazebo world with it too)."""
     unpacker = lzma.LZMADecompressor(format=lzma.FORMAT_XZ)
     try:
         data = unpacker.decompress(packed, max_length=max_bytes + 1)

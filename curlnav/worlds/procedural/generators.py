@@ -7,10 +7,10 @@ open). Same family, parameters and seed: same world, bit for bit.
 Families: ``barn`` (the BARN benchmark's cellular automaton), ``barn-3x3`` (3 x 3 BARN blocks
 scaled to 36 m, 8 balls re-placed every reset), ``t-maze`` (five rooms in a T joined by hinged
 doors and narrow gates, one ball per room, curriculum pairs p1..p4), ``t-maze-doors`` (T-Mazes
-that vary, whose pairs must push doors open: ``curlnav.worlds.tmaze``), and worlds with the
+that vary, whose pairs must push doors open: ``curlnav.worlds.procedural.tmaze``), and worlds with the
 character of the paper's others: ``cave``, ``forest``, ``garage``, ``indoor``, ``office``,
 ``campus``, ``auditorium``; and ``slam-office``, a large office floor as a SLAM stack maps it
-(0.05 m cells, ragged walls, furniture, noise: thousands of rectangles; ``curlnav.worlds.slam_like``).
+(0.05 m cells, ragged walls, furniture, noise: thousands of rectangles; ``curlnav.worlds.procedural.slam_like``).
 The registry of every family's name is ``curlnav.worlds.families.FAMILIES`` (with ``generate``).
 """
 
@@ -21,9 +21,8 @@ import math
 import numpy as np
 from scipy import ndimage
 
-from curlnav.worlds.world import Ball, Door, RandomPairs, Region, StartGoal, World
-
-from .metrics import GridGraph, inflate
+from curlnav.worlds.core.world import Ball, Door, RandomPairs, Region, StartGoal, World
+from curlnav.worlds.difficulty.metrics import GridGraph, inflate
 
 RESOLUTION = 0.15  # m per cell: BARN's, fine enough for doors and gates
 CSPACE_RADIUS_M = 0.3  # m; BARN's 2 cells at 0.15 m

@@ -1,7 +1,7 @@
 """``barn-course``: training worlds laid out as the BARN Challenge's, never the challenge's own.
 
-A 30 x 30 grid from BARN's cellular automaton (``curlnav.worlds.generators.barn_cellular_automaton``:
-random fill, then smoothing) is set into the challenge's lattice (``curlnav.worlds.barn``): 0.075 m
+A 30 x 30 grid from BARN's cellular automaton (``curlnav.worlds.procedural.generators.barn_cellular_automaton``:
+random fill, then smoothing) is set into the challenge's lattice (``curlnav.worlds.barn_challenge.barn``): 0.075 m
 cylinders on a 0.15 m pitch, the walled start area, the Jackal's start at (-2.25, 3) m facing +y and
 the goal 10 m ahead, reached within 1 m. A draw is kept only when a disc of ``clearance`` (m) can
 get from the start to the goal between the cylinders (the free space eroded by the disc is
@@ -20,11 +20,10 @@ from functools import lru_cache
 import numpy as np
 from scipy import ndimage
 
-from curlnav.worlds import barn
-from curlnav.worlds.sdf import DEFAULT_RESOLUTION
-from curlnav.worlds.world import World
-
-from .generators import barn_cellular_automaton
+from curlnav.worlds.barn_challenge import barn
+from curlnav.worlds.core.world import World
+from curlnav.worlds.procedural.generators import barn_cellular_automaton
+from curlnav.worlds.real.sdf import DEFAULT_RESOLUTION
 
 #: the Jackal's half width (0.215 m) and a little: narrower gaps are not passable
 DEFAULT_CLEARANCE = 0.22  # m

@@ -1,8 +1,8 @@
 """Make a NAMO task from any map: scatter movable balls on the shortest paths of its pairs.
 
 ``scatter_balls(world, count, seed)`` takes the world's pairs (or, for a plain SLAM map,
-``pairs`` seeded random ones from ``curlnav.worlds.pairs``, which become the world's pairs), finds
-each pair's shortest path on the C-space grid of ``curlnav.worlds.rank.world_paths`` (0.15 m
+``pairs`` seeded random ones from ``curlnav.worlds.core.pairs``, which become the world's pairs), finds
+each pair's shortest path on the C-space grid of ``curlnav.worlds.difficulty.rank.world_paths`` (0.15 m
 cells, the map inflated by 0.3 m; Dijkstra), and puts ``count`` balls on those paths, in turn
 over the pairs: each ball's centre is a path cell whose whole disc (plus ``gap``) clears every
 obstacle cell of the map, the balls do not overlap (``gap`` apart), and none sits on a start
@@ -16,10 +16,9 @@ import math
 
 import numpy as np
 
-from curlnav.worlds.pairs import clearance_map, sample_pairs
-from curlnav.worlds.world import Ball, World, WorldError
-
-from .rank import METRIC_RESOLUTION, path_points, world_paths
+from curlnav.worlds.core.pairs import clearance_map, sample_pairs
+from curlnav.worlds.core.world import Ball, World, WorldError
+from curlnav.worlds.difficulty.rank import METRIC_RESOLUTION, path_points, world_paths
 
 START_KEEP_OUT = 1.0  # m from a start to a ball's edge (the Husky's half-diagonal is 0.6 m)
 GOAL_KEEP_OUT = 1.0  # m from a goal to a ball's edge (the goal tolerance is 0.8 m)

@@ -24,7 +24,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import ndimage
 
-from .world import RandomPairs, StartGoal, World, WorldError
+from curlnav.worlds.core.world import RandomPairs, StartGoal, World, WorldError
 
 DEFAULT_MIN_DISTANCE = 4.0  # m, pairs of a plain map
 MIN_PAIR_DISTANCE = 1.0  # m; closer pairs are not a task (the goal tolerance is 0.8 m)

@@ -22,7 +22,7 @@ outside the building). ``degrade`` applies those, in this order, to any world, d
 8. ``unknown`` again: obstacle cells deeper than ``SURFACE`` m inside an obstacle.
 
 **Unknown cells are obstacles.** curlnav's occupancy is boolean and reads a map_server ``-1`` as
-an obstacle (``curlnav.worlds.world``), so an unknown cell here is an obstacle cell in
+an obstacle (``curlnav.worlds.core.world``), so an unknown cell here is an obstacle cell in
 ``World.occupancy``, and ``SlamLayers.unknown`` says which: ``SlamLayers.values`` gives the
 ``OccupancyGrid`` values (0, 100, -1) a SLAM stack would publish. Unknown only ever covers
 obstacle interiors (already obstacles) and free cells the robot cannot reach, so the physics has
@@ -45,11 +45,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from curlnav.worlds.world import World, WorldError
-
-from .metrics import inflate
-from .namo import closed_door_grid
-from .rank import CSPACE_RADIUS_M, METRIC_RESOLUTION, resample, world_paths
+from curlnav.worlds.core.world import World, WorldError
+from curlnav.worlds.difficulty.metrics import inflate
+from curlnav.worlds.difficulty.rank import CSPACE_RADIUS_M, METRIC_RESOLUTION, resample, world_paths
+from curlnav.worlds.procedural.namo import closed_door_grid
 
 MAX_WALL = 0.45  # m across: a thicker obstacle is furniture or a block, never thinned or holed
 MIN_GAP, MAX_GAP = 0.1, 0.25  # m, a hole's length along its wall (a robot is 0.67 m wide, a ball 0.5 m)

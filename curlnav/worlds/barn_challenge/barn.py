@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from curlnav.worlds.sdf import DEFAULT_RESOLUTION, Shape, rasterise
-from curlnav.worlds.world import StartGoal, World
+from curlnav.worlds.core.world import StartGoal, World
+from curlnav.worlds.real.sdf import DEFAULT_RESOLUTION, Shape, rasterise
 
-DATA = Path(__file__).resolve().parent / "data" / "barn"
+DATA = Path(__file__).resolve().parent.parent / "data" / "barn"
 COUNT = 300  # worlds 0..299 (the static ones)
 #: run.py's start for the static worlds since its 2024 revision (the 2022 one, with which the
 #: published DWA figure was measured, started at x = -2; report_test.py still measures OT from -2)

@@ -5,7 +5,7 @@ A bar of ``rooms`` rooms in a row (3 to 5, drawn from the seed when 0), each 2.7
 by one opening each, at a random place along their wall: a hinged door (1.05-1.35 m gap) with
 probability ``door_share``, else a narrow gate (0.9-1.05 m, no door); at least two openings are
 doors. The rooms form a tree, so the only way between two rooms is through the openings between
-them, and a closed door blocks it (``curlnav.worlds.namo.reachable(..., doors_closed=True)``).
+them, and a closed door blocks it (``curlnav.worlds.procedural.namo.reachable(..., doors_closed=True)``).
 
 A door turns one way only, so every door opens away from a root room drawn from the seed, with
 its hinge at either end of its gap. A pair goes from one room to another crossing at least one
@@ -23,12 +23,11 @@ from collections import deque
 
 import numpy as np
 
-from curlnav.worlds.pairs import HUSKY_FOOTPRINT, footprint_free
-from curlnav.worlds.world import Ball, Door, Region, StartGoal, World
-
-from .metrics import GridGraph, inflate
-from .namo import closed_door_grid, door_crossings
-from .rank import CSPACE_RADIUS_M
+from curlnav.worlds.core.pairs import HUSKY_FOOTPRINT, footprint_free
+from curlnav.worlds.core.world import Ball, Door, Region, StartGoal, World
+from curlnav.worlds.difficulty.metrics import GridGraph, inflate
+from curlnav.worlds.difficulty.rank import CSPACE_RADIUS_M
+from curlnav.worlds.procedural.namo import closed_door_grid, door_crossings
 
 RESOLUTION = 0.15  # m per cell
 WALL = 0.15  # m, nominal wall thickness

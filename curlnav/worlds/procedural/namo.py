@@ -15,7 +15,7 @@ A door turns one way only (a hinge with limits), so the doors of a floor all ope
 inflated by 0.3 m, doors open, as every generated world) crosses at least one door, and every
 door on it in the direction the door opens (``door_crossings``). Each world has ``pairs`` (12)
 such pairs at least 6 m apart, starts facing along their path; then ``balls`` (8) fixed balls on
-the pairs' paths (``curlnav.worlds.scatter``: clear of walls, starts, goals and door swings).
+the pairs' paths (``curlnav.worlds.procedural.scatter``: clear of walls, starts, goals and door swings).
 Same family, parameters and seed: the same world, bit for bit.
 """
 
@@ -25,12 +25,11 @@ import math
 
 import numpy as np
 
-from curlnav.worlds.pairs import HUSKY_FOOTPRINT, footprint_free
-from curlnav.worlds.world import Door, Region, StartGoal, World
-
-from .metrics import GridGraph, inflate
-from .rank import CSPACE_RADIUS_M
-from .scatter import scatter_balls
+from curlnav.worlds.core.pairs import HUSKY_FOOTPRINT, footprint_free
+from curlnav.worlds.core.world import Door, Region, StartGoal, World
+from curlnav.worlds.difficulty.metrics import GridGraph, inflate
+from curlnav.worlds.difficulty.rank import CSPACE_RADIUS_M
+from curlnav.worlds.procedural.scatter import scatter_balls
 
 RESOLUTION = 0.15  # m per cell
 WALL = 0.15  # m, nominal wall thickness (one or two cells once on the grid)
@@ -172,7 +171,7 @@ def door_pairs(world: World, starts: list[Region], goals: list[Region], count: i
     """``count`` pairs, start in ``starts`` and goal in ``goals``, whose shortest path crosses a
     door and every door on it the way it opens (see the module docstring). ``world`` has
     ``RESOLUTION`` cells and its origin at (0, 0); a finer plan passes its coarsened copy
-    (``curlnav.worlds.rank.resample``), whose pairs hold on the fine grid too."""
+    (``curlnav.worlds.difficulty.rank.resample``), whose pairs hold on the fine grid too."""
     cs = inflate(world.occupancy, int(round(CSPACE_RADIUS_M / RESOLUTION)))
     graph = GridGraph(cs)
     start_cells, goal_cells = _cells_in(world, ~cs, starts), _cells_in(world, ~cs, goals)

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from matplotlib.patches import Circle, Polygon
 from matplotlib.transforms import Affine2D
 
-from curlnav.worlds.world import StartGoal, World
+from curlnav.worlds.core.world import StartGoal, World
 
 
 def draw_world(ax, world: World, pairs: Sequence[StartGoal] | None = None,

@@ -5,7 +5,7 @@ included), composes each collision's pose (model, link and collision ``<pose>``,
 pitch and yaw) and keeps the upright **boxes** and **cylinders** whose vertical extent meets
 ``(0, MAX_HEIGHT]`` m (a ground robot meets nothing wholly underground or overhead). A file named
 ``*.xz`` (``world_7.world.xz``, as the BARN worlds are vendored) is decompressed first, under
-``curlnav.worlds.real_maps``' caps for packed files (``MAX_PACKED_BYTES`` packed, ``unxz``) and
+``curlnav.worlds.real.real_maps``' caps for packed files (``MAX_PACKED_BYTES`` packed, ``unxz``) and
 ``MAX_SDF_BYTES`` unpacked. Everything else a collision may hold is *unsupported* and named
 (``kind 'model/link/collision'``): meshes, heightmaps, spheres, capsules, ellipsoids, polylines,
 images, planes other than the ground plane, tilted boxes and cylinders, models that are not
@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from curlnav.files import FileRefused, read_capped, shown
-from curlnav.worlds.world import World, WorldError, save_world
+from curlnav.worlds.core.world import World, WorldError, save_world
 
 DEFAULT_RESOLUTION = 0.025  # m per cell: a 0.075 m cylinder is a disc 6 cells across
 DEFAULT_MARGIN = 1.0  # m of free space around the shapes
@@ -235,7 +235,7 @@ def read_sdf(path: str | Path) -> SdfContents:
     path = Path(path)
     try:
         if path.suffix == ".xz":  # a packed world (the BARN worlds as vendored): the real maps' caps
-            from curlnav.worlds.real_maps import MAX_PACKED_BYTES, unxz
+            from curlnav.worlds.real.real_maps import MAX_PACKED_BYTES, unxz
 
             data = unxz(read_capped(path, MAX_PACKED_BYTES, "packed Gazebo SDF file"), path, MAX_SDF_BYTES,
                         "a Gazebo SDF file")

@@ -15,7 +15,7 @@ dividing wall gets a doorway of 1.1-1.6 m, so every room is reachable (the parti
 then desks, round tables and columns, bumps along the walls, and specks of noise.
 
 ``slam-floor``: an office or lab floor about 27 m x 19.5 m (``floor_plan``) at 0.05 m cells,
-degraded (``curlnav.worlds.degrade``): a corridor along x and a cross corridor north of it, each
+degraded (``curlnav.worlds.procedural.degrade``): a corridor along x and a cross corridor north of it, each
 ``corridor_min``-``corridor_max`` wide (1.2-2.4 m: the building codes' 1.12-1.83 m minimum egress
 widths up to a hospital's 2.44 m), rooms of 3-6 m off them, doorways ``door_min``-``door_max``
 wide (0.8-1.0 m: a Husky is 0.67 m wide) with hinged doors opening toward +x or +y (a share
@@ -24,7 +24,7 @@ upper room is entered through a door), deep upper rooms split front and back by 
 doorway, neighbouring rooms joined now and then, one or two closed shafts (stairs, lifts, ducts:
 unknown once degraded), unmapped ground round the building, desks and tables. As the NAMO floors:
 12 pairs from the lower rooms or the corridor's west end to the upper rooms whose shortest path
-crosses a door, every door on it the way it opens (``curlnav.worlds.namo.door_pairs``, on the plan
+crosses a door, every door on it the way it opens (``curlnav.worlds.procedural.namo.door_pairs``, on the plan
 coarsened to 0.15 m, whose doorways sit on that grid so none closes), and 8 balls on their paths.
 
 ``slam-namo-office``, ``slam-namo-indoor``, ``slam-namo-auditorium``: the NAMO floors at 0.05 m,
@@ -41,12 +41,11 @@ from collections.abc import Callable
 import numpy as np
 from scipy import ndimage
 
-from curlnav.worlds.world import RandomPairs, Region, World
-
-from .degrade import degrade
-from .namo import RESOLUTION, WALL, FloorPlan, door_pairs, namo_auditorium, namo_indoor, namo_office
-from .rank import resample
-from .scatter import scatter_balls
+from curlnav.worlds.core.world import RandomPairs, Region, World
+from curlnav.worlds.difficulty.rank import resample
+from curlnav.worlds.procedural.degrade import degrade
+from curlnav.worlds.procedural.namo import RESOLUTION, WALL, FloorPlan, door_pairs, namo_auditorium, namo_indoor, namo_office
+from curlnav.worlds.procedural.scatter import scatter_balls
 
 SLAM_RESOLUTION = 0.05  # m per cell, a common SLAM map resolution (gmapping's delta, slam_toolbox's default)
 
@@ -339,7 +338,7 @@ SLAM_FAMILY_DEFAULTS = {"resolution": SLAM_RESOLUTION}  # degrade's defaults tha
 
 def slam_version(base: Callable[..., World], family: str) -> Callable[..., World]:
     """A family generator ``(seed=0, **params)``: ``base``'s world of ``seed``, degraded with that
-    seed (``curlnav.worlds.degrade``), named ``FAMILY-SEED``. Its signature lists ``base``'s
+    seed (``curlnav.worlds.procedural.degrade``), named ``FAMILY-SEED``. Its signature lists ``base``'s
     parameters and ``degrade``'s (a ``resolution`` of ``base`` is base's, and ``degrade`` keeps it)
     as keyword arguments, so world distributions and ``curlnav worlds generate`` see them all."""
     base_params = [p for name, p in inspect.signature(base).parameters.items() if name != "seed"]
@@ -362,7 +361,7 @@ def slam_version(base: Callable[..., World], family: str) -> Callable[..., World
 
     generator.__signature__ = signature
     generator.__name__ = generator.__qualname__ = family.replace("-", "_")
-    generator.__doc__ = f"``{family}``: {base.__name__} degraded as a SLAM map (``curlnav.worlds.degrade``)."
+    generator.__doc__ = f"``{family}``: {base.__name__} degraded as a SLAM map (``curlnav.worlds.procedural.degrade``)."
     return generator
 
 

@@ -20,7 +20,7 @@ class HeldOutSeedError(ValueError):
     """A training path asked for a held-out seed (or a real suite's map)."""
 
 
-#: the prefix of the real suite's worlds (``curlnav.worlds.real_maps``): held out as a whole
+#: the prefix of the real suite's worlds (``curlnav.worlds.real.real_maps``): held out as a whole
 REAL_PREFIX = "real:"
 
 

@@ -23,10 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from curlnav.worlds.pairs import sample_pairs
-from curlnav.worlds.world import StartGoal, World
-
-from .metrics import GridGraph, MetricMaps, MetricsError, barn_astar, inflate
+from curlnav.worlds.core.pairs import sample_pairs
+from curlnav.worlds.core.world import StartGoal, World
+from curlnav.worlds.difficulty.metrics import GridGraph, MetricMaps, MetricsError, barn_astar, inflate
 
 METRIC_RESOLUTION = 0.15  # m per cell
 CSPACE_RADIUS_M = 0.3  # m
@@ -81,7 +80,7 @@ MEASURE_SEED = 0
 
 def measured_pairs(world: World) -> tuple[StartGoal, ...]:
     """The pairs a world is measured (and drawn) with: its own, or for a plain map
-    ``MEASURE_PAIRS`` seeded random pairs (``curlnav.worlds.pairs``; ``WorldError`` when no pair is
+    ``MEASURE_PAIRS`` seeded random pairs (``curlnav.worlds.core.pairs``; ``WorldError`` when no pair is
     possible)."""
     if world.pairs:
         return world.pairs
