@@ -246,29 +246,6 @@ def nav_room(module: str) -> str | None:
     return parts[2] if len(parts) > 2 else "face"
 
 
-def test_the_navigation_stack_roles_import_only_roles_below_them():
-    """Inside ``curlnav.nav`` a role imports only the rooms below it (``NAV_ORDER``): a safety layer
-    never imports a controller, nothing imports the package's face, and no two rooms make a circle."""
-    upward, graph = [], {}
-    for module, path in modules().items():
-        a = nav_room(module)
-        if a is None:
-            continue
-        for line, name in imports(module):
-            target = target_module(name)
-            b = nav_room(target) if target else None
-            if b is None or a == b:
-                continue
-            graph.setdefault(a, set()).add(b)
-            where = f"{path.relative_to(ROOT)}:{line} imports {name}"
-            if b == "face" or (a != "face" and NAV_ORDER.index(b) > NAV_ORDER.index(a)):
-                upward.append(f"{a} -> {b} (above it): {where}")
-    assert not upward, "\n".join(upward)
-    assert strongly_connected(graph) == []
-    rooms = {nav_room(m) for m in modules()} - {None, "face"}
-    assert sorted(rooms - set(NAV_ORDER)) == [], "place each new room of curlnav.nav in NAV_ORDER"
-
-
 def test_no_private_name_is_imported_across_modules():
     """``from a import _b``: a name its module keeps to itself, used elsewhere (the rescue took a
     private of the local planners once); a shared helper is public where it lives."""
@@ -313,25 +290,31 @@ def worlds_room(module: str) -> str | None:
     return parts[2] if (ROOT / "curlnav" / "worlds" / parts[2]).is_dir() else "top"
 
 
-def test_the_worlds_sub_packages_import_only_those_below_them():
-    """Inside ``curlnav.worlds`` a sub-package imports only those below it (``WORLDS_ORDER``): the
-    world model imports no metric, a generator nothing of the real maps or the BARN Challenge,
-    nothing imports the package's face, and no two make a circle."""
+#: the packages layered inside: their rooms bottom first, and the room of a module (None: outside)
+INNER = {"curlnav.nav": (NAV_ORDER, nav_room), "curlnav.worlds": (WORLDS_ORDER, worlds_room)}
+
+
+@pytest.mark.parametrize("package", INNER)
+def test_inside_a_layered_package_each_room_imports_only_rooms_below_it(package):
+    """Inside ``curlnav.nav`` a role imports only the rooms below it (a safety layer never imports a
+    controller); inside ``curlnav.worlds`` the world model imports no metric and a generator nothing
+    of the real maps or the BARN Challenge. Nothing imports the package's face from inside, no two
+    rooms make a circle, and every room is placed in the order."""
+    order, room = INNER[package]
     upward, graph = [], {}
     for module, path in modules().items():
-        a = worlds_room(module)
+        a = room(module)
         if a is None:
             continue
         for line, name in imports(module):
             target = target_module(name)
-            b = worlds_room(target) if target else None
+            b = room(target) if target else None
             if b is None or a == b:
                 continue
             graph.setdefault(a, set()).add(b)
-            where = f"{path.relative_to(ROOT)}:{line} imports {name}"
-            if b == "face" or (a != "face" and WORLDS_ORDER.index(b) > WORLDS_ORDER.index(a)):
-                upward.append(f"{a} -> {b} (above it): {where}")
+            if b == "face" or (a != "face" and order.index(b) > order.index(a)):
+                upward.append(f"{a} -> {b} (above it): {path.relative_to(ROOT)}:{line} imports {name}")
     assert not upward, "\n".join(upward)
     assert strongly_connected(graph) == []
-    rooms = {worlds_room(m) for m in modules()} - {None, "face"}
-    assert sorted(rooms - set(WORLDS_ORDER)) == [], "place each new sub-package of curlnav.worlds in WORLDS_ORDER"
+    rooms = {room(m) for m in modules()} - {None, "face"}
+    assert sorted(rooms - set(order)) == [], f"place each new room of {package} in its order"

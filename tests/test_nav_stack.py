@@ -178,3 +178,13 @@ def test_one_function_builds_every_stack(tmp_path, monkeypatch):
     loop = builder.make_actor_loop(0, builder.make_behaviour_policy(), envs=1)
     loop.close()
     assert built[-1].label == "behaviour policy" and len(built) == 4
+
+
+def test_a_shipped_stack_behind_a_global_plan_is_named_whole_in_the_first_line_and_the_results():
+    from curlnav.nav import deploy_notice
+
+    stack = parse_agent(ROBUST, global_plan=True)
+    line = deploy_notice(ROBUST, f"{ROBUST}+bare: the network alone", global_plan=True)
+    assert f"driven as its artefact ships it, {ROBUST}+global-plan+rescue+shield+scan-match" in line
+    assert stack.shorthand == f"{ROBUST}+global-plan+rescue+shield+scan-match"
+    assert stack.label == f"{ROBUST}+global-plan"  # the results' name says the plan too

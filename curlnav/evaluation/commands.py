@@ -85,7 +85,7 @@ def eval_plan(options: dict, say: Callable[[str], None] | None = None):
                           suite.pairs_of if suite else lambda world: episode_pairs(world, *chosen),
                           tuple(options["agents"]),
                           partial(_eval_agent, env_config=env_config, global_plan=options["global_plan"]), seeds,
-                          sensor_noise.senses, suite, mcap, _mcap_file if mcap else None)
+                          sensor_noise.senses, suite, mcap, _mcap_file if mcap else None, options["global_plan"])
 
 
 def _barn_plan(options: dict, say: Callable[[str], None]):
@@ -114,7 +114,7 @@ def _barn_plan(options: dict, say: Callable[[str], None]):
     return ComparisonPlan(env_config, tuple(numbers), barn.world, lambda world: list(world.pairs),
                           tuple(options["agents"]),
                           partial(_eval_agent, env_config=env_config, global_plan=options["global_plan"], resample=True),
-                          senses=sensor_noise.senses)
+                          senses=sensor_noise.senses, global_plan=options["global_plan"])
 
 
 def _eval_options(args: argparse.Namespace) -> tuple[dict, int]:
@@ -133,7 +133,7 @@ def _eval_agents(plan) -> dict:
     agents = dict(plan.agent_of(spec) for spec in plan.agents)
     if len(agents) < len(plan.agents):
         raise ValueError(f"an agent is named twice: {' '.join(plan.agents)}")
-    _say_deploy_stacks(list(plan.agents))
+    _say_deploy_stacks(list(plan.agents), plan.global_plan)
     return agents
 
 

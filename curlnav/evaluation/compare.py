@@ -247,6 +247,7 @@ class ComparisonPlan:
     suite: Suite | None = None  # the suite that fixed the worlds and pairs, if one did
     mcap: str | None = None  # a folder for an MCAP file per episode (``Comparison.run``'s ``mcap``)
     recorder: Callable[[Path, NamoEnv, np.ndarray], StepRecorder] | None = None  # makes those files
+    global_plan: bool = False  # every policy behind a plan on the true map (``--global-plan``)
 
 
 def _file_safe(text: str) -> str:
