@@ -335,8 +335,20 @@ class ActorService:
                     self._on_weights(reply.ok)
             tasks: list[tuple] = [()] * loop.size  # per environment: (assignment, world, weights version at begin)
             since_batch = 0  # environment steps since the last batch
+            asked_at = time.monotonic()
             while not self.stop.is_set():
                 shell.recheck_agreement()  # a service of another config that joined after this actor
+                if self.experiment.init_from and core.weights_version < 0:
+                    # a run from a trained policy has no random warm-up: no step before its weights
+                    self._apply_weights()
+                    if core.weights_version < 0:
+                        if time.monotonic() - asked_at >= 2.0:  # a learner that started after this actor
+                            asked_at = time.monotonic()
+                            for reply in session.get(topo.weights_latest, timeout=2.0):
+                                if reply.ok is not None:
+                                    self._on_weights(reply.ok)
+                        self.stop.wait(0.1)
+                        continue
                 if not self._begin_waiting(session, topo.assign, tasks):
                     self.stop.wait(1.0)
                     continue

@@ -104,11 +104,13 @@ class D4PGBuilder:
 
     def make_behaviour_policy(self, actor_index: int = 0, actor_count: int = 1, stream: int = 0) -> BehaviourPolicy:
         """The policy actor ``actor_index`` of ``actor_count`` runs: random actions for its share
-        of the warm-up, then the latest network with its rung of the sigma ladder. ``stream``
-        picks another noise sequence (a resumed run passes its step count)."""
+        of the warm-up (none when the networks start from a trained policy, ``init_from``), then
+        the latest network with its rung of the sigma ladder. ``stream`` picks another noise
+        sequence (a resumed run passes its step count)."""
         exploration = self.config.exploration
+        warmup = 0 if self.config.init_from else exploration.warmup_share(actor_count)
         return BehaviourPolicy(self.layout, self.config.d4pg, sigma=exploration.sigma(actor_index),
-                               warmup_steps=exploration.warmup_share(actor_count),
+                               warmup_steps=warmup,
                                rng=np.random.default_rng([self.config.seed, actor_index, stream]),
                                inference=self.config.actor.inference)
 
@@ -145,12 +147,20 @@ class D4PGBuilder:
         return NamoEnv(world if world is not None else self.config.curriculum.world, self.config.eval_env)
 
     # -- learning ------------------------------------------------------------------------------
-    def make_learner_state(self, device=None):
-        """The learner's ``D4PGState`` (networks, targets, optimisers). Imported here so that
-        actors, which use the rest of the builder, never load the learner's internals."""
+    def make_learner_state(self, device=None, say=print):
+        """The learner's ``D4PGState`` (networks, targets, optimisers): fresh, or from ``init_from``
+        (``curlnav.learner.init_from``: checked against this experiment, ``ValueError`` in one line;
+        ``say`` is told where the networks came from). Imported here so that actors, which use the
+        rest of the builder, never load the learner's internals."""
         from curlnav.learner.d4pg import init_state
 
-        return init_state(self.config.d4pg, self.layout, device)
+        if not self.config.init_from:
+            return init_state(self.config.d4pg, self.layout, device)
+        from curlnav.learner.init_from import check_starting_point, find_starting_point, starting_state
+
+        point = find_starting_point(self.config.init_from)
+        check_starting_point(point, self.config)
+        return starting_state(point, self.config, self.layout, device, say)
 
     # -- services ------------------------------------------------------------------------------
     # The service shells take the parts made above and never import the builder; their modules are

@@ -91,9 +91,19 @@ class D4PGConfig:
     #: gradient vanishes (an output pinned at a bound, e.g. linear speed 0, cannot follow the
     #: critic back); 0.01 lets actions reach about 97-99 % of their bounds
     actor_saturation_penalty: float = field(default=0.0, metadata={"hash": "omit-default"})
+    #: updates (batches) that train the critic alone, the actor frozen, when the networks start
+    #: from a policy artefact (``init_from``), which ships the actor only: a fresh critic's gradient
+    #: would drag a trained actor anywhere. 1000 is about 40 s at the 25-30 updates/s of 2 CPU cores,
+    #: ten target-network copies; 0: none. A start without a critic only (a checkpoint, fresh
+    #: networks) never waits. Left out of the config hash while at its default
+    critic_warmup_updates: int = field(default=1000, metadata={"hash": "omit-default"})
 
     def __post_init__(self) -> None:
         p = "d4pg"
+        _require(isinstance(self.critic_warmup_updates, int) and not isinstance(self.critic_warmup_updates, bool)
+                 and 0 <= self.critic_warmup_updates <= 10_000_000,
+                 f"{p}.critic_warmup_updates must be a whole number of updates in 0..10000000, got "
+                 f"{shown(self.critic_warmup_updates)}")
         _require(self.encoder in ("pooled", "conv"), f"{p}.encoder must be 'pooled' or 'conv', got {self.encoder!r}")
         _require(isinstance(self.atoms, int) and not isinstance(self.atoms, bool) and 2 <= self.atoms <= MAX_ATOMS,
                  f"{p}.atoms must be an integer 2-{MAX_ATOMS}, got {shown(self.atoms)}")
@@ -271,9 +281,19 @@ class ExperimentConfig:
     #: the name of the robot profile (``curlnav.sim.robots``: husky, jackal or a profile file's
     #: ``name``) that set ``env.robot`` and the LiDAR fields; left out of the hash while it is the default
     robot: str = field(default="husky", metadata={"hash": "omit-default"})
+    #: where the networks start (fine-tuning): a policy artefact folder (its actor; the critic starts
+    #: fresh and warms up first, ``d4pg.critic_warmup_updates``), a run folder or a training
+    #: checkpoint ``.safetensors`` (actor, critic and optimiser moments); empty: fresh networks. Its
+    #: robot, observation layout and network shape must be the run's (``curlnav.learner.init_from``).
+    #: Read by the learner (and by the actors: no random warm-up from a trained policy); left out
+    #: of the hash while empty
+    init_from: str = field(default="", metadata={"hash": "omit-default"})
 
     def __post_init__(self) -> None:
         _require(isinstance(self.robot, str) and bool(self.robot), f"robot must be a profile name, got {self.robot!r}")
+        _require(isinstance(self.init_from, str) and len(self.init_from) <= 4096 and "\0" not in self.init_from,
+                 f"init_from must be a path (a policy artefact folder, a run folder or a checkpoint), got "
+                 f"{shown(self.init_from)}")
         _require(self.env.robot.name == self.robot,
                  f"env.robot is the {self.env.robot.name}'s, but robot says {self.robot}: set the robot with "
                  f"robot: NAME or FILE (or --robot), not env.robot fields alone")
@@ -508,7 +528,7 @@ def apply_overrides(cfg: ExperimentConfig, overrides: list[str]) -> ExperimentCo
 
 #: environment variables that set one field each (what containers have always used)
 ENV_ALIASES = {"CURLNAV_WORLD": "curriculum.world", "CURLNAV_CURRICULUM": "curriculum.file", "CURLNAV_SEED": "seed",
-               "CURLNAV_ROBOT": "robot"}
+               "CURLNAV_ROBOT": "robot", "CURLNAV_INIT_FROM": "init_from"}
 
 
 def overrides_from_environment(environ: dict[str, str] | None = None) -> list[str]:

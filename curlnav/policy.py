@@ -39,6 +39,16 @@ class PolicyArtefact:
         self.session = _onnx_session(self.folder / "actor.onnx", self.observation_size, verified.get("actor.onnx"))
 
     @classmethod
+    def read_metadata(cls, folder: str | Path) -> dict:
+        """``folder/metadata.json``, every field checked (``check_metadata``), without reading the
+        files it lists nor opening the actor (``ArtefactError``, one line)."""
+        artefact = cls.__new__(cls)
+        artefact.folder = Path(folder)
+        metadata = artefact._read_metadata()
+        check_metadata(metadata, artefact.folder / "metadata.json")
+        return metadata
+
+    @classmethod
     def listed_files(cls, folder: str | Path) -> dict[str, str]:
         """``{file name: sha256}`` that ``folder/metadata.json`` lists, checked (plain names of the
         folder, 64 hex digits) without reading the files."""

@@ -59,6 +59,9 @@ class D4PGState:
     actor_opt: torch.optim.Optimizer
     critic_opt: torch.optim.Optimizer
     steps: int = 0
+    #: the actor is not updated while ``steps`` is below this: the critic learns alone under a fixed
+    #: actor (a start from a trained actor without its critic, ``d4pg.critic_warmup_updates``)
+    actor_frozen_until: int = 0
     #: "bf16": the forward passes under bfloat16 autocast (CUDA; the losses, softmaxes and the
     #: optimiser stay float32); "off": float32 throughout. How it trains, not what it holds: not saved.
     amp: str = "off"
@@ -162,7 +165,8 @@ class TensorBatch:
 
 
 def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D4PGState, dict, np.ndarray]:
-    """One critic and one actor update. Returns (state, metrics, per-item critic loss).
+    """One critic and one actor update (the critic's alone while ``steps < actor_frozen_until``).
+    Returns (state, metrics, per-item critic loss).
 
     ``sync`` False: the metrics are 0-d tensors and the per-item loss a tensor, all still on the
     device, so the update itself never waits for a GPU; read them (``read_metrics``, ``.cpu()``)
@@ -189,23 +193,29 @@ def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D
     critic_norm = torch.nn.utils.clip_grad_norm_(critic.parameters(), cfg.grad_clip_norm)
     state.critic_opt.step()
 
-    critic.requires_grad_(False)  # the actor's gradient flows through the critic, not into it
-    penalty = cfg.actor_saturation_penalty
-    with amp:
-        if penalty > 0:  # eager: the pre-tanh output is needed too
-            pre = actor.preactivation(batch.obs)
-            q_logits = run_critic(batch.obs, actor.squash(pre))
-        else:
-            q_logits = run_critic(batch.obs, run_actor(batch.obs))
-    q = critic.mean(q_logits.float())
-    actor_loss = -q.mean()
-    if penalty > 0:
-        actor_loss = actor_loss + penalty * pre.float().pow(2).mean()
-    state.actor_opt.zero_grad(set_to_none=True)
-    actor_loss.backward()
-    actor_norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip_norm)
-    state.actor_opt.step()
-    critic.requires_grad_(True)
+    if state.steps < state.actor_frozen_until:  # a fresh critic must first learn the trained actor's values
+        with torch.no_grad(), amp:
+            q = critic.mean(run_critic(batch.obs, run_actor(batch.obs)).float())
+        actor_loss = -q.mean()
+        actor_norm = torch.zeros((), device=q.device)
+    else:
+        critic.requires_grad_(False)  # the actor's gradient flows through the critic, not into it
+        penalty = cfg.actor_saturation_penalty
+        with amp:
+            if penalty > 0:  # eager: the pre-tanh output is needed too
+                pre = actor.preactivation(batch.obs)
+                q_logits = run_critic(batch.obs, actor.squash(pre))
+            else:
+                q_logits = run_critic(batch.obs, run_actor(batch.obs))
+        q = critic.mean(q_logits.float())
+        actor_loss = -q.mean()
+        if penalty > 0:
+            actor_loss = actor_loss + penalty * pre.float().pow(2).mean()
+        state.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        actor_norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip_norm)
+        state.actor_opt.step()
+        critic.requires_grad_(True)
 
     state.steps += 1
     if state.steps % cfg.target_update_period == 0:
@@ -259,6 +269,7 @@ def save_checkpoint(state: D4PGState, path: str | Path, extra: dict | None = Non
     tensors.update(actor_opt)
     tensors.update(critic_opt)
     meta = {"format": "curlnav-d4pg-checkpoint", "version": 1, "steps": state.steps,
+            "actor_frozen_until": state.actor_frozen_until,
             "config": state.config.to_dict(), "layout": state.layout.to_dict(),
             "actor_opt": actor_groups, "critic_opt": critic_groups, "extra": extra or {}}
     tmp = path.with_name(path.name + ".tmp")
@@ -293,4 +304,5 @@ def load_checkpoint(path: str | Path, device: torch.device | str | None = None) 
     state.actor_opt.load_state_dict(_unflatten_optimizer("actor_opt", tensors, meta["actor_opt"]))
     state.critic_opt.load_state_dict(_unflatten_optimizer("critic_opt", tensors, meta["critic_opt"]))
     state.steps = int(meta["steps"])
+    state.actor_frozen_until = int(meta.get("actor_frozen_until", 0))  # a learner restarted during the critic's warm-up
     return state, meta.get("extra", {})

@@ -97,7 +97,7 @@ class LearnerParts(Protocol):
 
     layout: ObservationLayout
 
-    def make_learner_state(self, device=None): ...
+    def make_learner_state(self, device=None, say=print): ...
 
     def importance_weights(self, probabilities: np.ndarray, table_size: int) -> np.ndarray | None: ...
 
@@ -132,8 +132,8 @@ class LearnerService:
             self.version_mark.write(self.version)
             log.info("resumed from %s at %d updates (checkpoint version %d), now weights version %d", ckpt,
                      self.state.steps, int(extra.get("version", 0)), self.version)
-        else:
-            self.state = parts.make_learner_state(self.device)
+        else:  # fresh networks, or the experiment's init_from (checked: ValueError, one line, exit 2)
+            self.state = parts.make_learner_state(self.device, say=log.info)
             # no checkpoint, but a crash may have come after versions went out: go on above them
             published = max(self.version_mark.read(), *self.artefact_versions(), 0)
             self.version = published + 1 if published else 0

@@ -164,7 +164,7 @@ def test_config_show_prints_the_resolved_config_and_a_file_round_trips(tmp_path,
 
 @pytest.mark.parametrize("argv, message", [
     (["train", "--serial", "--actors", "3"], "--actors is for the distributed trainer"),
-    (["train", "--init-from", "runs/x"], "--init-from is for the serial trainer"),
+    (["train", "--init-from", "runs/x"], "init_from runs/x: no such file or folder"),
     (["train", "--actors", "0"], "--actors must be at least 1"),
     (["train", "--set", "d4pg.batch_size=0"], "d4pg.batch_size must be a positive number"),
     (["train", "--set", "replay.min_size=100"], "must be at least d4pg.batch_size"),

@@ -176,7 +176,7 @@ def test_serial_trainer_runs_a_curriculum_advances_evaluates_each_target_and_res
     assert len(wider.stderr.strip().splitlines()) == 1
     bad = subprocess.run(base[:6] + [str(tmp_path / "bad"), "--init-from", str(tmp_path / "nowhere")] + base[9:],
                          capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "no checkpoint at" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert bad.returncode == 2 and "no such file or folder" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
     rows = list(csv.DictReader((run / "eval.csv").open()))
     assert len(rows) == 3 and rows[-1]["stage"] == "S2"
     assert [r["evaluation"] for r in rows] == ["1", "2", "3"], "each evaluation keeps a number of its own"

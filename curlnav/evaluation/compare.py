@@ -49,8 +49,9 @@ def episode_pairs(world: World, names: Iterable[str] = (), pairs: int | None = N
                   episodes: int | None = None) -> list[StartGoal]:
     """The pairs one seed runs on ``world``, one episode each: the pairs ``names`` (by name or
     index), repeated to ``episodes`` when given; else the first ``pairs`` held-out pairs; else
-    ``episodes`` (default 50) held-out pairs (``held_out_pairs``: the world's own pairs in
-    turn, or random draws for worlds that draw random pairs)."""
+    ``episodes`` held-out pairs (default: each of a world's own held-out pairs once, else 50;
+    ``held_out_pairs``: the world's held-out pairs or its own pairs in turn, or random draws for
+    worlds that draw random pairs)."""
     names = list(names)
     if names and pairs is not None:
         raise ValueError("give start/goal pairs by name (--pair) or a number of them (--pairs), not both")
@@ -63,8 +64,8 @@ def episode_pairs(world: World, names: Iterable[str] = (), pairs: int | None = N
         chosen = [world.pair(int(n) if str(n).isascii() and str(n).isdigit() else n) for n in names]
         return [chosen[i % len(chosen)] for i in range(episodes or len(chosen))]
     if pairs is not None:
-        return held_out_pairs(world, pairs) if draws_random_pairs(world) else list(world.pairs[:pairs])
-    return held_out_pairs(world, episodes or DEFAULT_EPISODES)
+        return held_out_pairs(world, pairs) if draws_random_pairs(world) or world.held_out else list(world.pairs[:pairs])
+    return held_out_pairs(world, episodes or len(world.held_out) or DEFAULT_EPISODES)  # its own held-out: each once
 
 
 @dataclass(frozen=True)

@@ -51,10 +51,13 @@ def evaluation_config(base: EnvConfig | None = None) -> EnvConfig:
 
 
 def held_out_pairs(world: str | World, count: int = 50, seed: int = EVAL_SEED) -> list[StartGoal]:
-    """``count`` evaluation pairs: random draws (from their own seeds) for worlds that draw
-    random pairs (``random_pairs`` set, or no pairs of their own), else the world's own pairs in
-    turn."""
+    """``count`` evaluation pairs: the world's held-out pairs in turn when it names them
+    (``World.held_out``: a user's map made a task by ``curlnav train``); else random draws (from
+    their own seeds) for worlds that draw random pairs (``random_pairs`` set, or no pairs of their
+    own), else the world's own pairs in turn."""
     world = get_world(world)
+    if world.held_out:
+        return [world.held_out[i % len(world.held_out)] for i in range(count)]
     if not draws_random_pairs(world):
         return [world.pairs[i % len(world.pairs)] for i in range(count)]
     env = NamoEnv(world)

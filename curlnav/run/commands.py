@@ -58,15 +58,30 @@ def add_training_commands(sub) -> None:
     p.add_argument("--run-dir", default=None, help="run folder (default runs/<date>-<time>-<world>-x<actors>; "
                    "--serial: runs/<date>-<time>-<world>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's run (its saved config)")
-    p.add_argument("--init-from", default=None, metavar="RUN_OR_CHECKPOINT",
-                   help="--serial: start from the networks of a serial run (or checkpoint file) instead of fresh "
-                        "ones: two-stage fine-tuning, e.g. an easy world's run, then a hard world. Training "
-                        "settings (d4pg.n_step, batch_size, learning rates, replay, exploration) may differ; the "
-                        "network settings (encoder, widths, atoms, support) and observation layout must agree")
+    p.add_argument("--init-from", default=None, metavar="ARTEFACT_RUN_OR_CHECKPOINT",
+                   help="start the networks from a policy artefact folder (e.g. policies/namo-general: its actor; "
+                        "the critic starts fresh and learns alone first, d4pg.critic_warmup_updates), a run folder "
+                        "or a checkpoint .safetensors (actor, critic, optimiser moments), in either mode, with no "
+                        "random warm-up: fine-tuning, e.g. to your building. Its robot, observation layout (beams, "
+                        "field of view, range, frames) and network settings must be the run's (checked before "
+                        "anything starts: one line, exit 2); training settings may differ. The run records the "
+                        "source's sha256 and its held-out success before any update (summary.json: init_from, "
+                        "before, after). init_from; CURLNAV_INIT_FROM")
     from curlnav.run.options import add_config_arguments, add_train_options
 
     add_train_options(p)
     add_config_arguments(p)
+    # a user's map_server map without pairs (curlnav.worlds.real.own_map): the run's pairs.yaml and task world
+    p.add_argument("--pairs-held-out", type=int, default=None, metavar="N",
+                   help="on a map without pairs of its own: held-out pairs the evaluation scores, drawn apart from "
+                        "the training pairs (default 20; the run folder's pairs.yaml)")
+    p.add_argument("--pairs-train", type=int, default=None, metavar="N",
+                   help="on a map without pairs of its own: training pairs (default 100)")
+    p.add_argument("--balls", type=int, default=None, metavar="N",
+                   help="on a map without pairs of its own: balls on the training pairs' shortest paths (default 0)")
+    p.add_argument("--doors", default=None, metavar="FILE.yaml",
+                   help="on a map without pairs of its own: its doors, `doors: [{hinge: [x, y], width: W, angle: A}]` "
+                        "(m, rad; docs/guide/training.md)")
     p.set_defaults(func=_cmd_train)
 
     config = sub.add_parser("config", help="the experiment config")

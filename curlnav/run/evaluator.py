@@ -15,6 +15,9 @@ It appends one row per (world, pair) to ``eval.csv`` (the launcher reads them fo
 TensorBoard and the stopping target) and keeps ``policy-best/``: the artefact with the best
 evaluation so far, ordered by (success on the headline target, the last fixed target such as
 T-Maze p4; then mean success over the targets).
+
+A run started from a policy (``init_from``) has that policy evaluated first, as it came, before
+any update (``evaluate_before``, the serial trainer's too): ``before.json``, not an eval.csv row.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from pathlib import Path
 from curlnav.config import ExperimentConfig, load_config
 from curlnav.evaluation.protocol import EvaluationProtocol, evaluate
 from curlnav.run.launch import die_with_launcher, http_json_or_none
-from curlnav.run.record import EVAL_FIELDS, CsvLog, copy_policy, last_evaluation_number
+from curlnav.run.record import BEFORE_FILE, EVAL_FIELDS, CsvLog, copy_policy, last_evaluation_number, write_json
 
 log = logging.getLogger("curlnav.run.evaluator")
 HELD_OUT = "held-out"
@@ -241,6 +244,51 @@ class BesideEvaluator:
             env.close()
 
 
+def evaluate_before(run_dir: Path, experiment: ExperimentConfig, curriculum=None,
+                    evaluator: BesideEvaluator | None = None, stop: threading.Event | None = None) -> dict | None:
+    """The run's starting policy (``init_from``: an artefact as it came, or a checkpoint's actor),
+    evaluated before any update on the first evaluation's targets (``evaluation_plan`` at the first
+    stage), by the protocol of every evaluation of the run. Written once to ``before.json`` (a
+    resumed run keeps it) and returned: the headline target's success and base collisions per
+    episode, each target's success. None for a run of fresh networks. Raises ``EvaluationStopped``
+    when ``stop`` is set during it (nothing written)."""
+    path = run_dir / BEFORE_FILE
+    if not experiment.init_from:
+        return None
+    if path.exists():
+        return json.loads(path.read_text())
+    from curlnav.learner.artefact import load_policy
+    from curlnav.learner.init_from import find_starting_point
+
+    point = find_starting_point(experiment.init_from)
+    policy = load_policy(point.path)
+    own = evaluator is None
+    evaluator = evaluator or BesideEvaluator(run_dir, experiment, curriculum)
+    started = time.monotonic()
+    try:
+        rows = evaluator.evaluate(policy, evaluation_plan(experiment, curriculum, None), stop)
+    finally:
+        if own:
+            evaluator.close()
+    head = rows[-1]
+    record = {"policy": str(point.path), "kind": point.kind, "target": f"{head['world']}/{head['pair']}",
+              "episodes": head["episodes"], "success_rate": head["success_rate"],
+              "collisions_per_episode": head["collisions_per_episode"],
+              "mean_success_rate": sum(r["success_rate"] for r in rows) / len(rows),
+              "per_pair": {f"{r['world']}/{r['pair']}": r["success_rate"] for r in rows},
+              "evaluation_s": time.monotonic() - started}
+    write_json(path, record)
+    return record
+
+
+def before_line(record: dict) -> str:
+    """``before.json`` for a person, one line."""
+    if "error" in record:
+        return f"[before] {record.get('policy')}: not evaluated ({record['error']})"
+    return (f"[before] {record['policy']} as it came: success {record['success_rate']:.0%} over {record['episodes']} "
+            f"episodes on {record['target']}, {record['collisions_per_episode']:.2f} base collisions/episode")
+
+
 def current_step_rate(curriculum, targets: list[Target], rows: list[dict]) -> tuple[float, int] | None:
     """(success rate, episodes) over the rows of the curriculum's current step, or None."""
     from curlnav.scheduler.curriculum import CurriculumState
@@ -285,6 +333,15 @@ def run_beside(run_dir: Path, experiment: ExperimentConfig, learner_url: str, st
     last_version = -1
     work = run_dir / ".evaluator"
     try:
+        if experiment.init_from and not (run_dir / BEFORE_FILE).exists():
+            try:
+                log.info(before_line(evaluate_before(run_dir, experiment, curriculum, evaluator, stop)))
+            except EvaluationStopped:
+                log.info("stopping: the evaluation of the starting policy in progress is dropped")
+                return
+            except (OSError, ValueError) as exc:  # recorded, so that the launcher does not wait for it
+                log.warning("could not evaluate the starting policy %s: %s", experiment.init_from, exc)
+                write_json(run_dir / BEFORE_FILE, {"policy": experiment.init_from, "error": str(exc)})
         next_at = time.monotonic() + every_s
         while not stop.wait(max(0.0, next_at - time.monotonic())):
             listing = http_json_or_none(f"{learner_url}/policy/latest", timeout=5.0)

@@ -325,8 +325,10 @@ class LocalCluster:
         to ``logs/<name>.log``."""
         self.commands[name] = list(cmd)
         # the services must not read the launcher's CURLNAV_* config variables: config.yaml is the config
+        from curlnav.config import ENV_ALIASES
+
         env = {k: v for k, v in os.environ.items() if not (k.startswith("CURLNAV_") and "__" in k)
-               and k not in ("CURLNAV_PRESET", "CURLNAV_CONFIG", "CURLNAV_WORLD", "CURLNAV_CURRICULUM")}
+               and k not in ("CURLNAV_PRESET", "CURLNAV_CONFIG", *ENV_ALIASES)}
         with open(self.run_dir / "logs" / f"{name}.log", "ab") as log:
             log.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')} start: {' '.join(cmd[2:])}\n".encode())
             log.flush()

@@ -25,6 +25,7 @@ OPTION_FIELDS = {
     "stop_at_success": "evaluation.stop_at_success",
     "seed": "seed",
     "robot": "robot",
+    "init_from": "init_from",  # train's --init-from (curlnav/run/commands.py)
 }
 
 

@@ -158,13 +158,66 @@ def first_reaching(evaluations: list[dict], success: float = 0.8) -> dict | None
 
 def outcome_fields(run_dir: Path) -> dict:
     """What a closing ``summary.json`` says of evaluations and policies, in both modes: every
-    evaluation of the run (``evals``, all sessions, from eval.csv), the first at >= 80 %, and the
-    policy folders (None for one that holds no artefact yet)."""
+    evaluation of the run (``evals``, all sessions, from eval.csv), the first at >= 80 %, the
+    policy folders (None for one that holds no artefact yet), and for a run started from a policy
+    (``init_from``) where it started and how that policy and the newest one did (``start_fields``)."""
     evals = evaluations_of(run_dir / "eval.csv")
     newest, best = run_dir / "policy", run_dir / "policy-best"
     return {"evals": evals, "first_eval_reaching_80": first_reaching(evals),
             "policy": str(newest) if has_policy(newest) else None,
-            "policy_best": str(best) if has_policy(best) else None}
+            "policy_best": str(best) if has_policy(best) else None, **start_fields(run_dir, evals)}
+
+
+#: a run started from a policy (``init_from``): where from (path, kind, sha256 of each file), written
+#: once by its trainer before anything is trained; and that policy's held-out evaluation as it came,
+#: before any update (``curlnav.run.evaluator.evaluate_before``)
+INIT_FROM_FILE, BEFORE_FILE = "init_from.json", "before.json"
+
+
+def write_json(path: Path, data: dict) -> Path:
+    """Strict JSON (no NaN), written beside ``path`` and renamed onto it."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(strict_json(data), indent=2, allow_nan=False))
+    tmp.replace(path)
+    return path
+
+
+def record_init_from(run_dir: Path, init_from: str) -> dict:
+    """``init_from.json`` of a run started from ``init_from``: its path, kind and the sha256 of each
+    of its files (``curlnav.learner.init_from.StartingPoint.record``), written when the run starts;
+    a resumed run keeps it. Returns the record."""
+    path = Path(run_dir) / INIT_FROM_FILE
+    saved = _read_json(path)
+    if saved is not None:
+        return saved
+    from curlnav.learner.init_from import find_starting_point
+
+    record = find_starting_point(init_from).record()
+    write_json(path, record)
+    return record
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def start_fields(run_dir: Path, evals: list[dict] | None = None) -> dict:
+    """``init_from`` (``{"path", "kind", "sha256": {file: digest}}``), ``before`` (the starting
+    policy's held-out success and base collisions per episode, before any update) and ``after``
+    (the newest evaluation of the run, None before the first) of a run started from a policy;
+    nothing for a run of fresh networks."""
+    record = _read_json(run_dir / INIT_FROM_FILE)
+    if record is None:
+        return {}
+    evals = evaluations_of(run_dir / "eval.csv") if evals is None else evals
+    newest = evals[-1] if evals else None
+    after = None if newest is None else {k: newest.get(k) for k in (
+        "evaluation", "version", "wall_s", "env_steps", "updates", "target", "success_rate", "collisions_per_episode")}
+    return {"init_from": record, "before": _read_json(run_dir / BEFORE_FILE), "after": after}
 
 
 def absolute(path: str | Path) -> Path:

@@ -40,14 +40,7 @@ from curlnav.bus.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_sig
 from curlnav.config import ExperimentConfig
 from curlnav.evaluation.protocol import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy, training_worlds
-from curlnav.learner.d4pg import (
-    act,
-    adopt_training_config,
-    load_checkpoint,
-    network_differences,
-    save_checkpoint,
-    sgd_step,
-)
+from curlnav.learner.d4pg import act, load_checkpoint, save_checkpoint, sgd_step
 from curlnav.learner.feed import BatchAssembler
 from curlnav.run.record import (
     EVAL_FIELDS,
@@ -59,6 +52,7 @@ from curlnav.run.record import (
     last_evaluation_number,
     now_iso,
     outcome_fields,
+    record_init_from,
     strict_json,
 )
 from curlnav.sim.robots import sensor_metadata
@@ -72,7 +66,6 @@ class SerialRunConfig:
     save_replay: bool = True  # include the replay in checkpoints (needed for an exact resume)
     torch_threads: int = 2
     progress: bool = True  # a tqdm progress bar
-    init_from: str = ""  # a run folder or checkpoint: start from its networks (two-stage fine-tuning)
 
 
 class SerialTrainer:
@@ -112,7 +105,7 @@ class SerialTrainer:
         self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1, stream=self.counters["env_steps"])
         self.policy.use_network(self.state.actor)
         self.policy.steps = self.counters["env_steps"]  # the warm-up is not repeated on resume
-        if self.run_cfg.init_from or self.counters.get("init_from"):
+        if self.counters.get("init_from"):  # a run saved before init_from was a config field
             self.policy.steps = max(self.policy.steps, self.policy.warmup_steps)  # a trained policy acts at once
         self.loop = EpisodeLoop(env, builder.make_acting_agent(self.policy), builder.make_nstep_writer(),
                                 builder.make_world_draws(0, stream=self.counters["env_steps"]))
@@ -121,30 +114,12 @@ class SerialTrainer:
         self.task: tuple[str, str, int] = (str(experiment.curriculum.world), "", 0)  # world, pair, epoch
 
     def _initial_state(self, builder: D4PGBuilder):
-        """Fresh networks, or those of ``init_from`` (a run folder's checkpoint or a checkpoint
-        file) with their optimiser moments, for two-stage fine-tuning; the update count restarts."""
-        source = self.run_cfg.init_from
-        if not source:
-            return builder.make_learner_state()
-        path = Path(source)
-        if path.is_dir():
-            path = path / "checkpoints" / "latest.safetensors"
-        if not path.exists():
-            raise ValueError(f"--init-from {source}: no checkpoint at {path} (give a serial run folder or its "
-                             f"checkpoints/latest.safetensors)")
-        state, _ = load_checkpoint(path)
-        differences = network_differences(state.config, self.experiment.d4pg)
-        if state.layout != builder.layout:
-            differences.append("the observation layout")
-        if differences:
-            what = "; ".join(differences)
-            raise ValueError(f"--init-from {source}: its networks differ from this experiment's ({what}); "
-                             f"fine-tune with the same network settings and environment")
-        for change in adopt_training_config(state, self.experiment.d4pg):
-            print(f"fine-tuning with {change}")
-        state.steps = 0
-        self.counters["init_from"] = str(path)
-        print(f"networks from {path} (fine-tuning: no random warm-up)")
+        """Fresh networks, or those of ``init_from`` (``D4PGBuilder.make_learner_state``: a policy
+        artefact's actor, or a run's or checkpoint's networks with their optimiser moments, for
+        fine-tuning); the update count starts at 0. Where it started is recorded in the run folder."""
+        state = builder.make_learner_state(say=print)
+        if self.experiment.init_from:
+            self.counters["init_from"] = record_init_from(self.run_dir, self.experiment.init_from)["path"]
         return state
 
     # -- the curriculum (in-process scheduler core) ------------------------------------------
@@ -373,6 +348,8 @@ class SerialTrainer:
         stop_reason = "time budget"
         self._begin()
         try:
+            self._evaluate_before()
+            last_eval = time.monotonic()
             while time.monotonic() - start < budget_s:
                 if received:
                     stop_reason = f"interrupted by {STOP_SIGNALS[received[0]]}"
@@ -389,7 +366,7 @@ class SerialTrainer:
                 if now - last_log >= 5.0:
                     self._log(now, start, now - last_log, at_log, budget_s)
                     last_log, at_log = now, (self.counters["env_steps"], self.state.steps)
-                if (self.counters["env_steps"] > experiment.exploration.warmup_steps
+                if (self.counters["env_steps"] > self.policy.warmup_steps
                         and now - last_eval >= experiment.evaluation.every_s):
                     result = self.evaluate(start)
                     last_eval = time.monotonic()
@@ -437,6 +414,15 @@ class SerialTrainer:
             run_dir=str(self.run_dir), **outcome_fields(self.run_dir))  # every evaluation of the run, all sessions
 
     bar = None
+
+    def _evaluate_before(self) -> None:
+        """A run from a policy (``init_from``): that policy as it came, before any update, once."""
+        from curlnav.run.evaluator import before_line, evaluate_before
+        from curlnav.run.record import BEFORE_FILE
+
+        if self.experiment.init_from and not (self.run_dir / BEFORE_FILE).exists():
+            curriculum = self.curriculum.curriculum if self.curriculum is not None else None
+            self._print(before_line(evaluate_before(self.run_dir, self.experiment, curriculum)))
 
     def _log(self, now: float, start: float, dt: float, at_log: tuple[int, int], budget_s: float) -> None:
         sps = (self.counters["env_steps"] - at_log[0]) / dt

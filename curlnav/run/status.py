@@ -3,7 +3,9 @@
 The target is the scheduler's URL, or a run folder whose ``run.json`` (written by the launcher)
 names it; by default the newest run folder under ``runs/`` that has one. A run folder whose run
 has finished (its scheduler gone, ``summary.json`` closed) gets the run's outcome instead:
-why it stopped, its counts and its last evaluation (serial runs too).
+why it stopped, its counts and its last evaluation (serial runs too). A run started from a policy
+(``init_from``) also shows where it started and that policy's held-out success before any update
+beside the newest evaluation's (``start_lines``), running or finished.
 """
 
 from __future__ import annotations
@@ -143,6 +145,34 @@ def finished_summary(folder: Path) -> dict | None:
     return summary
 
 
+def _result(e: dict) -> str:
+    collisions = e.get("collisions_per_episode")
+    return (f"success {_percent(e.get('success_rate'))}"
+            + ("" if collisions is None else f", {collisions:.2f} base collisions/episode") + f" on {e.get('target')}")
+
+
+def start_lines(fields: dict) -> list[str]:
+    """``fields`` (``summary.json``, or ``curlnav.run.record.start_fields`` of a running run) of a
+    run started from a policy, as lines: where from, its held-out result before any update, and the
+    newest evaluation's (after); nothing for a run of fresh networks."""
+    record = fields.get("init_from")
+    if not isinstance(record, dict):
+        return []
+    before, after = fields.get("before"), fields.get("after")
+    files = record.get("sha256") or {}
+    if not isinstance(before, dict):
+        then = "not evaluated yet"
+    elif "error" in before:
+        then = f"not evaluated ({before['error']})"
+    else:
+        then = _result(before)
+    now = ("no evaluation yet" if not isinstance(after, dict) else
+           f"{_result(after)} (evaluation {after.get('evaluation')}"
+           + ("" if after.get("version") is None else f", policy v{after['version']}") + ")")
+    return [f"started from {record.get('path')} ({record.get('kind')}; sha256 of its {len(files)} files in summary.json)",
+            f"before any update: {then}; after: {now}"]
+
+
 def format_outcome(folder: Path, summary: dict) -> str:
     """A finished run's outcome (``summary.json``) as lines of text for a terminal."""
     from curlnav.run.record import absolute, policy_lines
@@ -165,6 +195,7 @@ def format_outcome(folder: Path, summary: dict) -> str:
                      + ("" if collisions is None else f", {collisions:.2f} base collisions/episode")
                      + ("" if version is None else f" (policy v{version})")
                      + f"; {len(evals)} evaluation{'s' if len(evals) != 1 else ''} in eval.csv")
+    lines += start_lines(summary)
     reached = summary.get("first_eval_reaching_80")
     if reached:
         lines.append(f"first evaluation at >= 80%: {reached['wall_s'] / 60:.1f} min, {reached['env_steps']} env steps")
@@ -189,5 +220,10 @@ def run_status(target: str | None, raw_json: bool = False) -> int:
             raise
         print(json.dumps(summary, indent=2) if raw_json else format_outcome(folder, summary))
         return 0
-    print(json.dumps(status, indent=2) if raw_json else format_status(status))
+    if raw_json:
+        print(json.dumps(status, indent=2))
+        return 0
+    from curlnav.run.record import start_fields
+
+    print("\n".join([format_status(status), *start_lines(start_fields(folder) if folder is not None else {})]))
     return 0

@@ -14,7 +14,9 @@ process):
   holds everything accepted), exit 130;
 - the budget (``budget.minutes`` of the run, earlier sessions included, each counted from the start
   of its command, start-up included; or ``budget.max_env_steps`` transitions accepted by the
-  replay) or the held-out target ends it with exit 0.
+  replay) or the held-out target ends it with exit 0. A run started from a policy (``init_from``)
+  goes on past ``max_env_steps`` until the evaluator has evaluated that policy (``before.json``),
+  never past ``budget.minutes``.
 
 The run folder gets ``run.json`` (URLs, pids), ``metrics.csv``, ``eval.csv`` (written by the
 evaluator), TensorBoard event files, ``learning_curve.png``, ``summary.json``, ``policy/`` (the
@@ -201,6 +203,9 @@ class DistributedRun:
         self.policy_version = -1
         self.last_status: dict | None = None
         self.counts = saved_counts(self.run_dir / "metrics.csv")
+        self.before_said = False  # the starting policy's evaluation (init_from) printed
+        if experiment.init_from:
+            record.record_init_from(self.run_dir, experiment.init_from)
 
     def _saved_run_json(self) -> dict:
         try:
@@ -330,8 +335,23 @@ class DistributedRun:
             + f" ({learner.get('updates_per_s') or 0:.1f}/s) | policy v{row['policy_version'] or 0}"
             + f" | replay {row['replay_size'] or 0} | actors {row['live_actors']}")
         if budget.max_env_steps is not None and env_steps >= budget.max_env_steps:
+            if self.experiment.init_from and not (self.run_dir / record.BEFORE_FILE).exists():
+                return None  # the run's record needs the starting policy's evaluation: the time budget still ends it
             return f"env step budget ({env_steps} >= {budget.max_env_steps})"
         return None
+
+    def say_before(self) -> None:
+        """Print the starting policy's evaluation (``before.json``) once it is there."""
+        if self.before_said or not self.experiment.init_from:
+            return
+        try:
+            before = json.loads((self.run_dir / record.BEFORE_FILE).read_text())
+        except (OSError, ValueError):
+            return
+        from curlnav.run.evaluator import before_line
+
+        self.before_said = True
+        say(before_line(before))
 
     def read_evaluations(self, board: TensorBoardLog) -> str | None:
         """New eval.csv rows (written by the evaluator): console, TensorBoard, stopping target."""
@@ -431,6 +451,7 @@ class DistributedRun:
                 if reason:
                     stop_reason = reason
                     break
+                self.say_before()
                 if now - last_sync >= 10.0:
                     self.sync_policy()
                     # the session so far: even a launcher killed outright leaves its history

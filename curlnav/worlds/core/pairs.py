@@ -108,7 +108,13 @@ class PairSampler:
         world, spec = self.world, self.spec
         for _ in range(MAX_TRIES):
             sy, sx = self.starts[rng.integers(len(self.starts))]
-            same = self._component(int(self.labels[sy, sx]))
+            if math.isfinite(max_distance):  # only the cells within reach: the same cells, in the same order
+                reach = int(math.ceil(max_distance / world.resolution))
+                y0, x0 = max(int(sy) - reach, 0), max(int(sx) - reach, 0)
+                near = self.labels[y0:sy + reach + 1, x0:sx + reach + 1] == self.labels[sy, sx]
+                same = np.argwhere(near) + (y0, x0)
+            else:
+                same = self._component(int(self.labels[sy, sx]))
             d = np.hypot(same[:, 0] - sy, same[:, 1] - sx) * world.resolution
             far = same[(d >= spec.min_distance) & (d <= max_distance)]
             if len(far) == 0:

@@ -3,8 +3,8 @@
 A world is stored on disk as a ROS ``map_server`` map (a YAML file next to a PGM or PNG image,
 with ``image``, ``resolution``, ``origin``, ``negate``, ``occupied_thresh`` and ``free_thresh``)
 extended with curlnav's own keys (``wall_height``, ``balls``, ``doors``, ``boxes``, ``pairs``,
-``ball_regions``, ``random_pairs``). A map written by any ROS SLAM stack loads as a world with no
-movable objects and no pairs; add those keys to train on it.
+``held_out_pairs``, ``ball_regions``, ``random_pairs``). A map written by any ROS SLAM stack loads
+as a world with no movable objects and no pairs; add those keys to train on it.
 
 Conventions (all lengths in metres, angles in radians):
 
@@ -171,6 +171,9 @@ class World:
     pairs: tuple[StartGoal, ...] = ()
     ball_regions: tuple[Region, ...] = ()
     random_pairs: RandomPairs | None = None
+    # evaluation pairs, never trained on: the evaluation protocol scores these instead of drawing its own
+    # (``curlnav train --world MAP.yaml`` writes them, ``curlnav.worlds.real.own_map``); training draws ``pairs``
+    held_out: tuple[StartGoal, ...] = ()
     source: str = "<memory>"
 
     def __post_init__(self) -> None:
@@ -194,10 +197,12 @@ class World:
                 raise WorldError(f"{self.source}: doors[{i}].swing must be 'left' or 'right', got {door.swing!r}")
             if door.width <= 0 or door.mass <= 0:
                 raise WorldError(f"{self.source}: doors[{i}] needs a positive width and mass")
-        names = [pair.name for pair in self.pairs]
+        names = [pair.name for pair in (*self.pairs, *self.held_out)]
         if len(set(names)) != len(names):
-            raise WorldError(f"{self.source}: pair names must be unique, got {names}")
-        for pair in self.pairs:
+            repeated = sorted({name for name in names if names.count(name) > 1})
+            raise WorldError(f"{self.source}: pair names (pairs and held_out_pairs) must be unique, "
+                             f"{shown(repeated)} repeated")
+        for pair in (*self.pairs, *self.held_out):
             for label, (px, py) in (("start", (pair.x, pair.y)), ("goal", (pair.gx, pair.gy))):
                 if not self.contains(px, py):
                     raise WorldError(f"{self.source}: pair {pair.name!r} {label} ({px:.2f}, {py:.2f}) lies outside the map")
@@ -278,12 +283,13 @@ class World:
         return bool(self.occupancy[iy, ix])
 
     def pair(self, key: int | str) -> StartGoal:
-        """A start/goal pair by index or by name; ``KeyError`` names the choices."""
+        """A start/goal pair by index (of ``pairs``) or by name (``pairs``, then ``held_out``);
+        ``KeyError`` names the choices."""
         if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
             if 0 <= key < len(self.pairs):
                 return self.pairs[int(key)]
         else:
-            for pair in self.pairs:
+            for pair in (*self.pairs, *self.held_out):
                 if pair.name == key:
                     return pair
         raise KeyError(f"world {self.name!r} has no pair {key!r}; it has {[p.name for p in self.pairs] or 'none'}")
@@ -368,7 +374,7 @@ def _build_items(path: Path, key: str, raw: Any, cls: type) -> tuple:
                     if not math.isfinite(values[name]):
                         raise ValueError(f"{name} is not finite")
             if cls is StartGoal and "name" not in values:
-                values["name"] = f"p{i + 1}"
+                values["name"] = f"{'h' if key == 'held_out_pairs' else 'p'}{i + 1}"
             items.append(cls(**values))
         except (TypeError, ValueError) as exc:
             raise _fail(path, f"{key}[{i}] is invalid: {shown(str(exc), 160)[1:-1]}") from None
@@ -429,8 +435,12 @@ def _read_map_server(path: Path, meta: dict) -> tuple[np.ndarray, float, list[fl
             with Image.open(image_path) as img:  # reads the header only
                 width, height = img.size
                 if width * height > MAX_MAP_PIXELS:
-                    raise _fail(path, f"map image {image_path} has {width} x {height} pixels, above "
-                                      f"{MAX_MAP_PIXELS} (a 5000 x 5000 map at 5 cm is 250 m square)")
+                    raise _fail(path, f"map image {image_path} has {width} x {height} = {width * height} cells, above "
+                                      f"the cap of {MAX_MAP_PIXELS} (5000 x 5000: 250 m square at 5 cm); crop or "
+                                      f"coarsen the map")
+                short = pnm_shortfall(image_path)
+                if short:
+                    raise _fail(path, f"map image {image_path} is truncated: {short}")
                 values = map_server_values(img, mode.strip().lower(), bool(negate), occupied_thresh, free_thresh)
     except FileNotFoundError:
         raise _fail(path, f"map image {image_path} does not exist") from None
@@ -442,6 +452,48 @@ def _read_map_server(path: Path, meta: dict) -> tuple[np.ndarray, float, list[fl
             raise
         raise _fail(path, f"map image {image_path} is unreadable: {shown(str(exc), 160)[1:-1]}") from None
     return np.flipud(values != 0), resolution, origin
+
+
+_PNM_CHANNELS = {b"P4": 0, b"P5": 1, b"P6": 3}  # binary PBM (bits), PGM (grey), PPM (RGB)
+
+
+def pnm_shortfall(image_path: Path) -> str:
+    """For a binary PGM, PPM or PBM whose file holds fewer pixel bytes than its header's width,
+    height and maxval call for (a map cut short in a copy or a download): what the header says
+    and what the file holds, in words; else "" (another format, a whole file, or a header too
+    malformed to say: the decoder reports that)."""
+    try:
+        with open(image_path, "rb") as f:
+            head = f.read(4096)
+            size = os.fstat(f.fileno()).st_size
+    except OSError:
+        return ""
+    channels = _PNM_CHANNELS.get(head[:2])
+    if channels is None:
+        return ""
+    numbers, at, wanted = [], 2, 2 if channels == 0 else 3
+    while len(numbers) < wanted:
+        while at < len(head) and (head[at:at + 1].isspace() or head[at:at + 1] == b"#"):
+            if head[at:at + 1] == b"#":  # a comment runs to the end of its line
+                end = head.find(b"\n", at)
+                at = len(head) if end < 0 else end
+            at += 1
+        match = re.match(rb"\d+", head[at:])
+        if match is None:
+            return ""
+        numbers.append(int(match[0]))
+        at += len(match[0])
+    at += 1  # the one whitespace character before the pixels
+    width, height = numbers[0], numbers[1]
+    if channels == 0:
+        expected = (width + 7) // 8 * height
+    else:
+        expected = width * height * channels * (2 if numbers[2] > 255 else 1)
+    held = max(size - at, 0)
+    if held >= expected:
+        return ""
+    return (f"its header says {width} x {height} pixels ({expected} bytes of pixels), the file holds {held} "
+            f"after the header")
 
 
 def _header_size(image_path: Path) -> str:
@@ -484,6 +536,7 @@ def _read_curlnav_keys(path: Path, meta: dict) -> dict:
             "doors": _build_items(path, "doors", meta.get("doors"), Door),
             "boxes": _build_items(path, "boxes", meta.get("boxes"), Box),
             "pairs": _build_items(path, "pairs", meta.get("pairs"), StartGoal),
+            "held_out": _build_items(path, "held_out_pairs", meta.get("held_out_pairs"), StartGoal),
             "ball_regions": tuple(regions), "random_pairs": random_pairs}
 
 
@@ -554,6 +607,7 @@ def _world_file_fields(world: World, image_name: str) -> dict[str, Any]:
         "doors": as_dicts(world.doors),
         "boxes": as_dicts(world.boxes),
         "pairs": as_dicts(world.pairs),
+        **({"held_out_pairs": as_dicts(world.held_out)} if world.held_out else {}),
         "ball_regions": [[float(r.x_min), float(r.y_min), float(r.x_max), float(r.y_max)] for r in world.ball_regions],
     }
     if world.random_pairs is not None:
