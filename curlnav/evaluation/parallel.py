@@ -219,6 +219,11 @@ def run_trials(comparison: Comparison, plan: ComparisonPlan, pool: WorkerPool | 
         if on_trial:
             on_trial(episode)
 
+    # a Ctrl-C stops the run even where SIGINT came ignored (a script's background job inherits
+    # SIG_IGN and Python then leaves it), as `curlnav train` installs its own handler
+    interrupt = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         if pool is None or not pool.workers:
             comparison.run(plan.seeds, on_episode=lambda e: keep((0, len(finished)), e), mcap=plan.mcap,
@@ -234,6 +239,9 @@ def run_trials(comparison: Comparison, plan: ComparisonPlan, pool: WorkerPool | 
             unit = units[failed.unit]
             which = f"the worker running {list(comparison.agents)[unit.agent]} on {comparison.worlds[unit.world].name}"
         return Trials(in_run_order(finished), total, f"{which} failed: {failed.reason}")
+    finally:
+        if threading.current_thread() is threading.main_thread() and interrupt is not None:
+            signal.signal(signal.SIGINT, interrupt)
     return Trials(in_run_order(finished), total)
 
 
