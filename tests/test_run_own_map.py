@@ -226,3 +226,17 @@ def test_the_map_options_are_refused_on_a_world_with_pairs_of_its_own(tmp_path, 
     assert main(["train", "--serial", "--world", "t-maze:0", "--run-dir", str(tmp_path / "run"), "--balls", "2"]) == 2
     assert "t-maze:0 is not a map file" in capsys.readouterr().err
 
+
+
+def test_a_generated_world_exported_as_a_map_is_what_a_slam_map_is(tmp_path, capsys):
+    """``curlnav worlds export-map``: the walls alone, in map_server's fields, read back cell for cell."""
+    from curlnav.sim import get_world
+
+    out = tmp_path / "maps" / "office.yaml"
+    assert main(["worlds", "export-map", "namo-office:97", "--out", str(out)]) == 0
+    assert list(yaml.safe_load(out.read_text())) == ["image", "resolution", "origin", "mode", "negate",
+                                                     "occupied_thresh", "free_thresh"]
+    original, exported = get_world("namo-office:97"), get_world(str(out))
+    assert np.array_equal(original.occupancy, exported.occupancy)
+    assert exported.resolution == original.resolution and exported.origin == original.origin
+    assert not (exported.pairs or exported.balls or exported.doors or exported.boxes)

@@ -113,6 +113,22 @@ def _cmd_import_sdf(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export_map(args: argparse.Namespace) -> int:
+    """A world's walls as a ``map_server`` map (YAML + PGM), as a robot team's SLAM map would be."""
+    from curlnav.sim import get_world
+    from curlnav.worlds.core.world import save_world
+
+    out = Path(args.out)
+    if out.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"--out {args.out}: a map's YAML file ends in .yaml")
+    world = get_world(args.world)
+    save_world(world, out, map_only=True)
+    rows, cols = world.occupancy.shape
+    print(f"wrote {out} and {out.with_suffix('.pgm').name}: the walls of {world.name}, {cols} x {rows} cells of "
+          f"{world.resolution:g} m; no pairs, balls or doors (train --world {out} draws its pairs; --doors marks doors)")
+    return 0
+
+
 def add_commands(sub) -> None:
     """``worlds generate|show|scatter-balls|rank|import-sdf``; the families in ``generate``'s help come from
     ``curlnav.worlds.families.FAMILIES``."""
@@ -140,6 +156,10 @@ def add_commands(sub) -> None:
     p.add_argument("--mass", type=float, default=0.5, help="ball mass (kg)")
     p.add_argument("--out", required=True, help="world YAML to write (its image is written beside it)")
     p.set_defaults(func=_cmd_scatter_balls)
+    p = worlds_sub.add_parser("export-map", help="a world's walls as a map_server map (YAML + PGM), as a SLAM map is")
+    p.add_argument("world", help="built-in name, world YAML, or FAMILY:SEED")
+    p.add_argument("--out", required=True, help="the map's YAML (its PGM is written beside it)")
+    p.set_defaults(func=_cmd_export_map)
     p = worlds_sub.add_parser("rank", help="Table I and the MDS picture for a set of worlds")
     p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")
     p.add_argument("--out", default="runs/ranking", help="folder for the table (CSV, JSON) and the picture")

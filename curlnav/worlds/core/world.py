@@ -540,10 +540,12 @@ def _read_curlnav_keys(path: Path, meta: dict) -> dict:
             "ball_regions": tuple(regions), "random_pairs": random_pairs}
 
 
-def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm") -> Path:
+def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm", map_only: bool = False) -> Path:
     """Write ``world`` as ``path`` (YAML) plus ``<stem>.pgm`` or ``.png`` beside it, whole or not at
     all: both are written to temporary files beside them first, then renamed into place (the YAML
-    last). A failure (``OSError``) leaves neither, nor a temporary file, nor the folders made for them."""
+    last). A failure (``OSError``) leaves neither, nor a temporary file, nor the folders made for them.
+    ``map_only``: map_server's fields alone, the walls as a SLAM map shows them (no pairs, balls,
+    doors or boxes: what a robot team's map holds)."""
     from PIL import Image
 
     if image_format not in ("pgm", "png"):
@@ -559,7 +561,10 @@ def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm")
         temporary.append(_temporary_beside(image_path))
         Image.fromarray(pixels, mode="L").save(temporary[-1], format=image_format.upper().replace("PGM", "PPM"))
         temporary.append(_temporary_beside(path))
-        temporary[-1].write_text(yaml.safe_dump(_world_file_fields(world, image_name), sort_keys=False))
+        fields = _world_file_fields(world, image_name)
+        if map_only:
+            fields = {k: fields[k] for k in MAP_SERVER_FIELDS}
+        temporary[-1].write_text(yaml.safe_dump(fields, sort_keys=False))
         os.replace(temporary[0], image_path)
         os.replace(temporary[1], path)
     except BaseException:
@@ -572,6 +577,10 @@ def save_world(world: World, path: str | os.PathLike, image_format: str = "pgm")
                 break
         raise
     return path
+
+
+#: the fields of a ``map_server`` map's YAML, in the order ROS writes them
+MAP_SERVER_FIELDS = ("image", "resolution", "origin", "mode", "negate", "occupied_thresh", "free_thresh")
 
 
 def _temporary_beside(path: Path) -> Path:
