@@ -115,7 +115,7 @@ def _cmd_import_sdf(args: argparse.Namespace) -> int:
 
 def _cmd_export_map(args: argparse.Namespace) -> int:
     """A world's walls as a ``map_server`` map (YAML + PGM), as a robot team's SLAM map would be."""
-    from curlnav.sim import get_world
+    from curlnav.worlds.builtin import get_world
     from curlnav.worlds.core.world import save_world
 
     out = Path(args.out)
