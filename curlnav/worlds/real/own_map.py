@@ -186,12 +186,7 @@ def read_doors(path: str | os.PathLike, world: World) -> tuple[Door, ...]:
     naming the file and the entry) when it is unreadable, malformed, or a door lies off the map or
     in a wall."""
     path = Path(path)
-    try:
-        raw = read_yaml(path, what="doors file")
-    except OSError as exc:
-        raise WorldError(f"{path}: cannot read the doors file: {exc.strerror or exc}") from None
-    except FileRefused as exc:
-        raise WorldError(str(exc)) from None
+    raw = _read_yaml_file(path, "doors file")
     if isinstance(raw, dict) and set(raw) == {"doors"}:
         raw = raw["doors"]
     if not isinstance(raw, list) or not raw:
@@ -285,13 +280,18 @@ def read_about(path: str | os.PathLike) -> dict:
     return {key: data[key] for key in ("map", "seed", "doors", "balls") if key in data}
 
 
-def _read_pairs_mapping(path: Path) -> dict:
+def _read_yaml_file(path: Path, what: str):
+    """The YAML of ``path`` (a ``what``: "doors file", "pairs file"), every failure a ``WorldError`` in one line."""
     try:
-        data = read_yaml(path, what="pairs file")
+        return read_yaml(path, what=what)
     except OSError as exc:
-        raise WorldError(f"{path}: cannot read the pairs file: {exc.strerror or exc}") from None
+        raise WorldError(f"{path}: cannot read the {what}: {exc.strerror or exc}") from None
     except FileRefused as exc:
         raise WorldError(str(exc)) from None
+
+
+def _read_pairs_mapping(path: Path) -> dict:
+    data = _read_yaml_file(path, "pairs file")
     if not isinstance(data, dict):
         raise WorldError(f"{path}: a pairs file is a mapping with the lists train and held_out")
     return data
