@@ -97,6 +97,13 @@ class D4PGConfig:
     #: ten target-network copies; 0: none. A start without a critic only (a checkpoint, fresh
     #: networks) never waits. Left out of the config hash while at its default
     critic_warmup_updates: int = field(default=1000, metadata={"hash": "omit-default"})
+    #: fine-tuning (``init_from``): how strongly the actor is held near the policy it started from.
+    #: With a weight ``a`` > 0 the actor's loss is ``-Q / mean|Q| + a * |pi(s) - pi_0(s)|^2`` (the Q
+    #: term normalised by its batch's mean magnitude, as TD3+BC does, so ``a`` does not depend on the
+    #: reward's scale; the squared distance summed over the action's fractions), ``pi_0`` the starting
+    #: actor, frozen: a critic that has seen the trained actor's actions only cannot drag it into
+    #: actions it knows nothing about. 0 (the default, left out of the config hash): none
+    anchor_weight: float = field(default=0.0, metadata={"hash": "omit-default"})
 
     def __post_init__(self) -> None:
         p = "d4pg"
@@ -104,6 +111,9 @@ class D4PGConfig:
                  and 0 <= self.critic_warmup_updates <= 10_000_000,
                  f"{p}.critic_warmup_updates must be a whole number of updates in 0..10000000, got "
                  f"{shown(self.critic_warmup_updates)}")
+        _require(isinstance(self.anchor_weight, (int, float)) and not isinstance(self.anchor_weight, bool)
+                 and math.isfinite(self.anchor_weight) and 0 <= self.anchor_weight <= 1000,
+                 f"{p}.anchor_weight must be a number in 0..1000 (0: none), got {shown(self.anchor_weight)}")
         _require(self.encoder in ("pooled", "conv"), f"{p}.encoder must be 'pooled' or 'conv', got {self.encoder!r}")
         _require(isinstance(self.atoms, int) and not isinstance(self.atoms, bool) and 2 <= self.atoms <= MAX_ATOMS,
                  f"{p}.atoms must be an integer 2-{MAX_ATOMS}, got {shown(self.atoms)}")

@@ -54,8 +54,10 @@ def training_worlds(curriculum_world: str, curriculum_file: str = "") -> tuple[l
 
 def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, *, worlds: list[str],
                   curriculum_stage: str = "none", env_steps: int = 0, version: int | None = None,
-                  extra: dict | None = None) -> Path:
-    """Write the artefact folder ``out_dir`` atomically (built beside it, then renamed)."""
+                  extra: dict | None = None, stack: dict | None = None) -> Path:
+    """Write the artefact folder ``out_dir`` atomically (built beside it, then renamed). ``stack``:
+    the navigation stack it ships with (``metadata.json``'s ``"stack"``: a fine-tuned policy keeps its
+    source's, ``curlnav.learner.init_from.inherited_stack``); None: the network alone."""
     import torch  # here, so that reading a policy (``load_policy``) does not load torch
     from safetensors.torch import save_file
 
@@ -109,6 +111,8 @@ def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, 
                      **(extra or {})},
         "files": {name: sha256_of(tmp / name) for name in ("actor.onnx", "policy.safetensors")},
     }
+    if stack:
+        metadata["stack"] = stack
     (tmp / "metadata.json").write_text(json.dumps(metadata, indent=2))
     if out_dir.exists():
         shutil.rmtree(out_dir)

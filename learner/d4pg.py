@@ -62,6 +62,9 @@ class D4PGState:
     #: the actor is not updated while ``steps`` is below this: the critic learns alone under a fixed
     #: actor (a start from a trained actor without its critic, ``d4pg.critic_warmup_updates``)
     actor_frozen_until: int = 0
+    #: the actor the run started from, frozen (``init_from`` with ``d4pg.anchor_weight`` > 0): the
+    #: actor's loss keeps it near this one's actions. None: no anchor
+    anchor: Actor | None = None
     #: "bf16": the forward passes under bfloat16 autocast (CUDA; the losses, softmaxes and the
     #: optimiser stay float32); "off": float32 throughout. How it trains, not what it holds: not saved.
     amp: str = "off"
@@ -116,6 +119,11 @@ def init_state(config: D4PGConfig, layout: ObservationLayout, device: torch.devi
     return D4PGState(config, layout, actor, critic, target_actor, target_critic,
                      torch.optim.Adam(actor.parameters(), lr=config.actor_lr, fused=fused),
                      torch.optim.Adam(critic.parameters(), lr=config.critic_lr, fused=fused))
+
+
+def anchored_copy(actor: Actor) -> Actor:
+    """A frozen copy of ``actor``: a fine-tuning run's anchor (``D4PGState.anchor``)."""
+    return copy.deepcopy(actor).requires_grad_(False).eval()
 
 
 # The D4PG fields that shape the networks' weights (encoder, widths, the return support): a
@@ -177,6 +185,7 @@ def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D
     run_critic, run_actor = state.net("critic"), state.net("actor")
     support = critic.support
     amp = torch.autocast(state.device.type, dtype=torch.bfloat16, enabled=state.amp == "bf16")
+    metrics_extra: dict = {}
     with torch.no_grad(), amp:
         next_action = state.net("target_actor")(batch.next_obs)
         next_logits = state.net("target_critic")(batch.next_obs, next_action)
@@ -204,13 +213,20 @@ def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D
         with amp:
             if penalty > 0:  # eager: the pre-tanh output is needed too
                 pre = actor.preactivation(batch.obs)
-                q_logits = run_critic(batch.obs, actor.squash(pre))
+                action = actor.squash(pre)
             else:
-                q_logits = run_critic(batch.obs, run_actor(batch.obs))
+                action = run_actor(batch.obs)
+            q_logits = run_critic(batch.obs, action)
         q = critic.mean(q_logits.float())
         actor_loss = -q.mean()
         if penalty > 0:
             actor_loss = actor_loss + penalty * pre.float().pow(2).mean()
+        if state.anchor is not None and cfg.anchor_weight > 0:  # fine-tuning: stay near the starting actor
+            with torch.no_grad(), amp:
+                anchored = state.anchor(batch.obs)
+            drift = (action.float() - anchored.float()).pow(2).sum(-1).mean()
+            actor_loss = actor_loss / q.abs().mean().detach().clamp_min(1e-6) + cfg.anchor_weight * drift
+            metrics_extra["losses/anchor_drift"] = drift.detach()
         state.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         actor_norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), cfg.grad_clip_norm)
@@ -222,7 +238,7 @@ def sgd_step(state: D4PGState, batch: TensorBatch, sync: bool = True) -> tuple[D
         state.target_actor.load_state_dict(actor.state_dict())
         state.target_critic.load_state_dict(critic.state_dict())
     metrics = {"losses/critic": critic_loss.detach(), "losses/actor": actor_loss.detach(), "values/q_mean": q.mean().detach(),
-               "grads/critic_norm": critic_norm.detach(), "grads/actor_norm": actor_norm.detach()}
+               "grads/critic_norm": critic_norm.detach(), "grads/actor_norm": actor_norm.detach(), **metrics_extra}
     if not sync:
         return state, metrics, item_loss.detach()
     return state, read_metrics(metrics), item_loss.detach().cpu().numpy()
@@ -257,11 +273,12 @@ def _unflatten_optimizer(prefix: str, tensors: dict[str, torch.Tensor], groups: 
 
 
 def save_checkpoint(state: D4PGState, path: str | Path, extra: dict | None = None) -> Path:
-    """Write networks, targets and optimiser moments to one safetensors file, with JSON metadata."""
+    """Write networks, targets, optimiser moments (and a fine-tuning run's anchor) to one safetensors
+    file, with JSON metadata."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tensors: dict[str, torch.Tensor] = {}
-    for name in ("actor", "critic", "target_actor", "target_critic"):
+    for name in ("actor", "critic", "target_actor", "target_critic") + (("anchor",) if state.anchor is not None else ()):
         for key, value in getattr(state, name).state_dict().items():
             tensors[f"{name}.{key}"] = value.detach().cpu().contiguous()
     actor_opt, actor_groups = _flatten_optimizer("actor_opt", state.actor_opt)
@@ -305,4 +322,8 @@ def load_checkpoint(path: str | Path, device: torch.device | str | None = None) 
     state.critic_opt.load_state_dict(_unflatten_optimizer("critic_opt", tensors, meta["critic_opt"]))
     state.steps = int(meta["steps"])
     state.actor_frozen_until = int(meta.get("actor_frozen_until", 0))  # a learner restarted during the critic's warm-up
+    anchor = {k[len("anchor."):]: v for k, v in tensors.items() if k.startswith("anchor.")}
+    if anchor:  # a fine-tuning run's starting actor (d4pg.anchor_weight)
+        state.anchor = anchored_copy(state.actor)
+        state.anchor.load_state_dict(anchor)
     return state, meta.get("extra", {})

@@ -30,7 +30,8 @@ from curlnav.layout import ObservationLayout
 from curlnav.policy import PolicyArtefact, sha256_of
 from curlnav.sim.robots import check_observation, check_robot
 
-from .d4pg import NETWORK_FIELDS, D4PGState, adopt_training_config, init_state, load_checkpoint, network_differences
+from .d4pg import (NETWORK_FIELDS, D4PGState, adopt_training_config, anchored_copy, init_state, load_checkpoint,
+                   network_differences)
 
 #: where a run folder keeps its checkpoint: a serial run's, then a distributed run's learner's
 RUN_CHECKPOINTS = ("checkpoints/latest.safetensors", "learner/latest.safetensors")
@@ -58,6 +59,14 @@ class StartingPoint:
     @property
     def has_critic(self) -> bool:
         return self.kind == "checkpoint"
+
+    @property
+    def stack(self) -> dict | None:
+        """The navigation stack the source ships its policy with (an artefact's ``metadata.json``
+        ``"stack"``; a checkpoint of a run that started from such an artefact records it too), or
+        None: a fine-tuned policy is shipped behind the same helpers."""
+        stack = self.metadata.get("stack")
+        return stack if isinstance(stack, dict) else None
 
     @property
     def what(self) -> str:
@@ -130,7 +139,15 @@ def _checkpoint(source: str, path: Path) -> StartingPoint:
     metadata: dict = {"observation": observation, "training": {"d4pg": config.to_dict()}}
     if isinstance(extra.get("robot"), dict):
         metadata["robot"] = extra["robot"]
+    if isinstance(extra.get("stack"), dict):
+        metadata["stack"] = extra["stack"]
     return StartingPoint(source, path, "checkpoint", metadata, {path.name: sha256_of(path)})
+
+
+def inherited_stack(init_from: str) -> dict | None:
+    """The stack a run started from ``init_from`` ships its policies with (``StartingPoint.stack``):
+    its artefacts' ``metadata.json`` and its checkpoints carry it. None without ``init_from``."""
+    return find_starting_point(init_from).stack if init_from else None
 
 
 def check_starting_point(point: StartingPoint, experiment: ExperimentConfig) -> None:
@@ -207,6 +224,8 @@ def starting_state(point: StartingPoint, experiment: ExperimentConfig, layout: O
         state.actor.load_state_dict(actor.state_dict())
         state.target_actor.load_state_dict(actor.state_dict())
         state.actor_frozen_until = config.critic_warmup_updates
+        if config.anchor_weight > 0:
+            state.anchor = anchored_copy(state.actor)
         say(describe(point, config))
         return state
     state, _ = load_checkpoint(point.path, device)
@@ -220,6 +239,7 @@ def starting_state(point: StartingPoint, experiment: ExperimentConfig, layout: O
         say(f"fine-tuning with {change}")
     state.steps = 0
     state.actor_frozen_until = 0  # its critic came with it
+    state.anchor = anchored_copy(state.actor) if config.anchor_weight > 0 else None  # this run's start, not the source's
     say(describe(point, config))
     return state
 
@@ -227,14 +247,16 @@ def starting_state(point: StartingPoint, experiment: ExperimentConfig, layout: O
 def describe(point: StartingPoint, config: D4PGConfig) -> str:
     """Where the networks come from, one line (with an artefact: that its critic starts fresh and
     how it warms up)."""
+    anchor = (f"; the actor is held near where it started (d4pg.anchor_weight {config.anchor_weight:g})"
+              if config.anchor_weight > 0 else "")
     if point.has_critic:
-        return f"networks from {point.path} (fine-tuning: no random warm-up)"
+        return f"networks from {point.path} (fine-tuning: no random warm-up){anchor}"
     warmup = config.critic_warmup_updates
     return (f"networks from {point.path}: its actor (fine-tuning: no random warm-up); a policy artefact ships no "
             f"critic, so the critic starts fresh and "
             + (f"learns alone for the first {warmup} updates, the actor frozen (d4pg.critic_warmup_updates)"
-               if warmup else "the actor learns from the first update (d4pg.critic_warmup_updates 0)"))
+               if warmup else "the actor learns from the first update (d4pg.critic_warmup_updates 0)") + anchor)
 
 
 __all__ = ["ACTOR_FIELDS", "RUN_CHECKPOINTS", "StartingPoint", "check_starting_point", "describe",
-           "find_starting_point", "starting_state"]
+           "find_starting_point", "inherited_stack", "starting_state"]

@@ -37,6 +37,7 @@ from curlnav.sim.robots import sensor_metadata
 from .artefact import export_policy, training_worlds
 from .d4pg import TensorBatch, compile_networks, load_checkpoint, read_metrics, save_checkpoint, set_amp, sgd_step
 from .feed import BatchAssembler, SampleFeed, describe_device, resolve_device
+from .init_from import inherited_stack
 
 log = logging.getLogger("curlnav.learner")
 
@@ -154,6 +155,8 @@ class LearnerService:
         self.started = time.monotonic()
         # what artefacts name as their training (worlds, curriculum): fixed for the run, read once
         self.artefact_training = training_worlds(self.experiment.curriculum.world, self.experiment.curriculum.file)
+        # a fine-tuned policy ships behind the stack of the policy it started from
+        self.artefact_stack = inherited_stack(self.experiment.init_from)
 
     # -- pure parts ----------------------------------------------------------------------------
     def learn_from(self, payload: bytes | SampledBatch, tensors: TensorBatch | None = None) -> dict:
@@ -187,13 +190,14 @@ class LearnerService:
 
     def checkpoint(self) -> None:
         save_checkpoint(self.state, self.data_dir / "latest.safetensors",
-                        extra={"version": self.version, **sensor_metadata(self.experiment.env)})
+                        extra={"version": self.version, **sensor_metadata(self.experiment.env),
+                               **({"stack": self.artefact_stack} if self.artefact_stack else {})})
 
     def export(self) -> Path:
         folder = self.data_dir / "artefacts" / f"v{self.version}"
         worlds, extra = self.artefact_training
         export_policy(self.state, folder, self.experiment.env, worlds=worlds, extra=extra,
-                      version=self.version, env_steps=self.env_steps)
+                      version=self.version, env_steps=self.env_steps, stack=self.artefact_stack)
         versions = sorted(self.artefact_versions())
         for old in versions[:-self.cfg.keep_artefacts]:
             shutil.rmtree(self.data_dir / "artefacts" / f"v{old}", ignore_errors=True)

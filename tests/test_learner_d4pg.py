@@ -19,9 +19,11 @@ from curlnav.learner.d4pg import (
     NETWORK_FIELDS,
     act,
     adopt_training_config,
+    anchored_copy,
     categorical_projection,
     init_state,
     load_checkpoint,
+    TensorBatch,
     save_checkpoint,
     sgd_step,
 )
@@ -102,6 +104,44 @@ def test_an_actor_pinned_at_its_bounds_is_pulled_back_only_with_the_saturation_p
     assert metrics["values/q_mean"] != pytest.approx(-metrics["losses/actor"])  # q_mean is the critic's, not the loss
     with pytest.raises(ValueError, match="actor_saturation_penalty"):
         D4PGConfig(actor_saturation_penalty=-1.0)
+
+
+@pytest.mark.slow  # more than 5 s
+def test_a_fine_tuned_actor_is_held_near_its_start_by_the_anchor_and_the_anchor_survives_a_checkpoint(tmp_path):
+    """A critic that pays for the first action fraction pulls an actor to it; with
+    ``d4pg.anchor_weight`` the fine-tuned actor stays near the actor it started from (its frozen
+    copy, measured on the batch), without it it walks away; the anchor is saved and restored."""
+    torch.set_num_threads(2)
+    small = ObservationLayout(beams=16, range_frames=2, label_frames=2, goal_frames=2)
+    g = torch.Generator().manual_seed(0)
+    obs = torch.rand(64, small.size, generator=g) * 5
+    action = torch.rand(64, 3, generator=g)
+    # the critic learns: more of action 0 pays
+    batch = TensorBatch(obs, action, 200.0 * action[:, 0], torch.zeros(64), obs.clone())
+
+    def drift_after_updates(weight: float):
+        state = init_state(D4PGConfig(seed=5, actor_lr=1e-3, critic_lr=1e-3, anchor_weight=weight, hidden=(64, 64)),
+                           small, "cpu")
+        state.anchor = anchored_copy(state.actor)
+        start = state.actor(batch.obs).detach()
+        for _ in range(80):
+            before = float((state.actor(batch.obs).detach() - start).pow(2).sum(-1).mean())
+            _, metrics, _ = sgd_step(state, batch)
+        if weight:  # the update's drift is the actor's before it
+            assert metrics["losses/anchor_drift"] == pytest.approx(before, rel=1e-3)
+        return float((state.actor(batch.obs).detach() - start).pow(2).sum(-1).mean()), state, metrics
+
+    free, _, _ = drift_after_updates(0.0)
+    held, state, metrics = drift_after_updates(20.0)
+    assert free > 0.1, f"without the anchor the actor moved only {free:.3f}"
+    assert held < 0.25 * free, f"with the anchor it moved {held:.3f} (without: {free:.3f})"
+    path = save_checkpoint(state, tmp_path / "ft.safetensors")
+    restored, _ = load_checkpoint(path, "cpu")
+    assert restored.anchor is not None and restored.config.anchor_weight == 20.0
+    assert torch.equal(restored.anchor(batch.obs), state.anchor(batch.obs))
+    assert not any(p.requires_grad for p in restored.anchor.parameters())
+    with pytest.raises(ValueError, match="anchor_weight"):
+        D4PGConfig(anchor_weight=-1.0)
 
 
 def test_target_networks_are_hard_copies_every_period():

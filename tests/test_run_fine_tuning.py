@@ -99,6 +99,31 @@ def test_a_policy_of_another_robot_lidar_or_network_is_refused_in_one_line_and_n
     assert not run.exists(), "a refused run writes nothing"
 
 
+def test_an_anchor_without_a_policy_to_start_from_is_refused_in_one_line(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["train", "--serial", "--world", "open-room", "--set", "d4pg.anchor_weight=0.4", "--run-dir", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "d4pg.anchor_weight (0.4) holds the actor near the policy the run started from: give --init-from" in err
+    assert err.count("\n") == 1 and not run.exists()
+
+
+def test_a_policy_fine_tuned_from_an_artefact_ships_behind_its_stack_and_its_checkpoint_keeps_it(tmp_path):
+    """The stack a shipped artefact names (``metadata.json``'s ``"stack"``) is the stack of the
+    policies a run started from it exports, and of the runs started from that run's checkpoint."""
+    from curlnav.learner.artefact import export_policy
+    from curlnav.learner.init_from import inherited_stack
+    from curlnav.sim import EnvConfig
+
+    shipped = json.loads((ROOT / "policies" / "namo-robust" / "metadata.json").read_text())["stack"]
+    stack = inherited_stack(str(ROOT / "policies" / "namo-robust"))
+    assert stack == shipped and inherited_stack(str(ARTEFACT)) is None and inherited_stack("") is None
+    state = init_state(D4PGConfig(hidden=(32, 32)), ObservationLayout.from_env_config(EnvConfig()), "cpu")
+    folder = export_policy(state, tmp_path / "policy", EnvConfig(), worlds=["open-room"], stack=stack)
+    assert json.loads((folder / "metadata.json").read_text())["stack"] == shipped
+    save_checkpoint(state, tmp_path / "ckpt.safetensors", extra={"stack": stack})
+    assert inherited_stack(str(tmp_path / "ckpt.safetensors")) == shipped
+
+
 @pytest.mark.slow
 def test_a_serial_run_from_a_shipped_artefact_starts_from_its_actor_and_records_before_and_after(tmp_path, capsys):
     import subprocess

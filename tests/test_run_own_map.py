@@ -145,7 +145,8 @@ def test_a_resumed_run_reads_its_pairs_back_and_never_draws_new_ones(tmp_path, t
 
 
 def test_doors_from_a_file_and_balls_on_the_training_paths(tmp_path, trained, capsys):
-    from curlnav.sim import get_world
+    from curlnav.sim import NamoEnv, get_world
+    from curlnav.worlds.real import own_map
 
     building = write_map(tmp_path)
     doors = tmp_path / "doors.yaml"
@@ -161,6 +162,20 @@ def test_doors_from_a_file_and_balls_on_the_training_paths(tmp_path, trained, ca
         for pair in task.pairs + task.held_out:
             assert np.hypot(ball.x - pair.x, ball.y - pair.y) > 1.0, "a ball at a start"
     assert pairs_of(run)["doors"] == str(doors.resolve()) and pairs_of(run)["balls"] == 3
+    # every reset re-places each ball near where it was drawn, and the evaluation meets two placements a pair
+    assert trained[0][2].evaluation.episodes == own_map.PLACEMENTS_PER_PAIR * len(task.held_out)
+    env = NamoEnv(task)
+    try:
+        placements = []
+        for seed in (1, 2):
+            env.reset(seed=seed, options={"pair": task.held_out[0]})
+            placements.append(np.array(env.scene.ball_positions()))
+    finally:
+        env.close()
+    drawn = np.array([[b.x, b.y] for b in task.balls])
+    assert np.all(np.abs(placements[0] - drawn) <= own_map.BALL_SPREAD_M + 1e-6)
+    assert np.all(np.abs(placements[1] - drawn) <= own_map.BALL_SPREAD_M + 1e-6)
+    assert np.abs(placements[0] - placements[1]).max() > 0.1, "two resets left the balls where they were"
     # a door drawn into a wall: refused, naming the door
     doors.write_text("- {hinge: [3.1, 6.0], width: 1.0, angle: 1.5708}\n")
     assert main(["train", "--serial", "--world", str(building), "--run-dir", str(tmp_path / "wall"), "--doors",

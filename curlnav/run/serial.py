@@ -41,6 +41,7 @@ from curlnav.config import ExperimentConfig
 from curlnav.evaluation.protocol import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy, training_worlds
 from curlnav.learner.d4pg import act, load_checkpoint, save_checkpoint, sgd_step
+from curlnav.learner.init_from import inherited_stack
 from curlnav.learner.feed import BatchAssembler
 from curlnav.run.record import (
     EVAL_FIELDS,
@@ -100,6 +101,8 @@ class SerialTrainer:
         self.curriculum = self._load_curriculum()
         # what artefacts name as their training (worlds, curriculum): fixed for the run, read once
         self.artefact_training = training_worlds(str(experiment.curriculum.world), experiment.curriculum.file)
+        # a fine-tuned policy ships behind the stack of the policy it started from
+        self.artefact_stack = inherited_stack(experiment.init_from)
         excluded = set(self.evaluation.excluded) if self.curriculum is None else self._curriculum_excluded()
         env = builder.make_env(excluded_pairs=excluded)  # held out, as in every actor
         self.policy = builder.make_behaviour_policy(actor_index=0, actor_count=1, stream=self.counters["env_steps"])
@@ -222,7 +225,8 @@ class SerialTrainer:
         if rank_beats(rank, self.counters.get("best_rank") or (None if earlier is None else [earlier, earlier])):
             self.counters["best_rank"] = rank
             folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env,
-                                   worlds=[str(self.experiment.curriculum.world)], env_steps=self.counters["env_steps"])
+                                   worlds=[str(self.experiment.curriculum.world)], env_steps=self.counters["env_steps"],
+                                   stack=self.artefact_stack)
             (folder / "selected.json").write_text(json.dumps(strict_json(
                 {"why": "best held-out evaluation so far", "ranked_by": RANKING, "rank": rank,
                  "evaluation": row["evaluation"], "success_rate": result.success_rate,
@@ -268,7 +272,7 @@ class SerialTrainer:
             worlds, extra = self.artefact_training
             folder = export_policy(self.state, self.run_dir / "policy-best", self.experiment.env, worlds=worlds,
                                    extra=extra, curriculum_stage=self.curriculum.current.name,
-                                   env_steps=self.counters["env_steps"])
+                                   env_steps=self.counters["env_steps"], stack=self.artefact_stack)
             (folder / "selected.json").write_text(json.dumps(strict_json(
                 {"why": f"best held-out evaluation on {summary['target']} so far", "ranked_by": RANKING,
                  "rank": rank, **summary}), indent=2))
@@ -302,13 +306,14 @@ class SerialTrainer:
             self.counters["curriculum"] = self.curriculum.to_dict()
         self.counters["elapsed_s"] = time.monotonic() - start
         save_checkpoint(self.state, self.ckpt_dir / "latest.safetensors",
-                        extra={"counters": self.counters, **sensor_metadata(self.experiment.env)})
+                        extra={"counters": self.counters, **sensor_metadata(self.experiment.env),
+                               **({"stack": self.artefact_stack} if self.artefact_stack else {})})
         if self.run_cfg.save_replay:
             self.table.save(self.ckpt_dir / "replay.npz")
         worlds, extra = self.artefact_training
         export_policy(self.state, self.run_dir / "policy", self.experiment.env, worlds=worlds, extra=extra,
                       curriculum_stage=self.curriculum.current.name if self.curriculum is not None else "none",
-                      env_steps=self.counters["env_steps"])
+                      env_steps=self.counters["env_steps"], stack=self.artefact_stack)
 
     def _begin(self) -> None:
         if self.curriculum is None:

@@ -235,8 +235,9 @@ def plan_map_task(args: argparse.Namespace, run_dir: Path, experiment: Experimen
 
 def write_map_task(args: argparse.Namespace, run_dir: Path, task: MapTask, experiment: ExperimentConfig) -> ExperimentConfig:
     """Write the task world (and, for a new run, pairs.yaml) into the run folder, whole or not at
-    all; the experiment naming that world, scoring each held-out pair once per evaluation (unless
-    ``--eval-episodes`` or ``--set evaluation.episodes`` says otherwise)."""
+    all; the experiment naming that world, scoring each held-out pair once per evaluation, with balls
+    ``own_map.PLACEMENTS_PER_PAIR`` times (each episode re-places them), unless ``--eval-episodes`` or
+    ``--set evaluation.episodes`` says otherwise."""
     from curlnav.sim import save_world
     from curlnav.worlds.real import own_map
 
@@ -261,7 +262,8 @@ def write_map_task(args: argparse.Namespace, run_dir: Path, task: MapTask, exper
           f"balls; the task world {task.path}")
     evaluation = experiment.evaluation
     if args.eval_episodes is None and not any(o.partition("=")[0].strip() == "evaluation.episodes" for o in args.overrides):
-        evaluation = dataclasses.replace(evaluation, episodes=len(split.held_out))
+        placements = own_map.PLACEMENTS_PER_PAIR if any(b.region is not None for b in task.world.balls) else 1
+        evaluation = dataclasses.replace(evaluation, episodes=placements * len(split.held_out))
     return dataclasses.replace(experiment, curriculum=dataclasses.replace(experiment.curriculum, world=str(task.path)),
                                evaluation=evaluation)
 
@@ -292,6 +294,9 @@ def run_train(args: argparse.Namespace) -> int:
         keep_map_on_resume(args, run_dir)
         experiment = resolve_train_config(args, run_dir)
         check_before_start(experiment)
+        if experiment.d4pg.anchor_weight and not experiment.init_from:
+            raise TrainRefused(f"d4pg.anchor_weight ({experiment.d4pg.anchor_weight:g}) holds the actor near the policy "
+                               f"the run started from: give --init-from, or set it to 0")
         if experiment.init_from and not args.resume:  # a resumed run goes on from its own checkpoint
             args.init_line = check_init_from(experiment)
         task = plan_map_task(args, run_dir, experiment)  # a user's map: its pairs drawn or read back, nothing written

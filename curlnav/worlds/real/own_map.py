@@ -12,7 +12,10 @@ No start lies in a door's swing (``DOOR_START_KEEP_OUT`` beyond its width), no g
 ``DOOR_GOAL_KEEP_OUT`` of it. With balls, the first training pairs are drawn (one per ball), the
 balls placed on their shortest paths by ``scatter_balls`` (clear of walls, doors, each other and
 those pairs' ends), and every later pair keeps clear of the balls as scatter_balls keeps its own
-(``START_KEEP_OUT``, ``GOAL_KEEP_OUT``). The held-out pairs come from one stream of the seed, the
+(``START_KEEP_OUT``, ``GOAL_KEEP_OUT``). Each ball is re-placed at every reset within
+``BALL_SPREAD_M`` of where it was drawn (its ``ball_regions`` square: ``World.balls``' ``region``,
+clear of walls, the other balls, the start and the goal), so a policy learns to push balls, not
+where they lie, and each evaluation episode of a pair meets another placement. The held-out pairs come from one stream of the seed, the
 training pairs from another; no pair is drawn twice, nor the reverse of one drawn before, so the two
 lists are disjoint. Same map, doors, seed, counts and balls: the same pairs; without balls the first
 k held-out pairs do not depend on how many training pairs are asked for.
@@ -33,6 +36,7 @@ Every refusal is a ``WorldError`` of one line naming the file.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -45,7 +49,7 @@ from scipy.sparse import csgraph
 
 from curlnav.files import FileRefused, read_yaml, shown
 from curlnav.worlds.core.pairs import HUSKY_FOOTPRINT, PairSampler, pair_key
-from curlnav.worlds.core.world import Door, StartGoal, World, WorldError
+from curlnav.worlds.core.world import Door, Region, StartGoal, World, WorldError
 from curlnav.worlds.difficulty.metrics import GridGraph, inflate
 from curlnav.worlds.difficulty.rank import CSPACE_RADIUS_M, METRIC_RESOLUTION, resample
 from curlnav.worlds.procedural.scatter import GOAL_KEEP_OUT, START_KEEP_OUT, scatter_balls
@@ -57,6 +61,8 @@ MAX_PAIRS = 1000  # pairs in either list
 MAX_BALLS = 200
 MAX_DOORS = 200
 DRAWS_PER_PAIR = 20  # draws per pair asked for before giving up (a draw may be too long or in a door's swing)
+BALL_SPREAD_M = 1.0  # m: each ball is re-placed at every reset within this of where it was drawn (both axes)
+PLACEMENTS_PER_PAIR = 2  # the evaluation beside training scores each held-out pair this often (ball placements)
 DOOR_START_KEEP_OUT = 0.6  # m beyond a door's width from its hinge: no start (the Husky's half-diagonal)
 DOOR_GOAL_KEEP_OUT = 0.3  # m beyond a door's width from its hinge: no goal
 MAX_DOOR_WIDTH = 5.0  # m
@@ -165,8 +171,15 @@ def draw_task(world: World, train: int = DEFAULT_TRAIN, held_out: int = DEFAULT_
     held: list[StartGoal] = []
     draw(held, held_out, held_out, "h", np.random.default_rng([seed, _HELD_OUT_STREAM]), "held-out")
     draw(trained, train, train, "t", rng, "training")  # the rest, clear of the balls
-    return world.with_changes(pairs=tuple(trained), held_out=tuple(held), balls=world.balls + placed,
-                              random_pairs=None)
+    regions = list(world.ball_regions)
+    spread = []
+    for ball in placed:  # each re-placed at every reset round where it was drawn
+        x0, y0, x1, y1 = world.bounds
+        regions.append(Region(max(x0, ball.x - BALL_SPREAD_M), max(y0, ball.y - BALL_SPREAD_M),
+                              min(x1, ball.x + BALL_SPREAD_M), min(y1, ball.y + BALL_SPREAD_M)))
+        spread.append(dataclasses.replace(ball, region=len(regions) - 1))
+    return world.with_changes(pairs=tuple(trained), held_out=tuple(held), balls=world.balls + tuple(spread),
+                              ball_regions=tuple(regions), random_pairs=None)
 
 
 def split_of(task: World) -> PairSplit:
