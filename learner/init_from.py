@@ -30,8 +30,15 @@ from curlnav.layout import ObservationLayout
 from curlnav.policy import PolicyArtefact, sha256_of
 from curlnav.sim.robots import check_observation, check_robot
 
-from .d4pg import (NETWORK_FIELDS, D4PGState, adopt_training_config, anchored_copy, init_state, load_checkpoint,
-                   network_differences)
+from .d4pg import (
+    NETWORK_FIELDS,
+    D4PGState,
+    adopt_training_config,
+    anchored_copy,
+    init_state,
+    load_checkpoint,
+    network_differences,
+)
 
 #: where a run folder keeps its checkpoint: a serial run's, then a distributed run's learner's
 RUN_CHECKPOINTS = ("checkpoints/latest.safetensors", "learner/latest.safetensors")

@@ -17,13 +17,13 @@ from curlnav.layout import ObservationLayout
 from curlnav.learner.artefact import export_policy
 from curlnav.learner.d4pg import (
     NETWORK_FIELDS,
+    TensorBatch,
     act,
     adopt_training_config,
     anchored_copy,
     categorical_projection,
     init_state,
     load_checkpoint,
-    TensorBatch,
     save_checkpoint,
     sgd_step,
 )

@@ -41,8 +41,8 @@ from curlnav.config import ExperimentConfig
 from curlnav.evaluation.protocol import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy, training_worlds
 from curlnav.learner.d4pg import act, load_checkpoint, save_checkpoint, sgd_step
-from curlnav.learner.init_from import inherited_stack
 from curlnav.learner.feed import BatchAssembler
+from curlnav.learner.init_from import inherited_stack
 from curlnav.run.record import (
     EVAL_FIELDS,
     TRAIN_FIELDS,
