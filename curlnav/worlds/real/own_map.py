@@ -15,10 +15,11 @@ those pairs' ends), and every later pair keeps clear of the balls as scatter_bal
 (``START_KEEP_OUT``, ``GOAL_KEEP_OUT``). Each ball is re-placed at every reset within
 ``BALL_SPREAD_M`` of where it was drawn (its ``ball_regions`` square: ``World.balls``' ``region``,
 clear of walls, the other balls, the start and the goal), so a policy learns to push balls, not
-where they lie, and each evaluation episode of a pair meets another placement. The held-out
-pairs come from one stream of the seed, the training pairs from another; no pair is drawn twice,
-nor the reverse of one drawn before, so the two lists are disjoint. Same map, doors, seed, counts and balls: the same pairs; without balls the first
-k held-out pairs do not depend on how many training pairs are asked for.
+where they lie, and each evaluation episode of a pair meets another placement. The held-out pairs
+come from one stream of the seed, the training pairs from another; no pair is drawn twice, nor the
+reverse of one drawn before, so the two lists are disjoint. Same map, doors, seed, counts and balls:
+the same pairs; without balls the first k held-out pairs do not depend on how many training pairs
+are asked for.
 
 **pairs.yaml** (``write_pairs`` / ``read_pairs``): the run's two lists in the map frame (m, rad),
 ``train`` and ``held_out``, each pair ``{name, start: [x, y, yaw], goal: [x, y]}``, and what they
