@@ -255,3 +255,17 @@ def test_a_generated_world_exported_as_a_map_is_what_a_slam_map_is(tmp_path, cap
     assert np.array_equal(original.occupancy, exported.occupancy)
     assert exported.resolution == original.resolution and exported.origin == original.origin
     assert not (exported.pairs or exported.balls or exported.doors or exported.boxes)
+    # its doors, as a team would mark them: a doors file that train --doors reads back to the same doors
+    from curlnav.worlds.real.own_map import read_doors
+
+    doors = tmp_path / "maps" / "office-doors.yaml"
+    assert main(["worlds", "export-map", "namo-office:97", "--out", str(out), "--doors-out", str(doors)]) == 0
+    marked = read_doors(doors, exported)
+    assert len(marked) == len(original.doors) >= 1
+    for a, b in zip(marked, original.doors):
+        assert a.swing == b.swing and np.allclose([a.hinge_x, a.hinge_y, a.width, a.closed_angle, a.max_open, a.mass,
+                                                   a.hinge_friction],
+                                                  [b.hinge_x, b.hinge_y, b.width, b.closed_angle, b.max_open, b.mass,
+                                                   b.hinge_friction], atol=1e-4)
+    assert main(["worlds", "export-map", "open-room", "--out", str(out), "--doors-out", str(doors)]) == 2
+    assert "open-room has no doors" in capsys.readouterr().err

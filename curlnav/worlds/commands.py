@@ -121,11 +121,21 @@ def _cmd_export_map(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix not in (".yaml", ".yml"):
         raise ValueError(f"--out {args.out}: a map's YAML file ends in .yaml")
+    doors_out = Path(args.doors_out) if args.doors_out else None
+    if doors_out is not None and doors_out.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"--doors-out {args.doors_out}: a doors file ends in .yaml")
     world = get_world(args.world)
+    if doors_out is not None and not world.doors:
+        raise ValueError(f"--doors-out: {world.name} has no doors")
     save_world(world, out, map_only=True)
     rows, cols = world.occupancy.shape
     print(f"wrote {out} and {out.with_suffix('.pgm').name}: the walls of {world.name}, {cols} x {rows} cells of "
           f"{world.resolution:g} m; no pairs, balls or doors (train --world {out} draws its pairs; --doors marks doors)")
+    if doors_out is not None:
+        from curlnav.worlds.real.own_map import doors_text
+
+        doors_out.write_text(doors_text(world.doors))
+        print(f"wrote {doors_out}: its {len(world.doors)} doors, as a team marks them (train --doors {doors_out})")
     return 0
 
 
@@ -159,6 +169,7 @@ def add_commands(sub) -> None:
     p = worlds_sub.add_parser("export-map", help="a world's walls as a map_server map (YAML + PGM), as a SLAM map is")
     p.add_argument("world", help="built-in name, world YAML, or FAMILY:SEED")
     p.add_argument("--out", required=True, help="the map's YAML (its PGM is written beside it)")
+    p.add_argument("--doors-out", metavar="FILE.yaml", help="also write the world's doors as a doors file (train --doors)")
     p.set_defaults(func=_cmd_export_map)
     p = worlds_sub.add_parser("rank", help="Table I and the MDS picture for a set of worlds")
     p.add_argument("worlds", nargs="+", help="built-in names, world YAMLs, or FAMILY:SEED")

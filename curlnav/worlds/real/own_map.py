@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 from scipy.sparse import csgraph
 
 from curlnav.files import FileRefused, read_yaml, shown
@@ -286,6 +287,16 @@ def write_pairs(path: str | os.PathLike, split: PairSplit, about: dict) -> Path:
         Path(name).unlink(missing_ok=True)
         raise
     return path
+
+
+def doors_text(doors: tuple[Door, ...] | list[Door]) -> str:
+    """A doors file (``read_doors``' format) holding ``doors``, every field written."""
+    entries = [{"hinge": [round(float(d.hinge_x), DECIMALS), round(float(d.hinge_y), DECIMALS)],
+                "width": round(float(d.width), DECIMALS), "angle": round(float(d.closed_angle), DECIMALS),
+                "swing": d.swing, "max_open": round(float(d.max_open), DECIMALS), "mass": float(d.mass),
+                "hinge_friction": float(d.hinge_friction)} for d in doors]
+    return ("# doors on the map (curlnav train --doors): hinge [x, y] m, width m, angle of the closed panel rad\n"
+            + yaml.safe_dump({"doors": entries}, sort_keys=False, default_flow_style=None))
 
 
 def read_about(path: str | os.PathLike) -> dict:
