@@ -227,7 +227,7 @@ def test_only_the_network_fields_change_the_networks_so_a_fine_tune_never_adopts
 
     training = {"n_step": 2, "discount": 0.9, "batch_size": 3, "actor_lr": 1e-3, "critic_lr": 1e-3,
                 "target_update_period": 7, "grad_clip_norm": 1.0, "seed": 5, "preset": "paper",
-                "actor_saturation_penalty": 0.01, "critic_warmup_updates": 5}
+                "actor_saturation_penalty": 0.01, "critic_warmup_updates": 5, "anchor_weight": 0.1}
     shaping = {"encoder": {"encoder": "conv"}, "pool": {"pool": 8},
                "conv_filters": {"encoder": "conv", "conv_filters": 8}, "hidden": {"hidden": (64,)},
                "atoms": {"atoms": 11}, "v_min": {"v_min": -10.0}, "v_max": {"v_max": 100.0}}
