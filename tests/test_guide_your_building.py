@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import ROOT, die_with_parent, stop_all
+from conftest import ROOT, die_with_parent, output_of, stop_all, wait_for
 
 GUIDE = ROOT / "docs" / "guide" / "your-building.md"
 #: the budget of the guide's worked example, made short: (the page's words, the test's)
@@ -90,19 +90,14 @@ def test_the_guide_takes_a_map_to_a_fine_tuned_policy_on_a_ros2_robot(tmp_path):
     logs = [open(tmp_path / f"{name}.log", "w+") for name in ("sim", "node")]
     procs = [subprocess.Popen(shortened(c), cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT, text=True,
                               preexec_fn=die_with_parent) for c, log in zip((sim, node), logs)]
+    for proc, log in zip(procs, logs):
+        proc.log = log  # for conftest's output_of
     try:
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            assert all(p.poll() is None for p in procs), [log.read() for log in logs if not log.seek(0)]
-            logs[1].seek(0)
-            if "on domain" in logs[1].read():
-                break
-            time.sleep(0.5)
+        wait_for("the node on its DDS domain", lambda: "on domain" in output_of(procs[1]), 90, procs)
         time.sleep(5)  # the node acts on the simulator's scans, at 5 Hz
     finally:
         stop_all(procs[::-1])
-    logs[1].seek(0)
-    said = logs[1].read()
+    said = output_of(procs[1])
     assert "loop latency over" in said and "'scans_refused'" not in said, said[-1500:]
     for log in logs:
         log.close()

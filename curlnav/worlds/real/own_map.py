@@ -175,8 +175,8 @@ def draw_task(world: World, train: int = DEFAULT_TRAIN, held_out: int = DEFAULT_
     draw(trained, train, train, "t", rng, "training")  # the rest, clear of the balls
     regions = list(world.ball_regions)
     spread = []
+    x0, y0, x1, y1 = world.bounds
     for ball in placed:  # each re-placed at every reset round where it was drawn
-        x0, y0, x1, y1 = world.bounds
         regions.append(Region(max(x0, ball.x - BALL_SPREAD_M), max(y0, ball.y - BALL_SPREAD_M),
                               min(x1, ball.x + BALL_SPREAD_M), min(y1, ball.y + BALL_SPREAD_M)))
         spread.append(dataclasses.replace(ball, region=len(regions) - 1))
