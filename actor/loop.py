@@ -9,8 +9,8 @@ is drawn here, so both modes draw worlds the same way.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,14 +18,19 @@ from curlnav.replay import FrameBatch, NStepWriter
 from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
 
+if TYPE_CHECKING:
+    from curlnav.nav.training import TrainingHelpers
+
 
 @dataclass(frozen=True)
 class EpisodeEnd:
-    """An episode that just ended: its info (``NamoEnv``'s last ``info``) and return."""
+    """An episode that just ended: its info (``NamoEnv``'s last ``info``), return (intervention
+    costs included) and its control steps by chooser (role -> steps; ``curlnav.nav.roles.chooser``)."""
 
     info: dict[str, Any]
     episode_return: float
     truncated: bool
+    control_steps: dict[str, int] = field(default_factory=dict)
 
     @property
     def success(self) -> bool:
@@ -46,17 +51,27 @@ def next_world_options(env: NamoEnv, draws: WorldDraws, options: dict | None,
     return options
 
 
+def episode_control_steps(helpers: TrainingHelpers | None, k: int, info: dict) -> dict[str, int]:
+    """The ended episode's control steps by chooser: the helpers' count, or all the network's."""
+    if helpers is None:
+        return {"network": int(info.get("steps", 0))}
+    return dict(helpers.episode[k].counts)
+
+
 class EpisodeLoop:
     """``begin`` an episode, then ``step`` until it returns an ``EpisodeEnd``; ``flush``
     whenever the written transitions should go out (the writer keeps the n-step tail)."""
 
     def __init__(self, env: NamoEnv, policy: Callable[[np.ndarray], np.ndarray], writer: NStepWriter,
-                 worlds: WorldDraws | None = None) -> None:
+                 worlds: WorldDraws | None = None, helpers: TrainingHelpers | None = None) -> None:
+        """``helpers``: the stack the network trains inside (``curlnav.nav.training``; None: alone)."""
         self.env = env
         self.policy = policy
         self.writer = writer
         self.worlds = worlds if worlds is not None else WorldDraws()  # draws for distribution assignments
+        self.helpers = helpers
         self.obs: np.ndarray | None = None
+        self.info: dict = {}  # the last step's (or reset's) info: the helpers' odometry
         self.episode_return = 0.0
         self.steps = 0  # environment steps, all episodes
         self.episodes = 0  # episodes ended
@@ -66,7 +81,9 @@ class EpisodeLoop:
         world distribution's key as the world draws this episode's world (``WorldDraws``: never a
         held-out seed); its scenes stay built in the environment's scene cache."""
         options = next_world_options(self.env, self.worlds, options)
-        self.obs, _ = self.env.reset(seed=seed, options=options)
+        self.obs, self.info = self.env.reset(seed=seed, options=options)
+        if self.helpers is not None:
+            self.helpers.begin(0, self.env.world, self.env.pair, self.steps)
         self.writer.first(self.obs)
         self.episode_return = 0.0
         return self.obs
@@ -77,15 +94,20 @@ class EpisodeLoop:
         if self.obs is None:
             raise RuntimeError("call begin() before step()")
         action = self.policy(self.obs)
+        cost = 0.0
+        if self.helpers is not None:  # the executed command is the one the transition keeps
+            action, _, cost = self.helpers.act(0, action, self.obs, self.info)
         obs, reward, terminated, truncated, info = self.env.step(action)
+        reward += cost
         self.writer.step(action, reward, obs, terminated, truncated)
         self.steps += 1
         self.episode_return += reward
-        self.obs = obs
+        self.obs, self.info = obs, info
         if terminated or truncated:
             self.episodes += 1
             self.obs = None
-            end = EpisodeEnd(info, self.episode_return, bool(truncated and not terminated))
+            end = EpisodeEnd(info, self.episode_return, bool(truncated and not terminated),
+                             episode_control_steps(self.helpers, 0, info))
             self.worlds.record(end.success)  # the level sampler of a drawn world learns the outcome
             return end
         return None

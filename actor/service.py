@@ -149,6 +149,8 @@ class ActorService:
         self.m_version.set_function(lambda: self.core.weights_version)
         self.m_rejected = Counter("actor_messages_rejected", "refused messages", ["reason"], registry=self.registry)
         self.m_rate = Gauge("actor_env_steps_per_second", "environment steps per second", registry=self.registry)
+        self.m_control = Counter("actor_control_steps", "control steps by the part of the training stack that "
+                                 "chose them (network, or a helper: helpers.stack)", ["role"], registry=self.registry)
         self.step_rate = RateMeter()
         self.m_rate.set_function(self.step_rate.rate)
         self._pending_weights: Weights | None = None
@@ -372,10 +374,13 @@ class ActorService:
                     assignment, world, version_used = tasks[k]
                     info = end.info
                     self.m_episodes.labels(info["world"], "success" if end.success else "failure").inc()
+                    for role, count in end.control_steps.items():
+                        self.m_control.labels(role).inc(count)
                     episodes.put(EpisodeReport(cfg.actor_id, world, assignment.pair if assignment else "",
                                                end.success, float(end.episode_return), int(info["base_collisions"]),
                                                int(info["end_effector_collisions"]), int(info["steps"]), version_used,
-                                               assignment.epoch if assignment else -1).encode())
+                                               assignment.epoch if assignment else -1,
+                                               dict(end.control_steps)).encode())
                 if ends:
                     self.send_due(transitions)  # resends (after a partition) go on between batches too
             self._finish(transitions, deployment.data_dir)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,7 +25,10 @@ from curlnav.replay.nstep import NStepWriter
 from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
 
-from .loop import EpisodeEnd, next_world_options
+from .loop import EpisodeEnd, episode_control_steps, next_world_options
+
+if TYPE_CHECKING:
+    from curlnav.nav.training import TrainingHelpers
 
 
 class VectorNStepWriter:
@@ -68,10 +72,12 @@ class VectorEpisodeLoop:
     """K environments stepped together with one batched policy call per step."""
 
     def __init__(self, envs: list[NamoEnv], policy: Callable[[np.ndarray], np.ndarray], writer: VectorNStepWriter,
-                 worlds: WorldDraws | None = None, scenes: int | None = None) -> None:
+                 worlds: WorldDraws | None = None, scenes: int | None = None,
+                 helpers: TrainingHelpers | None = None) -> None:
         """``scenes``: PyBullet scenes kept built across world switches, all K environments
         together (``actor.scenes_per_process``; each keeps ``scenes // K``, at least 1); None: each
-        keeps as many as ``worlds`` keeps worlds."""
+        keeps as many as ``worlds`` keeps worlds. ``helpers``: the stack the network trains inside
+        (``curlnav.nav.training``, one agent per environment; None: the network alone)."""
         if len(envs) != len(writer):
             raise ValueError(f"{len(envs)} environments but {len(writer)} writer streams")
         self.envs = envs
@@ -79,7 +85,9 @@ class VectorEpisodeLoop:
         self.writer = writer
         self.worlds = worlds if worlds is not None else WorldDraws()  # one set of draws (and pools) for all K
         self.scene_cache = None if scenes is None else max(1, scenes // len(envs))  # per environment
+        self.helpers = helpers
         self.obs: list[np.ndarray | None] = [None] * len(envs)
+        self.infos: list[dict] = [{} for _ in envs]  # each environment's last info: the helpers' odometry
         self.returns = [0.0] * len(envs)
         self.drawn: list[tuple | None] = [None] * len(envs)  # (key, seed) of each environment's drawn world
         self.steps = 0  # environment steps, all environments
@@ -103,7 +111,9 @@ class VectorEpisodeLoop:
         env = self.envs[k]
         options = next_world_options(env, self.worlds, options, self.scene_cache)
         self.drawn[k] = self.worlds.take_last()  # None unless a distribution drew this episode's world
-        obs, _ = env.reset(seed=seed, options=options)
+        obs, self.infos[k] = env.reset(seed=seed, options=options)
+        if self.helpers is not None:
+            self.helpers.begin(k, env.world, env.pair, self.steps)
         self.writer[k].first(obs)
         self.obs[k] = obs
         self.returns[k] = 0.0
@@ -118,15 +128,20 @@ class VectorEpisodeLoop:
         actions = self.policy(np.stack([self.obs[k] for k in running]))
         ends = []
         for k, action in zip(running, actions):
+            cost = 0.0
+            if self.helpers is not None:  # the executed command is the one the transition keeps
+                action, _, cost = self.helpers.act(k, action, self.obs[k], self.infos[k])
             obs, reward, terminated, truncated, info = self.envs[k].step(action)
+            reward += cost
             self.writer[k].step(action, reward, obs, terminated, truncated)
             self.steps += 1
             self.returns[k] += reward
-            self.obs[k] = obs
+            self.obs[k], self.infos[k] = obs, info
             if terminated or truncated:
                 self.episodes += 1
                 self.obs[k] = None
-                end = EpisodeEnd(info, self.returns[k], bool(truncated and not terminated))
+                end = EpisodeEnd(info, self.returns[k], bool(truncated and not terminated),
+                                 episode_control_steps(self.helpers, k, info))
                 if self.drawn[k] is not None:
                     self.worlds.record_outcome(*self.drawn[k], end.success)
                     self.drawn[k] = None

@@ -90,7 +90,36 @@ class D4PGBuilder:
             raise ValueError(f"an actor steps at least one environment, got {envs}")
         writer = VectorNStepWriter(self.layout, envs, self.config.d4pg.n_step, self.config.d4pg.discount)
         return VectorEpisodeLoop([self.make_env() for _ in range(envs)], self.make_acting_agent(policy).batch, writer,
-                                 self.make_world_draws(actor_index), scenes=self.config.actor.scenes_per_process)
+                                 self.make_world_draws(actor_index), scenes=self.config.actor.scenes_per_process,
+                                 helpers=self.make_training_helpers(actor_index, envs))
+
+    def make_training_helpers(self, actor_index: int = 0, envs: int = 1, stream: int = 0):
+        """The stack actor ``actor_index``'s network trains inside, one per environment
+        (``helpers``; ``curlnav.nav.training.TrainingHelpers``), or None for the network alone.
+        ``ValueError`` in one line where ``helpers.stack`` names nothing that trains in the loop."""
+        stack = self.training_stack()
+        if stack is None:
+            return None
+        from curlnav.nav.training import TrainingHelpers
+
+        return TrainingHelpers(stack, self.config.env, envs, self.config.helpers,
+                               np.random.default_rng([self.config.seed, actor_index, stream, 53]))
+
+    def training_stack(self):
+        """The ``NavStack`` of ``helpers.stack`` (``curlnav.nav.training.training_stack``), None for
+        the network alone; ``ValueError`` in one line for one that cannot train in the loop."""
+        spec = self.config.helpers.stack
+        if not spec:
+            return None
+        from curlnav.config import INHERITED_HELPERS
+        from curlnav.nav.training import training_stack
+
+        shipped = None
+        if spec == INHERITED_HELPERS:
+            from curlnav.learner.init_from import inherited_stack
+
+            shipped = inherited_stack(self.config.init_from)
+        return training_stack(spec, shipped, self.config.init_from)
 
     def make_acting_agent(self, policy: BehaviourPolicy) -> BehaviourPolicy:
         """What an actor acts with: ``curlnav.nav.build_stack`` of the training stack round the behaviour

@@ -34,8 +34,8 @@ import yaml
 from curlnav.files import FileRefused, loads_yaml, read_yaml, shown
 from curlnav.sim.config import ConfigError, EnvConfig
 
-__all__ = ["ConfigError", "D4PGConfig", "ReplayConfig", "ExplorationConfig", "CurriculumConfig", "EvaluationConfig",
-           "BudgetConfig", "ExperimentConfig", "PRESETS", "load_config", "apply_overrides",
+__all__ = ["ConfigError", "D4PGConfig", "ReplayConfig", "ExplorationConfig", "HelpersConfig", "CurriculumConfig",
+           "EvaluationConfig", "BudgetConfig", "ExperimentConfig", "PRESETS", "load_config", "apply_overrides",
            "overrides_from_environment", "config_hash", "config_to_dict", "config_from_dict", "config_differences"]
 
 
@@ -230,6 +230,56 @@ class ActorConfig:
                  f"actor.envs_per_process must be a whole number in 1..64, got {self.envs_per_process!r}")
 
 
+#: ``helpers.stack``'s value for the stack the run's ``init_from`` artefact ships
+INHERITED_HELPERS = "inherit"
+
+
+@dataclass(frozen=True)
+class HelpersConfig:
+    """The stack the network trains inside (issue 53): each actor runs its behaviour policy behind
+    these helpers, built by ``curlnav.nav.build_stack`` as evaluation builds them. Each transition
+    keeps the command that was executed (a helper's takeover is a demonstration, which D4PG learns
+    from off-policy), and each step a helper chose costs ``intervention_cost`` of reward, so the
+    network learns to need them less. The share of episodes run with the helpers fades from
+    ``share_start`` to ``share_end`` over ``fade_steps`` of each actor's environment steps.
+
+    ``stack``: "" (the network alone, the default), the helpers' suffixes as an agent argument
+    spells them (``+rescue+shield``: recovery and safety roles with default settings), or
+    ``inherit``: the recovery and safety entries, with their settings, of the stack the
+    ``init_from`` artefact ships. Only roles that choose commands train in the loop: a perception
+    stage or a global planner rewrites what the network sees, while the replay keeps what the
+    environment gave (refused in one line when the run starts: ``curlnav.nav.training``)."""
+
+    stack: str = ""
+    #: reward taken from each control step a helper chose (the paper's step rewards are 0.1-0.2,
+    #: a base collision -10): 0 learns from the takeovers without paying for them
+    intervention_cost: float = 0.0
+    share_start: float = 1.0  # fraction of episodes with the helpers at an actor's first step ...
+    share_end: float = 1.0  # ... and from ``fade_steps`` environment steps on (linear between)
+    fade_steps: int = 0  # 0: ``share_start`` throughout
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.stack, str) and len(self.stack) <= 200 and "\0" not in self.stack,
+                 f"helpers.stack must be '', +SUFFIX... or {INHERITED_HELPERS}, got {shown(self.stack)}")
+        for name in ("intervention_cost", "share_start", "share_end"):
+            value = getattr(self, name)
+            _require(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                     and value >= 0 and (name == "intervention_cost" or value <= 1),
+                     f"helpers.{name} must be a number in "
+                     f"{'[0, inf)' if name == 'intervention_cost' else '[0, 1]'}, got {shown(value)}")
+        _require(isinstance(self.fade_steps, int) and not isinstance(self.fade_steps, bool) and self.fade_steps >= 0,
+                 f"helpers.fade_steps must be a whole number of environment steps >= 0, got {shown(self.fade_steps)}")
+        _require(not self.stack or self.stack == INHERITED_HELPERS or self.stack.startswith("+"),
+                 f"helpers.stack: helpers are suffixes such as +rescue+shield (or {INHERITED_HELPERS}), "
+                 f"got {shown(self.stack)}")
+
+    def share(self, steps: int) -> float:
+        """The fraction of episodes run with the helpers after ``steps`` environment steps."""
+        if not self.fade_steps or steps >= self.fade_steps:
+            return self.share_end if self.fade_steps else self.share_start
+        return self.share_start + (self.share_end - self.share_start) * steps / self.fade_steps
+
+
 @dataclass(frozen=True)
 class CurriculumConfig:
     """What to train on: one world (with its pairs, or random pairs), or a curriculum file."""
@@ -284,6 +334,8 @@ class ExperimentConfig:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     actor: ActorConfig = field(default_factory=ActorConfig)
+    #: the helpers the network trains inside (``HelpersConfig``); left out of the hash while none
+    helpers: HelpersConfig = field(default_factory=HelpersConfig, metadata={"hash": "omit-default"})
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)
@@ -304,6 +356,9 @@ class ExperimentConfig:
         _require(isinstance(self.init_from, str) and len(self.init_from) <= 4096 and "\0" not in self.init_from,
                  f"init_from must be a path (a policy artefact folder, a run folder or a checkpoint), got "
                  f"{shown(self.init_from)}")
+        _require(self.helpers.stack != INHERITED_HELPERS or bool(self.init_from),
+                 f"helpers.stack: {INHERITED_HELPERS} takes the stack of the init_from artefact; set init_from "
+                 f"(--init-from) or name the helpers (+rescue+shield)")
         _require(self.env.robot.name == self.robot,
                  f"env.robot is the {self.env.robot.name}'s, but robot says {self.robot}: set the robot with "
                  f"robot: NAME or FILE (or --robot), not env.robot fields alone")

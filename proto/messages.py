@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from dataclasses import field as dc_field
+from typing import Any
 
 import numpy as np
 
@@ -318,9 +319,30 @@ def _decode_flat(cls, data: bytes):
     return cls(**values)
 
 
+#: at most this many roles in an ``EpisodeReport``'s ``control_steps``, each name this long
+MAX_CONTROL_ROLES = 16
+MAX_ROLE_NAME = 40
+
+
+def check_control_steps(value: Any, kind: str) -> dict[str, int]:
+    """An episode's control steps by chooser (role -> steps): at most ``MAX_CONTROL_ROLES`` names
+    of 1..``MAX_ROLE_NAME`` characters, counts whole numbers 0..10^7; else ``ProtoError``."""
+    if not isinstance(value, dict):
+        raise ProtoError("field", f"{kind}.control_steps has type {type(value).__name__}")
+    if len(value) > MAX_CONTROL_ROLES:
+        raise ProtoError("range", f"{kind}.control_steps names {len(value)} roles (at most {MAX_CONTROL_ROLES})")
+    for role, steps in value.items():
+        if not isinstance(role, str) or not 0 < len(role) <= MAX_ROLE_NAME:
+            raise ProtoError("range", f"{kind}.control_steps: a role must be 1..{MAX_ROLE_NAME} characters")
+        if not isinstance(steps, int) or isinstance(steps, bool) or not 0 <= steps <= 10_000_000:
+            raise ProtoError("range", f"{kind}.control_steps[{role!r}] must be a whole number 0..10^7")
+    return dict(value)
+
+
 @dataclass
 class EpisodeReport:
-    """actor -> scheduler: one finished episode."""
+    """actor -> scheduler: one finished episode. ``control_steps``: its steps by the part of the
+    training stack that chose them (``curlnav.nav.roles.chooser``; optional on the wire)."""
 
     actor_id: str
     world: str
@@ -332,6 +354,7 @@ class EpisodeReport:
     steps: int
     weights_version: int
     assignment_epoch: int
+    control_steps: dict = dc_field(default_factory=dict)
     KIND = "episode_report"
 
     FIELD_TYPES = {"actor_id": str, "world": str, "pair": str, "success": bool, "episode_return": float,
@@ -339,12 +362,17 @@ class EpisodeReport:
                    "assignment_epoch": int}
 
     def encode(self) -> bytes:
-        return _encode_flat(self)
+        check_control_steps(self.control_steps, self.KIND)
+        return dumps({"kind": self.KIND, "v": VERSION, **{name: getattr(self, name) for name in self.FIELD_TYPES},
+                      **({"control_steps": self.control_steps} if self.control_steps else {})})
 
     @staticmethod
     def decode(data: bytes) -> EpisodeReport:
         report = _decode_flat(EpisodeReport, data)
         check_actor_id(report.actor_id, EpisodeReport.KIND)
+        obj = loads(data)
+        if "control_steps" in obj:
+            report.control_steps = check_control_steps(obj["control_steps"], EpisodeReport.KIND)
         return report
 
 

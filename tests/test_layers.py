@@ -232,10 +232,10 @@ def test_package_faces_name_what_they_offer():
 
 
 #: the navigation stack's rooms (``curlnav.nav.ROOM``), bottom first: the roles' shared parts, the
-#: roles in the order they wrap one another's inputs, then the stack and its builder; the package's
-#: face (``curlnav.nav``) sits on top
+#: roles in the order they wrap one another's inputs, then the stack, its builder and the stack a network
+#: trains inside; the package's face (``curlnav.nav``) sits on top
 NAV_ORDER = ["registry", "geometry", "roles", "progress", "perception", "safety", "global_planners", "controllers",
-             "recovery", "stack", "build"]
+             "recovery", "stack", "build", "training"]
 
 
 def nav_room(module: str) -> str | None:

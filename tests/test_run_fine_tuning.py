@@ -126,16 +126,21 @@ def test_a_policy_fine_tuned_from_an_artefact_ships_behind_its_stack_and_its_che
 
 @pytest.mark.slow
 def test_a_serial_run_from_a_shipped_artefact_starts_from_its_actor_and_records_before_and_after(tmp_path, capsys):
+    """... and trains inside the helpers it is given (``helpers.stack``): the share of control
+    steps each part chose is in summary.json."""
     import subprocess
 
     run = tmp_path / "run"
     result = subprocess.run([sys.executable, "-m", "curlnav.cli", "train", "--serial", "--threads", "1", "--run-dir",
-                             str(run), *TINY], capture_output=True, text=True, timeout=240, cwd=ROOT)
+                             str(run), *TINY, "--set", "helpers.stack=+rescue+shield"],
+                            capture_output=True, text=True, timeout=240, cwd=ROOT)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
     assert "a policy artefact ships no critic" in result.stdout and "[before]" in result.stdout
     summary = assert_records_its_start(run)
     assert summary["after"]["evaluation"] == summary["evals"][-1]["evaluation"]
     assert 0 < summary["updates"] < 1000
+    steps = summary["sessions"][-1]["control_steps"]  # the session's control steps by chooser
+    assert set(steps) <= {"network", "rescue", "shield"} and sum(steps.values()) == summary["env_steps"]
     # the critic's warm-up held the actor: the run's policy is still the artefact's, bit for bit
     assert same_tensors(run / "policy" / "policy.safetensors", ARTEFACT / "policy.safetensors")
     assert main(["status", str(run)]) == 0
@@ -145,9 +150,11 @@ def test_a_serial_run_from_a_shipped_artefact_starts_from_its_actor_and_records_
 
 @pytest.mark.slow
 def test_a_distributed_run_from_a_shipped_artefact_starts_the_learner_from_its_actor(tmp_path, curlnav_proc):
+    """... and its actors train inside the helpers they are given (``helpers.stack``): each
+    episode's control steps by chooser reach the scheduler, metrics.csv and the progress line."""
     run = tmp_path / "run"
     proc = curlnav_proc("train", "--actors", "1", "--threads", "1", "--eval-every-s", "600", "--run-dir", str(run),
-                        *TINY)
+                        *TINY, "--set", "helpers.stack=+shield")
     first = run / "learner" / "artefacts" / "v0" / "policy.safetensors"  # the learner's weights before any update
     wait_for("the learner's first artefact", first.is_file, timeout=120, procs=[proc])
     time.sleep(0.5)  # written beside and renamed in: complete once it is there
@@ -160,3 +167,5 @@ def test_a_distributed_run_from_a_shipped_artefact_starts_the_learner_from_its_a
     assert_records_its_start(run)
     rows = [r for r in csv.DictReader((run / "metrics.csv").open()) if r.get("episodes") not in (None, "", "0")]
     assert rows and float(rows[0]["train_success_100"]) >= 0.5, "no random warm-up: actors drive from the first step"
+    assert "| control steps: network " in out
+    assert all(0.0 <= float(r["network_control_share_100"]) <= 1.0 for r in rows)

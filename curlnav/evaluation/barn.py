@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from curlnav.files import read_json
+from curlnav.nav.roles import control_line
 from curlnav.sim import EnvConfig
 from curlnav.sim.config import RobotConfig
 from curlnav.sim.robots import PROFILES
@@ -161,12 +162,15 @@ class BarnTrial:
     time_s: float
     optimal_time_s: float
     score: float
+    #: the commands by the part of the stack that chose them (``curlnav.nav.roles.ControlSteps.text``)
+    control_steps: str = ""
 
     @classmethod
-    def of(cls, agent: str, world: int, success: bool, base_collisions: int, time_s: float) -> BarnTrial:
+    def of(cls, agent: str, world: int, success: bool, base_collisions: int, time_s: float,
+           control_steps: str = "") -> BarnTrial:
         outcome = "collided" if base_collisions > 0 else "succeeded" if success else "timeout"
         return cls(agent, world, outcome, time_s, barn.optimal_time(world),
-                   barn.score(outcome == "succeeded", time_s, world))
+                   barn.score(outcome == "succeeded", time_s, world), control_steps)
 
     def line(self) -> str:
         return (f"barn: {self.agent} world {self.world}: {self.outcome} in {self.time_s:.1f} s, score {self.score:.4f} "
@@ -185,12 +189,13 @@ class BarnSummary:
     mean_time_s: float
     score: float
     senses: str = "exact"  # the senses the trials ran with (``SensorNoiseConfig.describe``)
+    control_steps: str = ""  # the share of control steps by chooser (``ControlSteps.line``)
 
     def line(self) -> str:
         time = "-" if math.isnan(self.mean_time_s) else f"{self.mean_time_s:.1f}"
         return (f"barn: {self.agent} success {self.success:.1%}, collisions {self.collisions:.1%}, timeouts "
                 f"{self.timeouts:.1%}, mean time {time} s, score {self.score:.4f} over {self.worlds} worlds; "
-                f"senses {self.senses}")
+                f"senses {self.senses}" + (f"; {self.control_steps}" if self.control_steps else ""))
 
 
 def summarise(trials: list[BarnTrial], senses: str = "exact") -> list[BarnSummary]:
@@ -205,7 +210,7 @@ def summarise(trials: list[BarnTrial], senses: str = "exact") -> list[BarnSummar
 
         out.append(BarnSummary(agent, len(group), rate("succeeded"), rate("collided"), rate("timeout"),
                                float(np.mean(times)) if times else float("nan"), float(np.mean([t.score for t in group])),
-                               senses))
+                               senses, control_line(t.control_steps for t in group)))
     return out
 
 

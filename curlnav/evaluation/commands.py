@@ -242,7 +242,8 @@ def _eval_barn(options: dict, jobs: int) -> int:
     from curlnav.evaluation.compare import Comparison
 
     def trial_of(e) -> BarnTrial:
-        return BarnTrial.of(e.agent, int(e.world.rsplit("-", 1)[1]), e.success, e.base_collisions, e.time_s)
+        return BarnTrial.of(e.agent, int(e.world.rsplit("-", 1)[1]), e.success, e.base_collisions, e.time_s,
+                            e.control_steps)
 
     plan = eval_plan(options, say=print)
     out = Path(options["out"]) if options["out"] else None

@@ -36,6 +36,7 @@ import numpy as np
 
 from curlnav.evaluation.protocol import EVAL_SEED, StepRecorder, evaluate, held_out_pairs
 from curlnav.nav.global_planners.oracle import GridPlanner, polyline_length
+from curlnav.nav.roles import control_line
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World
 from curlnav.worlds.core.pairs import draws_random_pairs
 from curlnav.worlds.real import real_maps
@@ -88,6 +89,8 @@ class Episode:
     shortest_path_m: float  # on the static grid, to within the goal tolerance
     spl: float  # success * shortest / max(driven, shortest)
     base_collision_events: int = 0  # contacts of the base with a wall, each counted once however long
+    #: the trial's commands by the part of the stack that chose them (``ControlSteps.text``: ``network:812 rescue:40``)
+    control_steps: str = ""
     trajectory: tuple[tuple[float, float], ...] = field(default=(), repr=False)  # not in the CSV
 
     def row(self) -> dict:
@@ -118,6 +121,8 @@ class Summary:
     #: the senses the trials ran with: ``exact``, or the sensor-noise preset and its overrides
     #: (``SensorNoiseConfig.describe``)
     senses: str = "exact"
+    #: the share of control steps each part of the stack chose (``ControlSteps.line``)
+    control_steps: str = ""
 
     def line(self) -> str:
         return (f"{self.agent} on {self.world}: success {self.success_rate:.0%} over {self.episodes} episodes, "
@@ -125,7 +130,7 @@ class Summary:
                 f"({self.base_collision_events_per_trial:.2f} contact events), "
                 f"{self.arm_collisions_per_trial:.2f} arm collisions/trial, "
                 f"time to goal {_number(self.time_to_goal_s, '{:.1f} s')}, path {_number(self.path_length_m, '{:.1f} m')}, "
-                f"SPL {self.spl:.2f}; senses {self.senses}")
+                f"SPL {self.spl:.2f}; senses {self.senses}" + (f"; {self.control_steps}" if self.control_steps else ""))
 
 
 def _number(value: float, fmt: str) -> str:
@@ -227,7 +232,8 @@ class Comparison:
         return Episode(agent, world.name, pair.name, pair.x, pair.y, pair.gx, pair.gy, seed, success,
                        info["steps"] * self.env_config.control_period, int(info["base_collisions"]),
                        int(info["end_effector_collisions"]), driven, shortest, spl_term(success, shortest, driven),
-                       int(info.get("base_collision_events", 0)), tuple(map(tuple, info["trajectory"])))
+                       int(info.get("base_collision_events", 0)), info["control_steps"].text(),
+                       tuple(map(tuple, info["trajectory"])))
 
 
 @dataclass(frozen=True)
@@ -305,7 +311,7 @@ def summarise(episodes: list[Episode], senses: str = "exact") -> list[Summary]:
                                _mean([e.base_collisions for e in group]), _mean([e.arm_collisions for e in group]),
                                _mean([e.time_s for e in won]), _mean([e.path_length_m for e in won]),
                                _mean([e.spl for e in group]), _mean([e.base_collision_events for e in group]),
-                               senses))
+                               senses, control_line(e.control_steps for e in group)))
     return out
 
 

@@ -18,7 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
-from curlnav.nav.roles import EpisodeAgent
+from curlnav.nav.roles import NETWORK, ControlSteps, EpisodeAgent
 from curlnav.sim import EnvConfig, NamoEnv, StartGoal, World, get_world
 from curlnav.sim.env import pair_key
 from curlnav.worlds.core.pairs import draws_random_pairs
@@ -93,7 +93,8 @@ def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: s
     placed from ``seed + i``) in an environment of ``env_config`` (default:
     ``evaluation_config()``; pass an evaluation environment). ``on_episode(i, info)`` gets the
     last step's ``info`` plus ``trajectory`` (the base's ``(x, y)`` at every step, m) and
-    ``truncated`` (the episode ran out of time). A pair of ``None`` is drawn by the environment.
+    ``truncated`` (the episode ran out of time) and ``control_steps`` (``ControlSteps``: the
+    episode's commands counted by the part of the stack that chose them). A pair of ``None`` is drawn by the environment.
     ``recorder(i, env, observation)``, if given, is called after each reset and returns a
     ``StepRecorder`` that sees every step of episode ``i`` and is closed when it ends."""
     cfg = env_config if env_config is not None else evaluation_config()
@@ -107,9 +108,15 @@ def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: s
             if agent is not None:
                 agent.reset(env.world, env.pair)
             steps = recorder(i, env, obs) if recorder is not None else None
+            chosen = ControlSteps()
             try:
                 while True:
-                    action = agent.act(obs, info) if agent is not None else policy(obs)
+                    if agent is not None:
+                        action = agent.act(obs, info)
+                        chosen.add(agent)
+                    else:
+                        action = policy(obs)
+                        chosen.counts[NETWORK] += 1
                     obs, _, terminated, truncated, info = env.step(action)
                     if steps is not None:
                         steps.step(action, obs)
@@ -120,6 +127,7 @@ def evaluate(policy: Callable[[np.ndarray], np.ndarray] | EpisodeAgent, world: s
                     steps.close()
             info["trajectory"] = list(env.trajectory)
             info["truncated"] = bool(truncated)  # out of time (not ended by the goal or a collision)
+            info["control_steps"] = chosen
             successes += int(info["is_success"])
             collisions += info["base_collisions"]
             ee_collisions += info["end_effector_collisions"]

@@ -7,7 +7,8 @@ names, no role code), ``geometry`` (poses, frames, arcs, footprints), ``roles`` 
 vote, laser odometry), ``safety`` (the shield, the push check), ``global_planners`` (A* on the true
 map, a plan on the robot's own scans), ``controllers`` (``dwa``, ``tare-l``) and ``recovery`` (the
 rescue, its manoeuvre); on top ``stack`` (``NavStack``: which entry each role runs, with its
-settings; an agent argument parsed into one) and ``build`` (``build_stack``).
+settings; an agent argument parsed into one), ``build`` (``build_stack``) and ``training`` (the
+stack a network trains inside, ``helpers``).
 
 ``curlnav stack show AGENT`` prints the stack an agent argument, artefact or stack file names;
 ``curlnav eval --stack FILE`` runs one. To add an entry: its module in its role's package and one

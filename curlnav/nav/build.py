@@ -8,6 +8,8 @@ controller stalls; behind a plan on the true map its fallback tracks that plan),
 entries, the last outermost. Every entry's class takes ``(inner, env_config, label=..., **sections)``
 (a controller: ``(env_config, **sections)``); a policy controller is what ``load_policy(path)`` gives.
 The result is an ``EpisodeAgent`` (``curlnav.nav.roles``), or for a policy alone the policy itself.
+Each entry made here carries its entry name as ``control_role``: ``curlnav.nav.roles.chooser``
+says which of them chose a command.
 """
 
 from __future__ import annotations
@@ -34,11 +36,13 @@ def build_stack(stack: NavStack, env_config, load_policy: Callable[[str], object
         agent = load_policy(inner)
     else:
         agent = stack.controller.info.load()(env_config, **stack.controller.kwargs())
+        agent.control_role = stack.controller.entry  # a planner chose its commands (``roles.chooser``)
     label = stack.label or getattr(agent, "label", inner)
     planned = stack.global_planner
     true_map = planned is not None and planned.entry == "true-map"
     if planned is not None:
         agent = planned.info.load()(agent, env_config, label=inner, **planned.kwargs())
+        agent.control_role = planned.entry
     if stack.recovery is not None:
         fallback = None
         if true_map:  # behind a plan on the true map the fallback tracks that plan (Nav2's pairing)
@@ -46,8 +50,11 @@ def build_stack(stack: NavStack, env_config, load_policy: Callable[[str], object
 
             fallback = global_plan_fallback(agent)
         agent = stack.recovery.info.load()(agent, env_config, fallback=fallback, label=label, **stack.recovery.kwargs())
+        agent.control_role = stack.recovery.entry
     if stack.safety is not None:
         agent = stack.safety.info.load()(agent, env_config, label=label, static_map=true_map, **stack.safety.kwargs())
+        agent.control_role = stack.safety.entry
     for stage in stack.perception:
         agent = stage.info.load()(agent, env_config, label=label, **stage.kwargs())
+        agent.control_role = stage.entry
     return label, agent

@@ -11,10 +11,20 @@ The roles wrap one another, as Nav2's do (``nav2_core``: GlobalPlanner, Controll
 ProgressChecker; the collision monitor beside them): a ``GlobalPlanner``, a ``Recovery``, a
 ``Safety`` layer and each ``Perception`` stage hold the agent they wrap (``policy``) and are agents
 themselves. ``ProgressChecker`` (``curlnav.nav.progress``) says when the robot stops making progress.
+
+Which part of the stack chose each command (issue 53: the share of control steps by role):
+``build_stack`` names each wrapper's role entry in its ``control_role`` (``rescue``, ``shield``,
+``global-plan``, ...; a planner controller too: ``dwa``), and a wrapper that can replace its inner
+agent's command sets ``replaced`` at every ``act`` (True: the command it returned is not the one
+its inner agent proposed). ``chooser(agent)`` reads them, outermost first; a network controller
+(a policy, which has no ``control_role``) is ``NETWORK``. ``ControlSteps`` counts an episode's
+commands by chooser.
 """
 
 from __future__ import annotations
 
+from collections import Counter
+from collections.abc import Iterable, Mapping
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -52,3 +62,84 @@ class ProgressChecker(Protocol):
     def check(self, distance_to_goal_m: float, now: float) -> bool: ...
 
     def reset(self) -> None: ...
+
+
+#: the chooser of a command the network controller proposed and nothing replaced
+NETWORK = "network"
+
+
+def chooser(agent: object) -> str:
+    """Which part of ``agent`` (a stack ``build_stack`` made, or a plain policy) chose the command
+    its last ``act`` returned: the role entry (``control_role``) of the outermost wrapper that
+    replaced its inner agent's command (``replaced``), else the controller's: ``NETWORK`` for a
+    policy, a planner's entry name (``dwa``) for a planner."""
+    layer, seen = agent, 0
+    while (role := getattr(layer, "control_role", None)) is not None and seen < 64:
+        inner = getattr(layer, "policy", None)
+        if inner is None or getattr(layer, "replaced", False):
+            return role  # a planner controller, or a wrapper that replaced its inner agent's command
+        layer, seen = inner, seen + 1
+    return NETWORK
+
+
+class ControlSteps:
+    """An episode's (or a run's) control steps counted by the part of the stack that chose them
+    (``chooser``): ``add(agent)`` after each ``act``; ``counts`` role -> steps."""
+
+    def __init__(self, counts: Mapping[str, int] | None = None) -> None:
+        self.counts: Counter[str] = Counter(counts or {})
+
+    def add(self, agent: object) -> str:
+        role = chooser(agent)
+        self.counts[role] += 1
+        return role
+
+    def merge(self, other: ControlSteps | Mapping[str, int]) -> None:
+        self.counts.update(other.counts if isinstance(other, ControlSteps) else other)
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def shares(self) -> dict[str, float]:
+        """role -> fraction of the steps (the network first, then by share), empty for no steps."""
+        total = self.total
+        if not total:
+            return {}
+        order = sorted(self.counts, key=lambda r: (r != NETWORK, -self.counts[r], r))
+        return {role: self.counts[role] / total for role in order}
+
+    def text(self) -> str:
+        """``network:812 rescue:40`` (``episodes.csv``'s ``control_steps``; ``parse`` reads it)."""
+        return " ".join(f"{role}:{n}" for role, n in sorted(self.counts.items(), key=lambda kv: (kv[0] != NETWORK, kv[0])))
+
+    @classmethod
+    def parse(cls, text: str) -> ControlSteps:
+        """The counts ``text`` wrote; ``ValueError`` for a malformed field."""
+        counts: dict[str, int] = {}
+        for part in (text or "").split():
+            role, _, n = part.rpartition(":")
+            if not role or not n.isdigit():
+                raise ValueError(f"control steps: expected ROLE:COUNT, got {part!r}")
+            counts[role] = counts.get(role, 0) + int(n)
+        return cls(counts)
+
+    def line(self) -> str:
+        """``control steps: network 93.1%, rescue 5.0%, shield 1.9%`` (nothing counted: ``-``)."""
+        shares = self.shares()
+        return "control steps: " + (", ".join(f"{role} {share:.1%}" for role, share in shares.items())
+                                     or "-")
+
+    @classmethod
+    def total_of(cls, texts: Iterable[str]) -> ControlSteps:
+        out = cls()
+        for text in texts:
+            out.merge(cls.parse(text))
+        return out
+
+
+def control_line(texts: Iterable[str]) -> str:
+    """The share of control steps by chooser over trials' ``ControlSteps.text`` (``ControlSteps.line``),
+    "" where none were counted."""
+    steps = ControlSteps.total_of(texts)
+    return steps.line() if steps.total else ""

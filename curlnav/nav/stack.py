@@ -252,7 +252,7 @@ class NavStack:
         if data.get("controller") is None:
             raise ValueError(f"{where}.controller is missing: a policy (entry: policy, path: FOLDER) or a planner")
         controller = _choice(data["controller"], "controller", f"{where}.controller")
-        helpers = _helpers(data, where)
+        helpers = helper_roles(data, where)
         try:
             return NavStack(controller=controller, **helpers, label=label)
         except ValueError as exc:
@@ -272,7 +272,7 @@ def _choice(data: Any, role: str, where: str) -> RoleChoice:
     return choose(role, data["entry"], sections, path=path, where=where)
 
 
-def _helpers(data: Mapping, where: str) -> dict[str, Any]:
+def helper_roles(data: Mapping, where: str) -> dict[str, Any]:
     """The roles but the controller from a stack mapping (``NavStack``'s keyword arguments)."""
     out: dict[str, Any] = {}
     for role in ("global_planner", "recovery", "safety"):
@@ -348,7 +348,7 @@ def shipped_helpers(folder: str) -> dict[str, Any] | None:
         if not isinstance(stack, Mapping) or "controller" in stack or "label" in stack:
             raise ValueError(f"{meta}: stack must be a mapping of the roles round the network "
                              f"({', '.join(ROLES[1:])}), got {shown(stack)}")
-        helpers = _helpers(stack, f"{meta}: stack")
+        helpers = helper_roles(stack, f"{meta}: stack")
         try:
             whole = NavStack(controller=RoleChoice("controller", POLICY_ENTRY, path=folder), **helpers)
         except ValueError as exc:

@@ -21,7 +21,15 @@ from typing import Any
 TRAIN_FIELDS = ["wall_s", "env_steps", "updates", "episodes", "train_success_100", "return_100",
                 "base_collisions_100", "env_steps_per_s", "updates_per_s", "losses/critic", "losses/actor",
                 "values/q_mean", "replay_size", "policy_version", "policy_lag", "stage_index", "stage", "substep",
-                "live_actors"]
+                "live_actors", "network_control_share_100"]
+
+
+def control_text(shares: dict | None) -> str:
+    """``network 87%, rescue 10%, shield 3%``: the share of control steps by chooser (the progress
+    line's; "" for none)."""
+    return ", ".join(f"{role} {share:.0%}" for role, share in (shares or {}).items())
+
+
 #: eval.csv columns: one row per (evaluation, world, pair); pair "held-out" is the held-out draw
 EVAL_FIELDS = ["evaluation", "wall_s", "env_steps", "updates", "policy_version", "stage_index", "stage", "substep",
                "world", "pair", "episodes", "success_rate", "collisions_per_episode",

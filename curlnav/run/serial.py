@@ -43,6 +43,7 @@ from curlnav.learner.artefact import export_policy, training_worlds
 from curlnav.learner.d4pg import act, load_checkpoint, save_checkpoint, sgd_step
 from curlnav.learner.feed import BatchAssembler
 from curlnav.learner.init_from import inherited_stack
+from curlnav.nav.roles import NETWORK, ControlSteps
 from curlnav.run.record import (
     EVAL_FIELDS,
     TRAIN_FIELDS,
@@ -50,6 +51,7 @@ from curlnav.run.record import (
     RunSummary,
     TensorBoardLog,
     absolute,
+    control_text,
     last_evaluation_number,
     now_iso,
     outcome_fields,
@@ -111,8 +113,11 @@ class SerialTrainer:
         if self.counters.get("init_from"):  # a run saved before init_from was a config field
             self.policy.steps = max(self.policy.steps, self.policy.warmup_steps)  # a trained policy acts at once
         self.loop = EpisodeLoop(env, builder.make_acting_agent(self.policy), builder.make_nstep_writer(),
-                                builder.make_world_draws(0, stream=self.counters["env_steps"]))
+                                builder.make_world_draws(0, stream=self.counters["env_steps"]),
+                                helpers=builder.make_training_helpers(0, 1, stream=self.counters["env_steps"]))
+        self.loop.steps = self.counters["env_steps"]  # the helpers' fade goes on from where the run is
         self.recent: deque[tuple[bool, float, int]] = deque(maxlen=100)  # success, return, base collisions
+        self.recent_control: deque[dict[str, int]] = deque(maxlen=100)  # control steps by chooser, per episode
         self.metrics: dict[str, float] = {}
         self.task: tuple[str, str, int] = (str(experiment.curriculum.world), "", 0)  # world, pair, epoch
 
@@ -175,6 +180,7 @@ class SerialTrainer:
         if end is not None:
             self.counters["episodes"] += 1
             self.recent.append((end.success, end.episode_return, int(end.info["base_collisions"])))
+            self.recent_control.append(end.control_steps)
             if self.curriculum is not None:
                 world, pair, epoch = self.task
                 if self.curriculum.record(world, pair, end.success, epoch, int(end.info["steps"])):
@@ -407,7 +413,10 @@ class SerialTrainer:
         exit_code = 130 if stop_reason.startswith("interrupted") else 0
         session.update({"stopped": now_iso(), "stop_reason": stop_reason, "exit_code": exit_code,
                         "wall_s": time.monotonic() - session_start, "env_steps": self.counters["env_steps"],
-                        "updates": self.state.steps})
+                        "updates": self.state.steps,
+                        # the session's control steps by chooser (the network's alone without helpers)
+                        "control_steps": dict(self.loop.helpers.steps.counts) if self.loop.helpers is not None
+                        else {NETWORK: self.counters["env_steps"] - session["env_steps_before"]}})
         return history.close_session(
             session, stop_reason=stop_reason, exit_code=exit_code, wall_s=time.monotonic() - start,
             env_steps=self.counters["env_steps"], updates=self.state.steps, episodes=self.counters["episodes"],
@@ -434,13 +443,17 @@ class SerialTrainer:
         ups = (self.state.steps - at_log[1]) / dt
         recent = self.recent
         success = float(np.mean([r[0] for r in recent])) if recent else 0.0
+        control = ControlSteps()
+        for counts in self.recent_control:
+            control.merge(counts)
+        shares = control.shares()
         row = {"wall_s": now - start, "env_steps": self.counters["env_steps"], "updates": self.state.steps,
                "episodes": self.counters["episodes"], "train_success_100": success,
                "return_100": float(np.mean([r[1] for r in recent])) if recent else 0.0,
                "base_collisions_100": float(np.mean([r[2] for r in recent])) if recent else 0.0,
                "env_steps_per_s": sps, "updates_per_s": ups, "replay_size": self.table.size,
                "policy_version": self.state.steps, "policy_lag": 0, **self._stage_fields(),
-               "live_actors": 1, **self.metrics}
+               "live_actors": 1, "network_control_share_100": shares.get(NETWORK), **self.metrics}
         self.train_log.write(row)
         world = Path(str(self.experiment.curriculum.world)).stem
         self.board.scalars({"train/success_last_100": success, "train/return_last_100": row["return_100"],
@@ -448,13 +461,16 @@ class SerialTrainer:
                             f"train/success/{world}/random": success, "speed/env_steps_per_s": sps,
                             "speed/updates_per_s": ups, "replay/size": self.table.size, "policy/lag_versions": 0,
                             "curriculum/stage": row["stage_index"], "curriculum/substep": row["substep"],
+                            **{f"train/control_steps/{role}": share for role, share in shares.items()},
                             **self.metrics}, self.counters["env_steps"])
         if self.bar is not None:
             self.bar.n = min(int(now - start), int(budget_s))
             self.bar.set_postfix_str(f"steps {self.counters['env_steps']} ({sps:.0f}/s) updates {self.state.steps} "
                                      f"({ups:.1f}/s) episodes {self.counters['episodes']} success {success:.0%} "
                                      f"{row['stage']}.{row['substep']} "
-                                     f"| {max(budget_s - (now - start), 0) / 60:.1f} min left")
+                                     + (f"| control steps: {control_text(shares)} " if self.loop.helpers and shares
+                                        else "")
+                                     + f"| {max(budget_s - (now - start), 0) / 60:.1f} min left")
 
 
 def train_serial(run_dir: str | Path, experiment: ExperimentConfig, run: SerialRunConfig | None = None,

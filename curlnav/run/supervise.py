@@ -302,7 +302,8 @@ class DistributedRun:
                "values/q_mean": learner.get("q_mean"), "replay_size": counts.get("replay_size"),
                "policy_version": counts.get("policy_version"), "policy_lag": status.get("policy_lag"),
                "stage_index": status.get("stage_index"), "stage": status.get("stage"), "substep": status.get("substep"),
-               "live_actors": status.get("live_actor_count", len(status.get("live_actors") or {}))}
+               "live_actors": status.get("live_actor_count", len(status.get("live_actors") or {})),
+               "network_control_share_100": (status.get("control_steps_last_100") or {}).get("network")}
         metrics.write(row)
         scalars = {"train/success_last_100": row["train_success_100"], "train/return_last_100": row["return_100"],
                    "train/base_collisions_last_100": row["base_collisions_100"],
@@ -311,7 +312,9 @@ class DistributedRun:
                    "speed/updates_per_s": row["updates_per_s"], "policy/lag_versions": row["policy_lag"],
                    "policy/version": row["policy_version"], "replay/size": row["replay_size"],
                    "curriculum/stage": row["stage_index"], "curriculum/substep": row["substep"],
-                   "actors/live": row["live_actors"]}
+                   "actors/live": row["live_actors"],
+                   **{f"train/control_steps/{role}": share
+                      for role, share in (status.get("control_steps_last_100") or {}).items()}}
         for key, value in (status.get("success_by_world_pair") or {}).items():
             world, _, pair = key.rpartition("/")
             done = value.get("episodes") or 0
@@ -333,7 +336,9 @@ class DistributedRun:
             + f" | episodes {status.get('episodes')} success {'-' if success is None else f'{success:.0%}'}"
             + f" | env steps {env_steps} ({replay.get('insert_rate') or 0:.0f}/s) updates {row['updates'] or 0}"
             + f" ({learner.get('updates_per_s') or 0:.1f}/s) | policy v{row['policy_version'] or 0}"
-            + f" | replay {row['replay_size'] or 0} | actors {row['live_actors']}")
+            + f" | replay {row['replay_size'] or 0} | actors {row['live_actors']}"
+            + (f" | control steps: {record.control_text(status.get('control_steps_last_100'))}"
+               if self.experiment.helpers.stack and status.get("control_steps_last_100") else ""))
         if budget.max_env_steps is not None and env_steps >= budget.max_env_steps:
             if self.experiment.init_from and not (self.run_dir / record.BEFORE_FILE).exists():
                 return None  # the run's record needs the starting policy's evaluation: the time budget still ends it

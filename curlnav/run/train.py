@@ -110,6 +110,13 @@ def check_before_start(experiment: ExperimentConfig) -> None:
     from curlnav.worlds.core.pairs import check_pairs_possible
 
     check_training_world(experiment.curriculum.world)  # a held-out FAMILY:SEED: refused before any service starts
+    if experiment.helpers.stack:  # the helpers the network trains inside: a stack that can train in the loop
+        from curlnav.builder import D4PGBuilder
+
+        try:
+            D4PGBuilder(experiment).training_stack()
+        except ValueError as exc:
+            raise TrainRefused(f"helpers.stack: {exc}" if not str(exc).startswith("helpers.stack") else str(exc)) from None
     world = get_world(experiment.curriculum.world)
     robot = experiment.env.robot
     check_pairs_possible(world, (robot.base_length, robot.base_width))

@@ -163,7 +163,10 @@ class GlobalPlanAgent:
     ``curlnav.nav.recovery.rescue.global_plan_fallback``); both follow the plan itself, from the robot's
     place on it. ``passage_steps`` counts the steps the tight spots' command was chosen over the
     policy's in the current episode (a rescue in front may still have sent its own, from
-    ``tracker``); ``tracking`` says whether the last step's was."""
+    ``tracker``); ``tracking`` says whether the last step's was (``replaced`` too,
+    ``curlnav.nav.roles.chooser``)."""
+
+    replaced = False
 
     def __init__(self, policy, env_config: EnvConfig | None = None, config: WaypointConfig | None = None,
                  label: str = "policy") -> None:
@@ -232,6 +235,7 @@ class GlobalPlanAgent:
         inner = getattr(self.policy, "act", None)  # a planner (dwa) needs the odometry too
         own = self.policy(shown) if inner is None else inner(shown, info)
         self.tracking = self.plan.near_passage(*info["pose"][:2])
+        self.replaced = self.tracking  # the plan's tracker drives a tight spot (``roles.chooser``)
         if self.tracking:
             self.passage_steps += 1
             return self.track(observation, info, passage=True)

@@ -145,7 +145,10 @@ class RescuedPolicy:
     """``policy`` (``obs -> action`` or an ``EpisodeAgent``) with ``fallback`` (an
     ``EpisodeAgent``; default ``dwa+scan-plan``) taking over while it stalls (module docstring):
     ``act(observation, info) -> action``. ``rescues`` counts the takeovers in the current
-    episode, ``rescue_steps`` the steps the fallback drove."""
+    episode, ``rescue_steps`` the steps the fallback drove; ``replaced``: whether the fallback drove
+    the last step (``curlnav.nav.roles.chooser``)."""
+
+    replaced = False
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
                  config: RescueConfig | None = None, fallback=None, label: str | None = None) -> None:
@@ -168,6 +171,7 @@ class RescuedPolicy:
         """The episode's counters and stall state, as at its start."""
         self.rescues = 0
         self.rescue_steps = 0
+        self.replaced = False
         self._steps = 0
         self.progress = ProgressChecker(self.config.progress_m, self.config.stall_steps)  # clock: control steps
         self._until = -1  # the last step the fallback drives (-1: the policy drives)
@@ -197,6 +201,7 @@ class RescuedPolicy:
         inner = getattr(self.policy, "act", None)
         own = np.asarray(self.policy(observation) if inner is None else inner(observation, info), dtype=np.float32)
         command = rescue_command if self.rescuing else own
+        self.replaced = self.rescuing
         if self.rescuing:
             self.rescue_steps += 1
         self._steps += 1

@@ -233,7 +233,10 @@ class ShieldedPolicy(ScanAgent):
     """``policy`` (``obs -> [v, w, L]``, or an ``EpisodeAgent`` such as a policy behind a global
     plan) behind the safety shield (module docstring):
     ``act(observation, info) -> [v, w, L]``. ``interventions`` counts the commands replaced in
-    the current episode, ``steps`` the commands checked; ``push`` is its push check."""
+    the current episode, ``steps`` the commands checked; ``push`` is its push check; ``replaced``:
+    whether the last command was replaced (``curlnav.nav.roles.chooser``)."""
+
+    replaced = False
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
                  config: ShieldConfig | None = None, label: str | None = None,
@@ -298,6 +301,7 @@ class ShieldedPolicy(ScanAgent):
         proposed = np.asarray(proposed, dtype=np.float32).reshape(-1)
         self.steps += 1
         out = self.check(proposed, points, walls, pushable)
+        self.replaced = out is not proposed  # check returns the proposal itself where it lets it pass
         self.push.commanded(out)
         return out
 
