@@ -57,6 +57,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("curlnav.actor")
 
+#: in an actor's data folder: its environment steps, so that the helpers' fade survives a restart
+HELPERS_FILE = "helpers.json"
+HELPERS_SAVE_S = 10.0  # s between saves of HELPERS_FILE (and one at stop)
+
 
 @dataclass(frozen=True)
 class ActorServiceConfig:
@@ -157,6 +161,10 @@ class ActorService:
         self._credit = (1_000_000, 0.0)  # (transitions the replay accepts now, when heard)
         self.acked_seq = -1  # the highest of this actor's batch seqs the replay has accepted (logged)
         data_dir = cfg.deployment.data_dir or f"runs/service/actors/{cfg.actor_id}"
+        self.helpers_file = Path(data_dir) / HELPERS_FILE
+        self._helpers_saved_at = 0.0
+        if self.core.loop.helpers is not None:
+            self._resume_helpers()
         self.resend = ResendBuffer(data_dir, cfg.resend_memory_bytes, cfg.resend_disk_bytes, cfg.resend_after_s)
         self._resend_lock = threading.Lock()  # the credit callback acknowledges, the loop adds and sends
         self.m_unacked = Gauge("actor_batches_unacknowledged", "batches generated that the replay has not yet "
@@ -170,6 +178,39 @@ class ActorService:
         self.paused_s = 0.0  # time spent with the resend buffer full
         self._lock = threading.Lock()
         self.stop = threading.Event()
+
+    def _resume_helpers(self) -> None:
+        """A restarted actor (a resumed run, a crash the supervisor restarted) goes on with the
+        helpers' fade where it was: its environment steps from ``helpers.json`` (saved at most every
+        ``HELPERS_SAVE_S`` and at stop), and the on/off draws from a stream of that count."""
+        try:
+            saved = json.loads(self.helpers_file.read_text())
+            steps = saved["env_steps"]
+            if not isinstance(steps, int) or isinstance(steps, bool) or steps < 0:
+                raise ValueError(f"env_steps must be a whole number >= 0, got {steps!r}")
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("actor %s: %s unreadable (%s): the helpers' fade starts again", self.cfg.actor_id,
+                        self.helpers_file, exc)
+            return
+        self.core.loop.steps = steps
+        self.core.loop.helpers.rng = np.random.default_rng([self.experiment.seed, self.cfg.actor_index, steps, 53])
+        log.info("actor %s: the helpers' fade goes on from %d environment steps (share %.2f)", self.cfg.actor_id,
+                 steps, self.experiment.helpers.share(steps))
+
+    def _save_helpers(self, force: bool = False) -> None:
+        """This actor's environment steps, for the helpers' fade after a restart (``_resume_helpers``)."""
+        if self.core.loop.helpers is None or not force and time.monotonic() - self._helpers_saved_at < HELPERS_SAVE_S:
+            return
+        self._helpers_saved_at = time.monotonic()
+        try:
+            self.helpers_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.helpers_file.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"env_steps": self.core.loop.steps}) + "\n")
+            tmp.replace(self.helpers_file)
+        except OSError as exc:
+            log.warning("actor %s: cannot save %s (%s)", self.cfg.actor_id, self.helpers_file, exc)
 
     def _on_weights(self, sample) -> None:
         """Validate and keep only the newest weights; the simulation loop loads them."""
@@ -255,6 +296,7 @@ class ActorService:
         """At stop: the partial batch out, up to ``flush_s`` for everything held to be
         acknowledged, then the counts to ``<data_dir>/actor-final.json``."""
         self._batch_out(transitions)
+        self._save_helpers(force=True)
         deadline = time.monotonic() + self.cfg.flush_s
         while len(self.resend) and time.monotonic() < deadline and self.heard(within_s=2.0):
             self.send_due(transitions)  # a replay not heard for 2 s acknowledges nothing: stop waiting
@@ -383,6 +425,7 @@ class ActorService:
                                                dict(end.control_steps)).encode())
                 if ends:
                     self.send_due(transitions)  # resends (after a partition) go on between batches too
+                    self._save_helpers()
             self._finish(transitions, deployment.data_dir)
 
     def _begin_waiting(self, session, assign_key: str, tasks: list) -> bool:

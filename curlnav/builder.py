@@ -122,9 +122,9 @@ class D4PGBuilder:
         return training_stack(spec, shipped, self.config.init_from)
 
     def make_acting_agent(self, policy: BehaviourPolicy) -> BehaviourPolicy:
-        """What an actor acts with: ``curlnav.nav.build_stack`` of the training stack round the behaviour
-        policy, the same builder ``curlnav eval``, ``policy run`` and ``ros2 run`` call. The training
-        stack is the network alone: one batched call steps an actor's K environments at once."""
+        """What an actor's behaviour policy proposes with: ``curlnav.nav.build_stack`` of the network
+        alone round it (one batched call steps an actor's K environments at once). The helpers it
+        trains inside (``make_training_helpers``) act on each environment's proposal after it."""
         from curlnav.nav import NavStack, build_stack
         from curlnav.nav.stack import choose
 

@@ -252,7 +252,8 @@ class HelpersConfig:
 
     stack: str = ""
     #: reward taken from each control step a helper chose (the paper's step rewards are 0.1-0.2,
-    #: a base collision -10): 0 learns from the takeovers without paying for them
+    #: a base collision -10): 0 learns from the takeovers without paying for them. Keep
+    #: ``intervention_cost / (1 - d4pg.discount)`` well inside the critic's support (``d4pg.v_min``)
     intervention_cost: float = 0.0
     share_start: float = 1.0  # fraction of episodes with the helpers at an actor's first step ...
     share_end: float = 1.0  # ... and from ``fade_steps`` environment steps on (linear between)
@@ -269,6 +270,9 @@ class HelpersConfig:
                      f"{'[0, inf)' if name == 'intervention_cost' else '[0, 1]'}, got {shown(value)}")
         _require(isinstance(self.fade_steps, int) and not isinstance(self.fade_steps, bool) and self.fade_steps >= 0,
                  f"helpers.fade_steps must be a whole number of environment steps >= 0, got {shown(self.fade_steps)}")
+        _require(self.fade_steps > 0 or self.share_end == self.share_start,
+                 f"helpers.share_end ({self.share_end:g}) differs from share_start ({self.share_start:g}) but "
+                 f"helpers.fade_steps is 0: give the steps to fade over")
         _require(not self.stack or self.stack == INHERITED_HELPERS or self.stack.startswith("+"),
                  f"helpers.stack: helpers are suffixes such as +rescue+shield (or {INHERITED_HELPERS}), "
                  f"got {shown(self.stack)}")

@@ -6,6 +6,7 @@ All carry ``kind`` and ``v`` (schema version, 1 for all today). Units: metres, s
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from typing import Any
@@ -322,20 +323,25 @@ def _decode_flat(cls, data: bytes):
 #: at most this many roles in an ``EpisodeReport``'s ``control_steps``, each name this long
 MAX_CONTROL_ROLES = 16
 MAX_ROLE_NAME = 40
+ROLE_NAME = re.compile(rf"[a-z0-9][a-z0-9_-]{{0,{MAX_ROLE_NAME - 1}}}")
 
 
-def check_control_steps(value: Any, kind: str) -> dict[str, int]:
+def check_control_steps(value: Any, kind: str, steps: int) -> dict[str, int]:
     """An episode's control steps by chooser (role -> steps): at most ``MAX_CONTROL_ROLES`` names
-    of 1..``MAX_ROLE_NAME`` characters, counts whole numbers 0..10^7; else ``ProtoError``."""
+    as the registry spells its entries (``ROLE_NAME``), counts whole numbers summing to the
+    episode's ``steps``; else ``ProtoError``."""
     if not isinstance(value, dict):
         raise ProtoError("field", f"{kind}.control_steps has type {type(value).__name__}")
     if len(value) > MAX_CONTROL_ROLES:
         raise ProtoError("range", f"{kind}.control_steps names {len(value)} roles (at most {MAX_CONTROL_ROLES})")
-    for role, steps in value.items():
-        if not isinstance(role, str) or not 0 < len(role) <= MAX_ROLE_NAME:
-            raise ProtoError("range", f"{kind}.control_steps: a role must be 1..{MAX_ROLE_NAME} characters")
-        if not isinstance(steps, int) or isinstance(steps, bool) or not 0 <= steps <= 10_000_000:
-            raise ProtoError("range", f"{kind}.control_steps[{role!r}] must be a whole number 0..10^7")
+    for role, count in value.items():
+        if not isinstance(role, str) or not ROLE_NAME.fullmatch(role):
+            raise ProtoError("range", f"{kind}.control_steps: a role is 1..{MAX_ROLE_NAME} characters of a-z, 0-9, - "
+                                      f"and _")
+        if not isinstance(count, int) or isinstance(count, bool) or count < 0:
+            raise ProtoError("range", f"{kind}.control_steps[{role!r}] must be a whole number >= 0")
+    if value and sum(value.values()) != steps:
+        raise ProtoError("range", f"{kind}.control_steps sum to {sum(value.values())}, not the episode's {steps} steps")
     return dict(value)
 
 
@@ -362,7 +368,7 @@ class EpisodeReport:
                    "assignment_epoch": int}
 
     def encode(self) -> bytes:
-        check_control_steps(self.control_steps, self.KIND)
+        check_control_steps(self.control_steps, self.KIND, self.steps)
         return dumps({"kind": self.KIND, "v": VERSION, **{name: getattr(self, name) for name in self.FIELD_TYPES},
                       **({"control_steps": self.control_steps} if self.control_steps else {})})
 
@@ -372,7 +378,7 @@ class EpisodeReport:
         check_actor_id(report.actor_id, EpisodeReport.KIND)
         obj = loads(data)
         if "control_steps" in obj:
-            report.control_steps = check_control_steps(obj["control_steps"], EpisodeReport.KIND)
+            report.control_steps = check_control_steps(obj["control_steps"], EpisodeReport.KIND, report.steps)
         return report
 
 

@@ -118,11 +118,45 @@ def test_the_scheduler_shows_the_share_of_control_steps_and_counts_a_malformed_o
     import msgpack
 
     raw = msgpack.unpackb(report.encode())
-    raw["control_steps"] = {"network": "many"}
-    assert not core.report(msgpack.packb(raw))
+    for wrong in ({"network": "many"}, {"network": 70, "rescue": 31}, {"network": 70, "res\ncue": 30}):
+        raw["control_steps"] = wrong  # not a count, not the episode's steps, not a role's name
+        assert not core.report(msgpack.packb(raw))
     status = core.status()
     assert status["control_steps_last_100"] == {"network": 0.85, "rescue": 0.15}
-    assert status["episodes"] == 2 and status["rejected"] == {"range": 1}
+    assert status["episodes"] == 2 and status["rejected"] == {"range": 3}
+
+
+def test_a_restarted_actor_goes_on_with_the_helpers_fade_where_it_was(tmp_path):
+    from curlnav.actor.service import HELPERS_FILE, ActorServiceConfig
+    from curlnav.bus.service import Deployment
+
+    experiment = dataclasses.replace(ExperimentConfig(), helpers=HelpersConfig(
+        stack="+shield", share_start=1.0, share_end=0.0, fade_steps=10_000))
+    experiment = dataclasses.replace(experiment, curriculum=dataclasses.replace(experiment.curriculum, world=T_MAZE))
+    cfg = ActorServiceConfig(actor_id="actor-0", deployment=Deployment(data_dir=str(tmp_path)), envs=1)
+    (tmp_path / HELPERS_FILE).write_text('{"env_steps": 7500}\n')
+    service = D4PGBuilder(experiment).make_actor_service(cfg)
+    try:
+        assert service.core.loop.steps == 7500 and experiment.helpers.share(service.core.loop.steps) == 0.25
+        service.core.loop.steps = 9000
+        service._save_helpers(force=True)
+        assert (tmp_path / HELPERS_FILE).read_text() == '{"env_steps": 9000}\n'
+    finally:
+        service.core.loop.close()
+
+
+def test_a_metrics_file_of_an_older_run_keeps_its_rows_when_columns_are_added(tmp_path):
+    from curlnav.run.record import TRAIN_FIELDS, CsvLog, read_csv
+
+    old = TRAIN_FIELDS[:-1]  # before network_control_share_100
+    path = tmp_path / "metrics.csv"
+    path.write_text(",".join(old) + "\n" + ",".join("1" for _ in old) + "\n")
+    log = CsvLog(path, TRAIN_FIELDS)
+    log.write({"wall_s": 2.0, "network_control_share_100": 0.5})
+    log.close()
+    rows = read_csv(path)
+    assert [r["wall_s"] for r in rows] == ["1", "2"] and [r["network_control_share_100"] for r in rows] == ["", "0.5"]
+    assert not path.with_suffix(".csv.old").exists()
 
 
 def test_a_config_with_helpers_has_a_new_hash_and_one_without_keeps_its_own():
@@ -133,3 +167,5 @@ def test_a_config_with_helpers_has_a_new_hash_and_one_without_keeps_its_own():
     assert config_hash(dataclasses.replace(plain, helpers=HelpersConfig(stack="+shield"))) != config_hash(plain)
     with pytest.raises(ConfigError):
         HelpersConfig(fade_steps=-1)
+    with pytest.raises(ConfigError, match="fade_steps is 0: give the steps to fade over"):
+        HelpersConfig(stack="+shield", share_end=0.2)

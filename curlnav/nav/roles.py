@@ -12,9 +12,10 @@ ProgressChecker; the collision monitor beside them): a ``GlobalPlanner``, a ``Re
 ``Safety`` layer and each ``Perception`` stage hold the agent they wrap (``policy``) and are agents
 themselves. ``ProgressChecker`` (``curlnav.nav.progress``) says when the robot stops making progress.
 
-Which part of the stack chose each command (issue 53: the share of control steps by role):
-``build_stack`` names each wrapper's role entry in its ``control_role`` (``rescue``, ``shield``,
-``global-plan``, ...; a planner controller too: ``dwa``), and a wrapper that can replace its inner
+Which part of the stack chose each command (issue 53: the share of control steps by role): each
+entry's class names its registry entry in ``control_role`` (``rescue``, ``shield``, ``true-map``,
+``laser-odometry``, ...; a planner controller too: ``dwa``; ``build_stack`` sets it on what it
+makes as well), and a wrapper that can replace its inner
 agent's command sets ``replaced`` at every ``act`` (True: the command it returned is not the one
 its inner agent proposed). ``chooser(agent)`` reads them, outermost first; a network controller
 (a policy, which has no ``control_role``) is ``NETWORK``. ``ControlSteps`` counts an episode's

@@ -27,7 +27,7 @@ from curlnav.sim import StartGoal, World
 
 #: the controller's name in a training stack (no artefact: the actor's own network)
 TRAINING_CONTROLLER = "behaviour policy"
-#: the lowest and highest command (fractions: v, w, L), as the actor network's bounds
+#: the lowest and highest command of the actor network (fractions: v, w, L)
 COMMAND_LOW = np.array([0.0, -1.0, 0.0], dtype=np.float32)
 COMMAND_HIGH = np.array([1.0, 1.0, 1.0], dtype=np.float32)
 
@@ -50,7 +50,7 @@ def helpers_of_suffixes(suffixes: str) -> NavStack:
     cannot train in the loop."""
     if not isinstance(suffixes, str) or not suffixes.startswith("+"):
         raise ValueError(f"helpers are suffixes such as +rescue+shield (or inherit), got {suffixes!r}")
-    if "+bare" in suffixes.split("+")[1:] or "+bare" == suffixes:
+    if "bare" in suffixes.split("+")[1:]:
         raise ValueError("+bare is the network alone: leave helpers.stack empty")
     try:
         stack = parse_agent(f"<{TRAINING_CONTROLLER}>{suffixes}")
@@ -112,6 +112,10 @@ class TrainingHelpers:
         self.stack = stack
         self.config = config  # HelpersConfig
         self.rng = rng
+        # the commands the environment takes: v down to minus the robot's reverse fraction (a rescue
+        # or shield backing up is executed and kept as it was chosen), w and L as the network's
+        self.low = COMMAND_LOW.copy()
+        self.low[0] = -float(env_config.robot.reverse_fraction)
         self.proposed = [ProposedCommand() for _ in range(envs)]
         self.agents = [build_stack(stack, env_config, controller=p)[1] for p in self.proposed]
         self.on = [False] * envs  # whether each environment's episode runs with the helpers
@@ -142,7 +146,7 @@ class TrainingHelpers:
             role = chooser(self.agents[k])
             if not np.isfinite(command).all():
                 command = np.zeros_like(command)  # never executed: stand still (the shield's own rule)
-            command = np.clip(command, COMMAND_LOW, COMMAND_HIGH)
+            command = np.clip(command, self.low, COMMAND_HIGH)  # a helper may back up where the robot can
         self.steps.counts[role] += 1
         self.episode[k].counts[role] += 1
         return command, role, 0.0 if role == NETWORK else -float(self.config.intervention_cost)

@@ -82,7 +82,8 @@ class RunLock:
 
 class CsvLog:
     """Append-only CSV with a fixed header, flushed at every row. Appends to an existing file
-    (a resumed run continues its history); a file with another header is kept as ``.old``."""
+    (a resumed run continues its history); a file whose header lacks only columns added since
+    (at the end) is rewritten with them, empty in its rows; one with another header is kept as ``.old``."""
 
     def __init__(self, path: Path, fields: list[str]) -> None:
         self.path = path
@@ -90,7 +91,15 @@ class CsvLog:
         if path.exists():
             with open(path, newline="") as f:
                 header = next(csv.reader(f), None)
-            if header != fields:
+            if header and header != fields and header == fields[:len(header)]:
+                rows = read_csv(path)  # a run written before the newer columns: its history kept
+                tmp = path.with_suffix(path.suffix + ".tmp")
+                with open(tmp, "w", newline="") as f:
+                    writer = csv.DictWriter(f, fieldnames=fields)
+                    writer.writeheader()
+                    writer.writerows(rows)
+                tmp.replace(path)
+            elif header != fields:
                 path.replace(path.with_suffix(path.suffix + ".old"))
         new = not path.exists()
         self._file = open(path, "a", newline="")

@@ -453,7 +453,7 @@ class SerialTrainer:
                "base_collisions_100": float(np.mean([r[2] for r in recent])) if recent else 0.0,
                "env_steps_per_s": sps, "updates_per_s": ups, "replay_size": self.table.size,
                "policy_version": self.state.steps, "policy_lag": 0, **self._stage_fields(),
-               "live_actors": 1, "network_control_share_100": shares.get(NETWORK), **self.metrics}
+               "live_actors": 1, "network_control_share_100": shares.get(NETWORK, 0.0) if shares else None, **self.metrics}
         self.train_log.write(row)
         world = Path(str(self.experiment.curriculum.world)).stem
         self.board.scalars({"train/success_last_100": success, "train/return_last_100": row["return_100"],

@@ -303,7 +303,8 @@ class DistributedRun:
                "policy_version": counts.get("policy_version"), "policy_lag": status.get("policy_lag"),
                "stage_index": status.get("stage_index"), "stage": status.get("stage"), "substep": status.get("substep"),
                "live_actors": status.get("live_actor_count", len(status.get("live_actors") or {})),
-               "network_control_share_100": (status.get("control_steps_last_100") or {}).get("network")}
+               "network_control_share_100": (status.get("control_steps_last_100") or {}).get("network", 0.0)
+               if status.get("control_steps_last_100") else None}
         metrics.write(row)
         scalars = {"train/success_last_100": row["train_success_100"], "train/return_last_100": row["return_100"],
                    "train/base_collisions_last_100": row["base_collisions_100"],

@@ -162,6 +162,8 @@ class TareLocalPlanner(ScanAgent):
     """A map-less local planner after TARE's (see the module docstring):
     ``act(observation, info) -> [v, w, 0]``."""
 
+    control_role = "tare-l"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     label = TARE_LABEL
 
     def __init__(self, env_config: EnvConfig | None = None, config: TareConfig | None = None,
@@ -320,6 +322,8 @@ class DwaConfig:
 class DynamicWindowPlanner(ScanAgent):
     """The dynamic window approach on the scan, map-less (see the module docstring):
     ``act(observation, info) -> [v, w, 0]``."""
+
+    control_role = "dwa"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
 
     label = DWA_LABEL
 

@@ -166,6 +166,8 @@ class GlobalPlanAgent:
     ``tracker``); ``tracking`` says whether the last step's was (``replaced`` too,
     ``curlnav.nav.roles.chooser``)."""
 
+    control_role = "true-map"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     replaced = False
 
     def __init__(self, policy, env_config: EnvConfig | None = None, config: WaypointConfig | None = None,

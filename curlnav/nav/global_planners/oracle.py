@@ -204,6 +204,8 @@ class StaticMapPlanner:
     """The oracle: A* on the true static map, pure pursuit on the true pose. ``reset(world, pair)``,
     then ``act(observation, info) -> action [v, w, L]`` (see the module docstring)."""
 
+    control_role = "oracle"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     label = ORACLE_LABEL
 
     def __init__(self, env_config: EnvConfig | None = None, config: PlannerConfig | None = None) -> None:

@@ -273,6 +273,8 @@ class ScanMapPlanAgent(GlobalPlanAgent):
     pose it uses. ``push``: the push check's settings (default ``PushConfig()``; the arm's extension
     is the command sent last: ``commanded``, else the action it returned)."""
 
+    control_role = "scan-map"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     def __init__(self, policy, env_config: EnvConfig | None = None, config: ScanMapConfig | None = None,
                  label: str = "policy", push: PushConfig | None = None) -> None:
         super().__init__(policy, env_config, label=label)

@@ -58,6 +58,8 @@ class LabelFilteredPolicy(FrontStage):
     ``dropped`` counts the movable beams the vote removed in the current episode, ``labelled`` the
     movable beams it was shown."""
 
+    control_role = "label-vote"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     suffix = TRACK_SUFFIX
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,

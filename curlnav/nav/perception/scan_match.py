@@ -224,6 +224,8 @@ class ScanMatchedPolicy(FrontStage):
     laser odometry (module docstring): ``act(observation, info) -> action``. ``pose`` is the
     estimate of now; ``matched`` and ``unmatched`` count the steps the scans and the wheels gave."""
 
+    control_role = "laser-odometry"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     suffix = SCAN_MATCH_SUFFIX
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,

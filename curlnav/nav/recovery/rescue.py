@@ -148,6 +148,8 @@ class RescuedPolicy:
     episode, ``rescue_steps`` the steps the fallback drove; ``replaced``: whether the fallback drove
     the last step (``curlnav.nav.roles.chooser``)."""
 
+    control_role = "rescue"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     replaced = False
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,

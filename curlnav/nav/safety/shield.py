@@ -236,6 +236,8 @@ class ShieldedPolicy(ScanAgent):
     the current episode, ``steps`` the commands checked; ``push`` is its push check; ``replaced``:
     whether the last command was replaced (``curlnav.nav.roles.chooser``)."""
 
+    control_role = "shield"  # its registry entry: the part of a stack credited with its commands (``roles.chooser``)
+
     replaced = False
 
     def __init__(self, policy: Callable[[np.ndarray], np.ndarray], env_config: EnvConfig | None = None,
