@@ -124,6 +124,9 @@ def test_the_scheduler_shows_the_share_of_control_steps_and_counts_a_malformed_o
     status = core.status()
     assert status["control_steps_last_100"] == {"network": 0.85, "rescue": 0.15}
     assert status["episodes"] == 2 and status["rejected"] == {"range": 3}
+    from curlnav.run.status import format_status
+
+    assert "control steps, last 100 episodes: network 85%, rescue 15%" in format_status(status).splitlines()
 
 
 def test_a_restarted_actor_goes_on_with_the_helpers_fade_where_it_was(tmp_path):
