@@ -510,3 +510,43 @@ def test_pull_flags_refuse_nonsense(learner, artefact, tmp_path):
     for flag, value in (("--max-bytes", "0"), ("--max-files", "-1"), ("--deadline-s", "nan"), ("--deadline-s", "0")):
         result = curlnav("pull", "--from", learner.url, "--out", str(tmp_path / "p"), flag, value)[0]
         assert_one_line_error(result, flag)
+
+
+def test_a_pull_goes_on_when_the_learner_drops_a_connection_before_replying(tmp_path):
+    """A learner that closes a connection before any reply (restarting, or dropping a request it
+    could not read in time) costs a pull a retry, not the pull: up to ``DROPPED_TRIES`` in all."""
+    import socket
+    import threading
+
+    from curlnav.run.pull import DROPPED_TRIES, http_get
+
+    def serve(drops: int) -> tuple[str, threading.Thread]:
+        listener = socket.socket()
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(8)
+        listener.settimeout(5)
+
+        def run():
+            with listener:
+                for i in range(drops + 1):
+                    try:
+                        conn, _ = listener.accept()
+                    except OSError:  # the client gave up: nothing more to serve
+                        return
+                    with conn:
+                        conn.recv(65536)
+                        if i < drops:
+                            continue  # closed without a byte of reply
+                        conn.sendall(b"HTTP/1.0 200 OK\r\nContent-Length: 5\r\n\r\nhello")
+                        return
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        return f"http://127.0.0.1:{listener.getsockname()[1]}/policy/latest", thread
+
+    url, thread = serve(DROPPED_TRIES - 1)
+    assert http_get(url, timeout=10) == b"hello"
+    thread.join(10)
+    url, thread = serve(DROPPED_TRIES)
+    with pytest.raises(OSError, match="closed connection without response"):
+        http_get(url, timeout=10)

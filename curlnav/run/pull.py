@@ -133,12 +133,40 @@ class _DeadlineHTTPSHandler(urllib.request.HTTPSHandler):
 _opener = urllib.request.build_opener(_SameOriginRedirects)
 
 
+#: tries of a GET whose connection the server closed before any reply (a learner restarting, or
+#: dropping a request it could not read in time), and the pause before each retry (s)
+DROPPED_TRIES = 3
+DROPPED_PAUSE_S = 0.5
+
+
 def _download(url: str, max_bytes: int, sink, timeout: float, budget: PullBudget | None = None,
               cap: str = "") -> int:
     """Stream ``GET url`` into ``sink(chunk)``, refusing more than ``max_bytes`` (``cap`` names
     that cap in the refusal) and, with a ``budget``, anything past its deadline; returns the size.
-    Raises ``ValueError`` on an HTTP error status, the cap or the deadline, ``OSError`` when
-    unreachable."""
+    A connection the server closed (or reset) before any reply is tried again, up to
+    ``DROPPED_TRIES`` in all: nothing reached ``sink`` then. Raises ``ValueError`` on an HTTP error
+    status, the cap or the deadline, ``OSError`` when unreachable."""
+    for attempt in range(1, DROPPED_TRIES + 1):
+        try:
+            return _download_once(url, max_bytes, sink, timeout, budget, cap)
+        except _Dropped as exc:
+            if attempt == DROPPED_TRIES or budget is not None and budget.time_left() <= DROPPED_PAUSE_S * attempt:
+                raise exc.error from None
+            time.sleep(DROPPED_PAUSE_S * attempt)
+    raise AssertionError("unreachable")
+
+
+class _Dropped(Exception):
+    """The server closed or reset the connection before any byte of a reply (``error``: what
+    urllib raised)."""
+
+    def __init__(self, error: OSError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
+def _download_once(url: str, max_bytes: int, sink, timeout: float, budget: PullBudget | None, cap: str) -> int:
+    """One try of ``_download``; ``_Dropped`` when the connection went before any reply."""
     cap = cap or f"the {max_bytes >> 20} MiB cap"
     opener = _opener
     if budget is not None:
@@ -148,7 +176,15 @@ def _download(url: str, max_bytes: int, sink, timeout: float, budget: PullBudget
         opener = urllib.request.build_opener(_SameOriginRedirects, _DeadlineHTTPHandler(budget),
                                              _DeadlineHTTPSHandler(budget))
     try:
-        with opener.open(url, timeout=timeout) as response:
+        try:
+            response = opener.open(url, timeout=timeout)
+        except (http.client.RemoteDisconnected, ConnectionResetError) as exc:
+            raise _Dropped(exc) from None
+        except urllib.error.URLError as exc:
+            if isinstance(exc.reason, (http.client.RemoteDisconnected, ConnectionResetError)):
+                raise _Dropped(exc) from None
+            raise
+        with response:
             declared = response.headers.get("Content-Length", "")
             if declared.strip().isdigit() and int(declared) > max_bytes:
                 raise ValueError(f"{url}: {int(declared)} bytes, above {cap}; refused")
