@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from curlnav.nav.roles import NETWORK
 from curlnav.replay import FrameBatch, NStepWriter
 from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
@@ -54,7 +55,7 @@ def next_world_options(env: NamoEnv, draws: WorldDraws, options: dict | None,
 def episode_control_steps(helpers: TrainingHelpers | None, k: int, info: dict) -> dict[str, int]:
     """The ended episode's control steps by chooser: the helpers' count, or all the network's."""
     if helpers is None:
-        return {"network": int(info.get("steps", 0))}
+        return {NETWORK: int(info.get("steps", 0))}
     return dict(helpers.episode[k].counts)
 
 

@@ -195,7 +195,7 @@ class ActorService:
                         self.helpers_file, exc)
             return
         self.core.loop.steps = steps
-        self.core.loop.helpers.rng = np.random.default_rng([self.experiment.seed, self.cfg.actor_index, steps, 53])
+        self.core.loop.helpers.resume(stream=steps)
         log.info("actor %s: the helpers' fade goes on from %d environment steps (share %.2f)", self.cfg.actor_id,
                  steps, self.experiment.helpers.share(steps))
 

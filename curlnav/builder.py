@@ -102,8 +102,8 @@ class D4PGBuilder:
             return None
         from curlnav.nav.training import TrainingHelpers
 
-        return TrainingHelpers(stack, self.config.env, envs, self.config.helpers,
-                               np.random.default_rng([self.config.seed, actor_index, stream, 53]))
+        return TrainingHelpers(stack, self.config.env, envs, self.config.helpers, seed=(self.config.seed, actor_index),
+                               stream=stream)
 
     def training_stack(self):
         """The ``NavStack`` of ``helpers.stack`` (``curlnav.nav.training.training_stack``), None for

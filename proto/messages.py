@@ -311,7 +311,11 @@ def _encode_flat(msg) -> bytes:
 
 def _decode_flat(cls, data: bytes):
     """Check every field of ``cls.FIELD_TYPES`` (a float field also takes an int)."""
-    obj = loads(data)
+    return _flat_fields(cls, loads(data))
+
+
+def _flat_fields(cls, obj: dict):
+    """``_decode_flat`` of a message already unpacked."""
     check_header(obj, cls.KIND, VERSION)
     values = {}
     for name, kind in cls.FIELD_TYPES.items():
@@ -374,9 +378,9 @@ class EpisodeReport:
 
     @staticmethod
     def decode(data: bytes) -> EpisodeReport:
-        report = _decode_flat(EpisodeReport, data)
-        check_actor_id(report.actor_id, EpisodeReport.KIND)
         obj = loads(data)
+        report = _flat_fields(EpisodeReport, obj)
+        check_actor_id(report.actor_id, EpisodeReport.KIND)
         if "control_steps" in obj:
             report.control_steps = check_control_steps(obj["control_steps"], EpisodeReport.KIND, report.steps)
         return report

@@ -28,7 +28,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge
 from curlnav.bus.service import Deployment, ServiceShell
 from curlnav.bus.transport import json_response
 from curlnav.config import ExperimentConfig
-from curlnav.nav.roles import ControlSteps
+from curlnav.nav.roles import NETWORK, ControlSteps
 from curlnav.proto.codec import ProtoError
 from curlnav.proto.messages import MAX_ACTOR_ID, Assignment, AssignmentRequest, EpisodeReport, ServiceStatus
 
@@ -142,7 +142,7 @@ class SchedulerCore:
             if learner_version is not None:
                 self.m_lag.labels(r.actor_id).set(learner_version - r.weights_version)
             self.recent_episodes.append((r.episode_return, r.base_collisions))
-            self.recent_control.append(r.control_steps or {"network": r.steps})
+            self.recent_control.append(r.control_steps or {NETWORK: r.steps})  # an actor without helpers
             advanced = self.state.record(r.world, r.pair, r.success, r.assignment_epoch, r.steps)
             if advanced:
                 self.m_advances.inc()
@@ -252,13 +252,6 @@ class SchedulerCore:
         versions = [a["last_report"]["weights_version"] for a in self.actors.values() if a.get("last_report")]
         return None if learner_version is None or not versions else mean([learner_version - v for v in versions])
 
-    def _control_shares(self) -> dict[str, float]:
-        """role -> share of the control steps of the last 100 episodes (the network first)."""
-        steps = ControlSteps()
-        for counts in self.recent_control:
-            steps.merge(counts)
-        return steps.shares()
-
     def status(self) -> dict:
         with self.lock:
             st = self.state
@@ -278,7 +271,7 @@ class SchedulerCore:
                 "live_actors": {k: dict(self.actors[k]) for k in self._shown_actors()},
                 "return_last_100": mean([e[0] for e in self.recent_episodes]),
                 "base_collisions_last_100": mean([e[1] for e in self.recent_episodes]),
-                "control_steps_last_100": self._control_shares(),
+                "control_steps_last_100": ControlSteps.summed(self.recent_control).shares(),  # the network first
                 "policy_lag": self._policy_lag(learner.get("version")),
                 "learner": {k: learner.get(k) for k in ("version", "updates", "updates_per_s", "env_steps",
                                                         "critic_loss", "actor_loss", "q_mean", "uptime_s")},

@@ -86,3 +86,13 @@ def test_evaluate_gives_each_trial_its_control_steps():
     assert steps.total == info["steps"] and steps.counts["shield"] > 0
     assert ControlSteps.parse(steps.text()).counts == steps.counts
     assert steps.line().startswith(f"control steps: network {steps.counts[NETWORK] / steps.total:.1%}, shield ")
+
+
+def test_every_entry_is_credited_by_its_registry_name_however_its_stack_was_built():
+    """A stack built by hand (``curlnav experiment``'s plan agent, the ROS 2 node's planner) is
+    credited as ``build_stack``'s is: each entry's class names its own registry entry."""
+    from curlnav.nav.registry import ENTRIES, POLICY_ENTRY
+
+    named = {(role, name): getattr(entry.load(), "control_role", None)
+             for role, entries in ENTRIES.items() for name, entry in entries.items() if name != POLICY_ENTRY}
+    assert named and all(cls_role == name for (_, name), cls_role in named.items()), named

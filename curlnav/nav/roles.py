@@ -132,11 +132,17 @@ class ControlSteps:
                                      or "-")
 
     @classmethod
-    def total_of(cls, texts: Iterable[str]) -> ControlSteps:
+    def summed(cls, counts: Iterable[ControlSteps | Mapping[str, int]]) -> ControlSteps:
+        """The counts of several episodes (each a ``ControlSteps`` or role -> steps) added up."""
         out = cls()
-        for text in texts:
-            out.merge(cls.parse(text))
+        for each in counts:
+            out.merge(each)
         return out
+
+    @classmethod
+    def total_of(cls, texts: Iterable[str]) -> ControlSteps:
+        """``summed`` of trials' ``text``."""
+        return cls.summed(cls.parse(text) for text in texts)
 
 
 def control_line(texts: Iterable[str]) -> str:

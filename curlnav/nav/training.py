@@ -15,7 +15,7 @@ the observation the network is shown, while the replay keeps what the environmen
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -64,20 +64,24 @@ def helpers_of_suffixes(suffixes: str) -> NavStack:
 def training_stack(spec: str, shipped: Mapping | None = None, source: str = "") -> NavStack | None:
     """The stack ``helpers.stack`` = ``spec`` names: None for "", the suffixes' stack, or for
     ``inherit`` the recovery and safety entries of ``shipped`` (the ``"stack"`` of the artefact
-    the run starts from, ``source``; its perception and global planner stay out of the loop)."""
+    the run starts from, ``source``; its perception and global planner stay out of the loop).
+    ``ValueError`` in one line beginning ``helpers.stack:``."""
     from curlnav.config import INHERITED_HELPERS
 
     if not spec:
         return None
-    if spec != INHERITED_HELPERS:
-        return helpers_of_suffixes(spec)
-    if not shipped:
-        raise ValueError(f"helpers.stack: inherit: {source or 'the run'} ships no stack (the network alone); "
-                         f"name the helpers instead (+rescue+shield)")
-    roles = helper_roles(shipped, f"{source}: stack")
-    return _trainable(NavStack(controller=choose("controller", POLICY_ENTRY, path=TRAINING_CONTROLLER),
-                               recovery=roles.get("recovery"), safety=roles.get("safety"), label=TRAINING_CONTROLLER),
-                      f"helpers.stack: inherit from {source}")
+    try:
+        if spec != INHERITED_HELPERS:
+            return helpers_of_suffixes(spec)
+        if not shipped:
+            raise ValueError(f"inherit: {source or 'the run'} ships no stack (the network alone); name the helpers "
+                             f"instead (+rescue+shield)")
+        roles = helper_roles(shipped, f"{source}: stack")
+        return _trainable(NavStack(controller=choose("controller", POLICY_ENTRY, path=TRAINING_CONTROLLER),
+                                   recovery=roles.get("recovery"), safety=roles.get("safety"),
+                                   label=TRAINING_CONTROLLER), f"inherit from {source}")
+    except ValueError as exc:
+        raise ValueError(f"helpers.stack: {exc}") from None
 
 
 class ProposedCommand:
@@ -106,12 +110,14 @@ class TrainingHelpers:
 
     ``begin(k, world, pair, steps)`` at each reset decides whether environment ``k``'s episode runs
     with the helpers (with probability ``config.share(steps)``, ``steps``: the actor's environment
-    steps so far); ``act(k, proposal, observation, info)`` after the behaviour policy proposed."""
+    steps so far); ``act(k, proposal, observation, info)`` after the behaviour policy proposed.
+    Those on/off draws come from ``seed`` and ``stream`` (``resume``: another stream)."""
 
-    def __init__(self, stack: NavStack, env_config, envs: int, config, rng: np.random.Generator) -> None:
+    def __init__(self, stack: NavStack, env_config, envs: int, config, seed: Sequence[int], stream: int = 0) -> None:
         self.stack = stack
         self.config = config  # HelpersConfig
-        self.rng = rng
+        self.seed = tuple(seed)
+        self.resume(stream)
         # the commands the environment takes: v down to minus the robot's reverse fraction (a rescue
         # or shield backing up is executed and kept as it was chosen), w and L as the network's
         self.low = COMMAND_LOW.copy()
@@ -123,6 +129,11 @@ class TrainingHelpers:
         self.episode = [ControlSteps() for _ in range(envs)]  # the current episode's, per environment
         self.episodes_with = 0  # episodes begun with the helpers
         self.episodes_begun = 0
+
+    def resume(self, stream: int) -> None:
+        """Draw the episodes' helpers on/off from ``stream`` (a restarted actor passes the steps it
+        had taken, so that it does not repeat its first draws)."""
+        self.rng = np.random.default_rng([*self.seed, stream, 53])
 
     def begin(self, k: int, world: World, pair: StartGoal | None, steps: int) -> bool:
         """Environment ``k`` begins an episode in ``world`` from ``pair``: whether the helpers run it."""

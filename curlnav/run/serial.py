@@ -443,10 +443,7 @@ class SerialTrainer:
         ups = (self.state.steps - at_log[1]) / dt
         recent = self.recent
         success = float(np.mean([r[0] for r in recent])) if recent else 0.0
-        control = ControlSteps()
-        for counts in self.recent_control:
-            control.merge(counts)
-        shares = control.shares()
+        shares = ControlSteps.summed(self.recent_control).shares()
         row = {"wall_s": now - start, "env_steps": self.counters["env_steps"], "updates": self.state.steps,
                "episodes": self.counters["episodes"], "train_success_100": success,
                "return_100": float(np.mean([r[1] for r in recent])) if recent else 0.0,

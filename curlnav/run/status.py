@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from curlnav.nav.roles import ControlSteps
+from curlnav.nav.roles import NETWORK, ControlSteps
 from curlnav.run.pull import http_get, unreachable_reason
 from curlnav.run.record import control_text
 
@@ -95,7 +95,7 @@ def format_status(s: dict) -> str:
     lines.append(f"episodes {s.get('episodes')}: window success {_percent(s.get('window_success_rate'))} over "
                  f"{s.get('window_size')} episodes, {goal}; last 100 episodes {_percent(s.get('success_last_100'))}")
     shares = s.get("control_steps_last_100") or {}
-    if set(shares) - {"network"}:  # the network trains inside helpers (``helpers.stack``)
+    if set(shares) - {NETWORK}:  # the network trains inside helpers (``helpers.stack``)
         lines.append(f"control steps, last 100 episodes: {control_text(shares)}")
     learner, replay = s.get("learner") or {}, s.get("replay") or {}
     rate = learner.get("updates_per_s")
@@ -203,7 +203,7 @@ def format_outcome(folder: Path, summary: dict) -> str:
     lines += start_lines(summary)
     shares = (summary.get("last_status") or {}).get("control_steps_last_100") \
         or ControlSteps(last.get("control_steps") or {}).shares()
-    if set(shares) - {"network"}:  # trained inside helpers: who drove at the end (distributed) or all along (serial)
+    if set(shares) - {NETWORK}:  # trained inside helpers: who drove at the end (distributed) or all along (serial)
         lines.append(f"control steps in training ({'last 100 episodes' if summary.get('last_status') else 'last session'}): "
                      f"{control_text(shares)}")
     reached = summary.get("first_eval_reaching_80")

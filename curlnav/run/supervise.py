@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from curlnav.bus.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
+from curlnav.nav.roles import NETWORK
 from curlnav.run import record
 from curlnav.run.launch import LocalCluster, http_json, shell_command
 from curlnav.run.record import EVAL_FIELDS, TRAIN_FIELDS, CsvLog, RunSummary, TensorBoardLog, copy_policy, now_iso, read_csv
@@ -303,7 +304,7 @@ class DistributedRun:
                "policy_version": counts.get("policy_version"), "policy_lag": status.get("policy_lag"),
                "stage_index": status.get("stage_index"), "stage": status.get("stage"), "substep": status.get("substep"),
                "live_actors": status.get("live_actor_count", len(status.get("live_actors") or {})),
-               "network_control_share_100": (status.get("control_steps_last_100") or {}).get("network", 0.0)
+               "network_control_share_100": (status.get("control_steps_last_100") or {}).get(NETWORK, 0.0)
                if status.get("control_steps_last_100") else None}
         metrics.write(row)
         scalars = {"train/success_last_100": row["train_success_100"], "train/return_last_100": row["return_100"],

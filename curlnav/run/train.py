@@ -116,7 +116,7 @@ def check_before_start(experiment: ExperimentConfig) -> None:
         try:
             D4PGBuilder(experiment).training_stack()
         except ValueError as exc:
-            raise TrainRefused(f"helpers.stack: {exc}" if not str(exc).startswith("helpers.stack") else str(exc)) from None
+            raise TrainRefused(str(exc)) from None
     world = get_world(experiment.curriculum.world)
     robot = experiment.env.robot
     check_pairs_possible(world, (robot.base_length, robot.base_width))
