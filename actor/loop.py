@@ -20,6 +20,7 @@ from curlnav.sim import NamoEnv
 from curlnav.worlds.distribution import WorldDraws
 
 if TYPE_CHECKING:
+    from curlnav.memory import MemoryObserver
     from curlnav.nav.training import TrainingHelpers
 
 
@@ -64,14 +65,19 @@ class EpisodeLoop:
     whenever the written transitions should go out (the writer keeps the n-step tail)."""
 
     def __init__(self, env: NamoEnv, policy: Callable[[np.ndarray], np.ndarray], writer: NStepWriter,
-                 worlds: WorldDraws | None = None, helpers: TrainingHelpers | None = None) -> None:
-        """``helpers``: the stack the network trains inside (``curlnav.nav.training``; None: alone)."""
+                 worlds: WorldDraws | None = None, helpers: TrainingHelpers | None = None,
+                 memory: MemoryObserver | None = None) -> None:
+        """``helpers``: the stack the network trains inside (``curlnav.nav.training``; None: alone).
+        ``memory``: the network's memory (``curlnav.memory``), which adds its ring to each
+        observation the policy and the writer see (None: the environment's observation as is)."""
         self.env = env
+        self.memory = memory
         self.policy = policy
         self.writer = writer
         self.worlds = worlds if worlds is not None else WorldDraws()  # draws for distribution assignments
         self.helpers = helpers
-        self.obs: np.ndarray | None = None
+        self.obs: np.ndarray | None = None  # what the network reads (with the memory's ring)
+        self.raw: np.ndarray | None = None  # what the environment gave: what the helpers read
         self.info: dict = {}  # the last step's (or reset's) info: the helpers' odometry
         self.episode_return = 0.0
         self.steps = 0  # environment steps, all episodes
@@ -82,7 +88,10 @@ class EpisodeLoop:
         world distribution's key as the world draws this episode's world (``WorldDraws``: never a
         held-out seed); its scenes stay built in the environment's scene cache."""
         options = next_world_options(self.env, self.worlds, options)
-        self.obs, self.info = self.env.reset(seed=seed, options=options)
+        self.raw, self.info = self.env.reset(seed=seed, options=options)
+        if self.memory is not None:
+            self.memory.reset()
+        self.obs = self._network_view(self.raw, self.info)
         if self.helpers is not None:
             self.helpers.begin(0, self.env.world, self.env.pair, self.steps)
         self.writer.first(self.obs)
@@ -97,21 +106,25 @@ class EpisodeLoop:
         action = self.policy(self.obs)
         cost = 0.0
         if self.helpers is not None:  # the executed command is the one the transition keeps
-            action, _, cost = self.helpers.act(0, action, self.obs, self.info)
-        obs, reward, terminated, truncated, info = self.env.step(action)
+            action, _, cost = self.helpers.act(0, action, self.raw, self.info)
+        raw, reward, terminated, truncated, info = self.env.step(action)
+        obs = self._network_view(raw, info)
         reward += cost
         self.writer.step(action, reward, obs, terminated, truncated)
         self.steps += 1
         self.episode_return += reward
-        self.obs, self.info = obs, info
+        self.obs, self.raw, self.info = obs, raw, info
         if terminated or truncated:
             self.episodes += 1
-            self.obs = None
+            self.obs = self.raw = None
             end = EpisodeEnd(info, self.episode_return, bool(truncated and not terminated),
                              episode_control_steps(self.helpers, 0, info))
             self.worlds.record(end.success)  # the level sampler of a drawn world learns the outcome
             return end
         return None
+
+    def _network_view(self, raw: np.ndarray, info: dict) -> np.ndarray:
+        return raw if self.memory is None else self.memory(raw, info)
 
     def flush(self) -> FrameBatch:
         """Frames and transitions written since the last flush."""

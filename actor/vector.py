@@ -28,6 +28,7 @@ from curlnav.worlds.distribution import WorldDraws
 from .loop import EpisodeEnd, episode_control_steps, next_world_options
 
 if TYPE_CHECKING:
+    from curlnav.memory import MemoryObserver
     from curlnav.nav.training import TrainingHelpers
 
 
@@ -62,7 +63,7 @@ class VectorNStepWriter:
         parts = [w.flush() for w in self.writers]
         parts = [p for p in parts if p.num_frames or p.num_transitions]
         if not parts:
-            return FrameBatch.empty(self.layout.beams)
+            return FrameBatch.empty(self.layout.beams, memory_beams=self.layout.memory_beams)
         if len(parts) == 1:
             return parts[0]
         return FrameBatch(*(np.concatenate([getattr(p, name) for p in parts]) for name in FrameBatch.__dataclass_fields__))
@@ -73,20 +74,25 @@ class VectorEpisodeLoop:
 
     def __init__(self, envs: list[NamoEnv], policy: Callable[[np.ndarray], np.ndarray], writer: VectorNStepWriter,
                  worlds: WorldDraws | None = None, scenes: int | None = None,
-                 helpers: TrainingHelpers | None = None) -> None:
+                 helpers: TrainingHelpers | None = None, memory: list[MemoryObserver] | None = None) -> None:
         """``scenes``: PyBullet scenes kept built across world switches, all K environments
         together (``actor.scenes_per_process``; each keeps ``scenes // K``, at least 1); None: each
         keeps as many as ``worlds`` keeps worlds. ``helpers``: the stack the network trains inside
-        (``curlnav.nav.training``, one agent per environment; None: the network alone)."""
+        (``curlnav.nav.training``, one agent per environment; None: the network alone). ``memory``:
+        the network's memory of each environment (``curlnav.memory``; None: no memory)."""
         if len(envs) != len(writer):
             raise ValueError(f"{len(envs)} environments but {len(writer)} writer streams")
+        if memory is not None and len(memory) != len(envs):
+            raise ValueError(f"{len(envs)} environments but {len(memory)} memories")
+        self.memory = memory
         self.envs = envs
         self.policy = policy  # (K, observation) -> (K, 3): BehaviourPolicy.batch
         self.writer = writer
         self.worlds = worlds if worlds is not None else WorldDraws()  # one set of draws (and pools) for all K
         self.scene_cache = None if scenes is None else max(1, scenes // len(envs))  # per environment
         self.helpers = helpers
-        self.obs: list[np.ndarray | None] = [None] * len(envs)
+        self.obs: list[np.ndarray | None] = [None] * len(envs)  # what the network reads (with the memory's ring)
+        self.raw: list[np.ndarray | None] = [None] * len(envs)  # what each environment gave: what the helpers read
         self.infos: list[dict] = [{} for _ in envs]  # each environment's last info: the helpers' odometry
         self.returns = [0.0] * len(envs)
         self.drawn: list[tuple | None] = [None] * len(envs)  # (key, seed) of each environment's drawn world
@@ -111,7 +117,11 @@ class VectorEpisodeLoop:
         env = self.envs[k]
         options = next_world_options(env, self.worlds, options, self.scene_cache)
         self.drawn[k] = self.worlds.take_last()  # None unless a distribution drew this episode's world
-        obs, self.infos[k] = env.reset(seed=seed, options=options)
+        raw, self.infos[k] = env.reset(seed=seed, options=options)
+        if self.memory is not None:
+            self.memory[k].reset()
+        obs = self._network_view(k, raw, self.infos[k])
+        self.raw[k] = raw
         if self.helpers is not None:
             self.helpers.begin(k, env.world, env.pair, self.steps)
         self.writer[k].first(obs)
@@ -130,16 +140,17 @@ class VectorEpisodeLoop:
         for k, action in zip(running, actions):
             cost = 0.0
             if self.helpers is not None:  # the executed command is the one the transition keeps
-                action, _, cost = self.helpers.act(k, action, self.obs[k], self.infos[k])
-            obs, reward, terminated, truncated, info = self.envs[k].step(action)
+                action, _, cost = self.helpers.act(k, action, self.raw[k], self.infos[k])
+            raw, reward, terminated, truncated, info = self.envs[k].step(action)
+            obs = self._network_view(k, raw, info)
             reward += cost
             self.writer[k].step(action, reward, obs, terminated, truncated)
             self.steps += 1
             self.returns[k] += reward
-            self.obs[k], self.infos[k] = obs, info
+            self.obs[k], self.raw[k], self.infos[k] = obs, raw, info
             if terminated or truncated:
                 self.episodes += 1
-                self.obs[k] = None
+                self.obs[k] = self.raw[k] = None
                 end = EpisodeEnd(info, self.returns[k], bool(truncated and not terminated),
                                  episode_control_steps(self.helpers, k, info))
                 if self.drawn[k] is not None:
@@ -147,6 +158,9 @@ class VectorEpisodeLoop:
                     self.drawn[k] = None
                 ends.append((k, end))
         return ends
+
+    def _network_view(self, k: int, raw: np.ndarray, info: dict) -> np.ndarray:
+        return raw if self.memory is None else self.memory[k](raw, info)
 
     def flush(self) -> FrameBatch:
         return self.writer.flush()

@@ -30,7 +30,7 @@ class D4PGBuilder:
 
     def __init__(self, config: ExperimentConfig) -> None:
         self.config = config
-        self.layout = ObservationLayout.from_env_config(config.env)
+        self.layout = ObservationLayout.of(config.env, config.memory)
 
     # -- replay --------------------------------------------------------------------------------
     def make_rate_limiter(self) -> SampleToInsertRatio:
@@ -91,7 +91,21 @@ class D4PGBuilder:
         writer = VectorNStepWriter(self.layout, envs, self.config.d4pg.n_step, self.config.d4pg.discount)
         return VectorEpisodeLoop([self.make_env() for _ in range(envs)], self.make_acting_agent(policy).batch, writer,
                                  self.make_world_draws(actor_index), scenes=self.config.actor.scenes_per_process,
-                                 helpers=self.make_training_helpers(actor_index, envs))
+                                 helpers=self.make_training_helpers(actor_index, envs),
+                                 memory=self.make_memories(envs))
+
+    def make_memory(self):
+        """One environment's network memory (``curlnav.memory.MemoryObserver``), or None when the
+        network has none (``memory.beams`` 0)."""
+        if not self.layout.memory_beams:
+            return None
+        from curlnav.memory import MemoryObserver
+
+        return MemoryObserver(self.layout, self.config.env.lidar_fov)
+
+    def make_memories(self, envs: int):
+        """``envs`` memories (``make_memory``), or None without memory."""
+        return None if not self.layout.memory_beams else [self.make_memory() for _ in range(envs)]
 
     def make_training_helpers(self, actor_index: int = 0, envs: int = 1, stream: int = 0):
         """The stack actor ``actor_index``'s network trains inside, one per environment

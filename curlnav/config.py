@@ -34,7 +34,8 @@ import yaml
 from curlnav.files import FileRefused, loads_yaml, read_yaml, shown
 from curlnav.sim.config import ConfigError, EnvConfig
 
-__all__ = ["ConfigError", "D4PGConfig", "ReplayConfig", "ExplorationConfig", "HelpersConfig", "CurriculumConfig",
+__all__ = ["ConfigError", "D4PGConfig", "ReplayConfig", "ExplorationConfig", "HelpersConfig", "MemoryConfig",
+           "CurriculumConfig",
            "EvaluationConfig", "BudgetConfig", "ExperimentConfig", "PRESETS", "load_config", "apply_overrides",
            "overrides_from_environment", "config_hash", "config_to_dict", "config_from_dict", "config_differences"]
 
@@ -285,6 +286,33 @@ class HelpersConfig:
 
 
 @dataclass(frozen=True)
+class MemoryConfig:
+    """The network's memory (issue 53, ``curlnav.memory``): the returns of recent scans kept in
+    the robot's odometry frame, read as a ring of ``beams`` sectors round the robot (the distance
+    to the nearest remembered return in each, at most ``range_m``), which the network reads beside
+    its frame stack. ``beams`` 0 (the default): no memory, the paper's observation. The policy's
+    side computes the ring (the actors, evaluation, the robot's node), never the simulator."""
+
+    beams: int = 0  # sectors of the ring over 360 deg (72: 5 deg each); 0: no memory
+    range_m: float = 8.0  # m, the ring's reach (a sector with nothing nearer reads this)
+    steps: int = 150  # control steps a return is remembered (30 s at 5 Hz)
+    stride: int = 3  # keep every stride-th scan (fewer points to read back each step)
+
+    def __post_init__(self) -> None:
+        from curlnav.layout import MAX_MEMORY_BEAMS, MAX_MEMORY_RANGE, MAX_MEMORY_STEPS
+
+        for name, low, high in (("beams", 0, MAX_MEMORY_BEAMS), ("steps", 1, MAX_MEMORY_STEPS),
+                                ("stride", 1, MAX_MEMORY_STEPS)):
+            value = getattr(self, name)
+            _require(isinstance(value, int) and not isinstance(value, bool) and low <= value <= high,
+                     f"memory.{name} must be a whole number {low}-{high}, got {shown(value)}")
+        _require(isinstance(self.range_m, (int, float)) and not isinstance(self.range_m, bool)
+                 and math.isfinite(self.range_m) and 0 < self.range_m <= MAX_MEMORY_RANGE,
+                 f"memory.range_m must be a distance above 0 and at most {MAX_MEMORY_RANGE:g} m, got {shown(self.range_m)}")
+        _require(self.stride <= self.steps, f"memory.stride ({self.stride}) must not exceed memory.steps ({self.steps})")
+
+
+@dataclass(frozen=True)
 class CurriculumConfig:
     """What to train on: one world (with its pairs, or random pairs), or a curriculum file."""
 
@@ -340,6 +368,8 @@ class ExperimentConfig:
     actor: ActorConfig = field(default_factory=ActorConfig)
     #: the helpers the network trains inside (``HelpersConfig``); left out of the hash while none
     helpers: HelpersConfig = field(default_factory=HelpersConfig, metadata={"hash": "omit-default"})
+    #: the network's memory (``MemoryConfig``); left out of the hash while it has none
+    memory: MemoryConfig = field(default_factory=MemoryConfig, metadata={"hash": "omit-default"})
     curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from curlnav.files import FileRefused, is_plain_file_name, read_json, shown
+from curlnav.layout import MAX_MEMORY_BEAMS, MAX_MEMORY_RANGE, MAX_MEMORY_STEPS
 
 
 class ArtefactError(ValueError):
@@ -183,7 +184,18 @@ def check_metadata(metadata: dict, meta_path: Path) -> None:
             refuse(f"observation.layout.{key}", f"a whole number {low}-{high}", layout.get(key))
     if not _is_number(layout.get("max_range"), 0, MAX_RANGE_M):
         refuse("observation.layout.max_range", f"a distance above 0 and at most {MAX_RANGE_M:g} m", layout.get("max_range"))
-    layout_size = (layout["range_frames"] + layout["label_frames"]) * layout["beams"] + 3 * layout["goal_frames"]
+    if layout.get("memory_beams", 0):  # the network's memory (curlnav.memory)
+        for key, low, high in (("memory_beams", 1, MAX_MEMORY_BEAMS), ("memory_steps", 1, MAX_MEMORY_STEPS),
+                               ("memory_stride", 1, MAX_MEMORY_STEPS)):
+            if not _is_whole(layout.get(key), low, high):
+                refuse(f"observation.layout.{key}", f"a whole number {low}-{high}", layout.get(key))
+        if not _is_number(layout.get("memory_range"), 0, MAX_MEMORY_RANGE):
+            refuse("observation.layout.memory_range", f"a distance above 0 and at most {MAX_MEMORY_RANGE:g} m",
+                   layout.get("memory_range"))
+    elif not _is_whole(layout.get("memory_beams", 0), 0, 0):
+        refuse("observation.layout.memory_beams", "a whole number (0: no memory)", layout.get("memory_beams"))
+    layout_size = ((layout["range_frames"] + layout["label_frames"]) * layout["beams"] + 3 * layout["goal_frames"]
+                   + layout.get("memory_beams", 0))
     if layout_size != size:
         raise ArtefactError(f"{meta_path}: observation.layout gives {layout_size} values, observation.size says {size}")
     if not _is_number(observation.get("lidar_fov_rad"), 0, 2 * math.pi):

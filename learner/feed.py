@@ -90,18 +90,25 @@ class BatchAssembler:
         return out
 
     @staticmethod
-    def _stack(ranges: torch.Tensor, labels: torch.Tensor, goal: torch.Tensor, device) -> torch.Tensor:
+    def _stack(ranges: torch.Tensor, labels: torch.Tensor, goal: torch.Tensor, device,
+               memory: torch.Tensor | None = None) -> torch.Tensor:
+        """Frames into float32 observations: ranges, labels, the memory's ring (if any), goals."""
         b = ranges.shape[0]
         r, lab = ranges[0].numel(), labels[0].numel()
-        obs = torch.empty((b, r + lab + goal[0].numel()), dtype=torch.float32, device=device)
+        m = 0 if memory is None else memory.shape[1]
+        obs = torch.empty((b, r + lab + m + goal[0].numel()), dtype=torch.float32, device=device)
         obs[:, :r].copy_(ranges.reshape(b, -1))
         obs[:, r:r + lab].copy_(labels.reshape(b, -1))
-        obs[:, r + lab:].copy_(goal.reshape(b, -1))
+        if m:
+            obs[:, r + lab:r + lab + m].copy_(memory)
+        obs[:, r + lab + m:].copy_(goal.reshape(b, -1))
         return obs
 
     def __call__(self, batch: SampledBatch | dict[str, np.ndarray], weights: np.ndarray | None = None) -> TensorBatch:
         """``batch``: a decoded message, or ``ReplayTable.sample_frames``' arrays (in one process)."""
-        arrays = {n: batch[n] if isinstance(batch, dict) else getattr(batch, n) for n in SampledBatch.FIELDS}
+        names = SampledBatch.FIELDS + ("obs_memory", "next_memory")
+        got = (lambda n: batch.get(n)) if isinstance(batch, dict) else (lambda n: getattr(batch, n))
+        arrays = {n: got(n) for n in names if got(n) is not None}
         if self.cuda:
             t = self._stage(arrays)
         else:
@@ -111,9 +118,9 @@ class BatchAssembler:
         def f32(x: torch.Tensor) -> torch.Tensor:
             return x.to(dev, torch.float32, copy=True)  # a copy: decoded arrays are read-only
 
-        return TensorBatch(self._stack(t["obs_ranges"], t["obs_labels"], t["obs_goal"], dev), f32(t["action"]),
-                           f32(t["reward"]), f32(t["discount"]),
-                           self._stack(t["next_ranges"], t["next_labels"], t["next_goal"], dev),
+        return TensorBatch(self._stack(t["obs_ranges"], t["obs_labels"], t["obs_goal"], dev, t.get("obs_memory")),
+                           f32(t["action"]), f32(t["reward"]), f32(t["discount"]),
+                           self._stack(t["next_ranges"], t["next_labels"], t["next_goal"], dev, t.get("next_memory")),
                            None if weights is None else torch.as_tensor(weights, dtype=torch.float32).to(dev))
 
 

@@ -1,7 +1,8 @@
 """Actor and distributional critic over the paper's observation.
 
 Both take the flat observation ``(B, layout.size)`` (see ``curlnav.layout``): scans and labels
-go through an encoder, the goal history is concatenated, then an ELU MLP.
+go through an encoder, the memory's ring (``curlnav.memory``, where the layout has one, scaled by
+its reach) and the goal history are concatenated, then an ELU MLP.
 """
 
 from __future__ import annotations
@@ -49,22 +50,26 @@ class ScanEncoder(nn.Module):
         b = layout.beams
         self._r_end = layout.range_frames * b
         self._l_end = self._r_end + layout.label_frames * b
+        self._m_end = self._l_end + layout.memory_beams  # the memory's ring (curlnav.memory), if any
         if self.kind == "pooled":
             self.pad = (-b) % self.pool
             windows = (b + self.pad) // self.pool
-            self.out_features = (layout.range_frames + layout.label_frames) * windows + 3 * layout.goal_frames
+            self.out_features = ((layout.range_frames + layout.label_frames) * windows + layout.memory_beams
+                                 + 3 * layout.goal_frames)
         else:
             channels = layout.range_frames + layout.label_frames
             self.conv = nn.Sequential(nn.Conv1d(channels, cfg.conv_filters, 3), nn.ReLU(),
                                       nn.Conv1d(cfg.conv_filters, cfg.conv_filters, 3), nn.ReLU())
-            self.out_features = cfg.conv_filters * (b - 4) + 3 * layout.goal_frames
+            self.out_features = cfg.conv_filters * (b - 4) + layout.memory_beams + 3 * layout.goal_frames
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         layout = self.layout
         bsz = obs.shape[0]
         ranges = obs[:, :self._r_end].reshape(bsz, layout.range_frames, layout.beams) / layout.max_range
         labels = obs[:, self._r_end:self._l_end].reshape(bsz, layout.label_frames, layout.beams)
-        goal = obs[:, self._l_end:]
+        goal = obs[:, self._m_end:]
+        if self._m_end > self._l_end:  # the ring, scaled to [0, 1] as the ranges are, beside the goal
+            goal = torch.cat([obs[:, self._l_end:self._m_end] / layout.memory_range, goal], dim=1)
         if self.kind == "pooled":
             if self.pad:
                 ranges = F.pad(ranges, (0, self.pad), value=1.0)

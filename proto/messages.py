@@ -37,7 +37,10 @@ class TransitionBatch:
     Arrays as ``replay.nstep.FrameBatch``: frames ``local_id``, ``prev_id`` (int64),
     ``ranges`` (float16, m, (F, beams)), ``labels`` (uint8, (F, beams)), ``goal`` (float32, (F, 3));
     transitions ``obs_id``, ``next_id`` (int64), ``action`` (float32, (T, 3)), ``reward``,
-    ``discount`` (float32, (T,)). ``seq`` numbers the actor's batches (gaps reveal loss)."""
+    ``discount`` (float32, (T,)); ``memory`` (float16, m, (F, M)), the network memory's ring of
+    each frame, only where the run's network has a memory (``curlnav.memory``; the field is absent
+    otherwise, so batches without one are those of before it). ``seq`` numbers the actor's
+    batches (gaps reveal loss)."""
 
     actor_id: str
     seq: int
@@ -49,10 +52,12 @@ class TransitionBatch:
         b = self.batch
         return dumps({"kind": self.KIND, "v": VERSION, "actor_id": self.actor_id, "seq": self.seq,
                       "weights_version": self.weights_version,
-                      **{name: pack_array(getattr(b, name)) for name in FRAME_FIELDS}})
+                      **{name: pack_array(getattr(b, name)) for name in FRAME_FIELDS},
+                      **({"memory": pack_array(b.memory)} if b.memory.shape[1] else {})})
 
     @staticmethod
-    def decode(data: bytes, beams: int | None = None) -> TransitionBatch:
+    def decode(data: bytes, beams: int | None = None, memory_beams: int | None = None) -> TransitionBatch:
+        """``beams``, ``memory_beams``: the run's (a batch of other shapes is refused); None: any."""
         obj = loads(data)
         kind = TransitionBatch.KIND
         check_header(obj, kind, VERSION)
@@ -71,6 +76,13 @@ class TransitionBatch:
                   "labels": ("|u1", (f, nb)), "goal": ("<f4", (f, 3)), "obs_id": ("<i8", (t,)),
                   "next_id": ("<i8", (t,)), "action": ("<f4", (t, 3)), "reward": ("<f4", (t,)),
                   "discount": ("<f4", (t,))}
+        nm = _dim(obj, "memory", 1) if "memory" in obj else 0
+        if memory_beams is not None and nm != memory_beams:
+            raise ProtoError("shape", f"the memory's ring has {nm} sectors, this run's network reads {memory_beams}")
+        if not 0 <= nm <= MAX_BEAMS:
+            raise ProtoError("shape", f"bad memory sector count {nm}")
+        if nm:
+            shapes["memory"] = ("<f2", (f, nm))
         arrays = {name: unpack_array(obj.get(name), name, dt, shape) for name, (dt, shape) in shapes.items()}
         if t and (arrays["discount"].min() < 0 or arrays["discount"].max() > 1):
             raise ProtoError("range", "discount outside [0, 1]")
@@ -119,7 +131,8 @@ class SampledBatch:
     (B, range_frames, beams)), labels (uint8, (B, label_frames, beams)) and goal frames
     (float32, (B, goal_frames, 3)) of their history, oldest first; ``action`` (float32, (B, 3)),
     ``reward``, ``discount`` (float32, (B,)), ``keys`` (int64, (B,)) and ``probabilities``
-    (float32, (B,): each item's probability of being drawn). The stacked float32 observation is
+    (float32, (B,): each item's probability of being drawn); ``obs_memory``, ``next_memory``
+    (float16, m, (B, memory_beams)) only where the layout has a memory. The stacked float32 observation is
     ``obs()`` (or built on the learner's device from the frames: fewer bytes to copy)."""
 
     obs_ranges: np.ndarray
@@ -133,6 +146,8 @@ class SampledBatch:
     discount: np.ndarray
     keys: np.ndarray
     probabilities: np.ndarray
+    obs_memory: np.ndarray | None = None  # float16 (B, M): the memory's ring, where the network has one
+    next_memory: np.ndarray | None = None
     KIND = "sampled_batch"
     VERSION = 3  # 2: msgpack, stacked float16 observations; 3: raw buffers, frames
     MAX_BATCH = 8192
@@ -145,9 +160,11 @@ class SampledBatch:
         frames = {"ranges": ("<f2", (batch, layout.range_frames, layout.beams)),
                   "labels": ("|u1", (batch, layout.label_frames, layout.beams)),
                   "goal": ("<f4", (batch, layout.goal_frames, 3))}
+        memory = getattr(layout, "memory_beams", 0)
+        ring = ({"obs_memory": ("<f2", (batch, memory)), "next_memory": ("<f2", (batch, memory))} if memory else {})
         return {**{f"obs_{k}": v for k, v in frames.items()}, **{f"next_{k}": v for k, v in frames.items()},
                 "action": ("<f4", (batch, action_size)), "reward": ("<f4", (batch,)), "discount": ("<f4", (batch,)),
-                "keys": ("<i8", (batch,)), "probabilities": ("<f4", (batch,))}
+                "keys": ("<i8", (batch,)), "probabilities": ("<f4", (batch,)), **ring}
 
     @staticmethod
     def writer(batch: int, layout, action_size: int = 3, buffer=None) -> RawWriter:
@@ -157,9 +174,9 @@ class SampledBatch:
 
     def encode(self) -> bytearray:
         layout = _FrameDims(self.obs_ranges.shape[2], self.obs_ranges.shape[1], self.obs_labels.shape[1],
-                            self.obs_goal.shape[1])
+                            self.obs_goal.shape[1], 0 if self.obs_memory is None else self.obs_memory.shape[1])
         w = SampledBatch.writer(len(self.keys), layout, self.action.shape[1])
-        for name in self.FIELDS:
+        for name in self.present():
             w.view(name)[...] = getattr(self, name)
         return w.payload()
 
@@ -180,15 +197,23 @@ class SampledBatch:
             raise ProtoError("range", "discount outside [0, 1] or a negative probability")
         return SampledBatch(**arrays)
 
+    def present(self) -> tuple[str, ...]:
+        """The names of the arrays this batch carries (the memory's only where it has one)."""
+        return self.FIELDS + (("obs_memory", "next_memory") if self.obs_memory is not None else ())
+
     @staticmethod
-    def stack(ranges: np.ndarray, labels: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        """Frames into stacked float32 observations (B, size): ranges, labels, goals."""
+    def stack(ranges: np.ndarray, labels: np.ndarray, goal: np.ndarray, memory: np.ndarray | None = None) -> np.ndarray:
+        """Frames into stacked float32 observations (B, size): ranges, labels, the memory's ring
+        (where there is one), goals."""
         b = len(ranges)
         r, lab = ranges[0].size, labels[0].size
-        out = np.empty((b, r + lab + goal[0].size), np.float32)
+        m = 0 if memory is None else memory.shape[1]
+        out = np.empty((b, r + lab + m + goal[0].size), np.float32)
         out[:, :r] = ranges.reshape(b, -1)
         out[:, r:r + lab] = labels.reshape(b, -1)
-        out[:, r + lab:] = goal.reshape(b, -1)
+        if m:
+            out[:, r + lab:r + lab + m] = memory
+        out[:, r + lab + m:] = goal.reshape(b, -1)
         return out
 
     def split(self, parts: int) -> list[SampledBatch]:
@@ -198,14 +223,14 @@ class SampledBatch:
         if parts < 1 or size % parts:
             raise ValueError(f"a batch of {size} items does not split into {parts} equal parts")
         step = size // parts
-        return [SampledBatch(**{n: getattr(self, n)[i * step:(i + 1) * step] for n in self.FIELDS})
+        return [SampledBatch(**{n: getattr(self, n)[i * step:(i + 1) * step] for n in self.present()})
                 for i in range(parts)]
 
     def obs(self) -> np.ndarray:
-        return self.stack(self.obs_ranges, self.obs_labels, self.obs_goal)
+        return self.stack(self.obs_ranges, self.obs_labels, self.obs_goal, self.obs_memory)
 
     def next_obs(self) -> np.ndarray:
-        return self.stack(self.next_ranges, self.next_labels, self.next_goal)
+        return self.stack(self.next_ranges, self.next_labels, self.next_goal, self.next_memory)
 
 
 @dataclass(frozen=True)
@@ -214,6 +239,7 @@ class _FrameDims:
     range_frames: int
     label_frames: int
     goal_frames: int
+    memory_beams: int = 0
 
 
 @dataclass

@@ -38,15 +38,16 @@ class NStepWriter:
         self.take_id = self._own_id  # where frame ids come from (writers that share an id space replace it)
         self._prev_id: int | None = None
         self._pending: deque[tuple[int, np.ndarray, float]] = deque()  # (frame id, action, reward)
-        self._frames: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._frames: list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self._transitions: list[tuple[int, int, np.ndarray, float, float]] = []
 
     def _add_frame(self, obs: np.ndarray, first: bool) -> int:
         ranges, labels, goal = self.layout.newest_frame(np.asarray(obs))
         frame_id = self.take_id()
         prev = frame_id if first or self._prev_id is None else self._prev_id
+        ring = self.layout.ring_of(np.asarray(obs))
         self._frames.append((frame_id, prev, ranges.astype(np.float16), labels.astype(np.uint8),
-                             goal.astype(np.float32)))
+                             goal.astype(np.float32), ring.astype(np.float16)))
         self._prev_id = frame_id
         return frame_id
 
@@ -87,7 +88,7 @@ class NStepWriter:
         frames, transitions = self._frames, self._transitions
         self._frames, self._transitions = [], []
         if not frames and not transitions:
-            return FrameBatch.empty(self.layout.beams)
+            return FrameBatch.empty(self.layout.beams, memory_beams=self.layout.memory_beams)
         beams = self.layout.beams
 
         def col(items, i, dtype, shape=()):
@@ -102,4 +103,5 @@ class NStepWriter:
             obs_id=col(transitions, 0, np.int64), next_id=col(transitions, 1, np.int64),
             action=col(transitions, 2, np.float32, (3,)), reward=col(transitions, 3, np.float32),
             discount=col(transitions, 4, np.float32),
+            memory=col(frames, 5, np.float16, (self.layout.memory_beams,)),
         )

@@ -155,7 +155,7 @@ class ReplayService:
         limit = seq_limit()
         drops: list[tuple[int, dict[str, int]]] = []  # (log index, the table's drops before) of records that dropped
         for first, payload in self.log.records():
-            msg = TransitionBatch.decode(payload, beams=self.layout.beams)
+            msg = TransitionBatch.decode(payload, beams=self.layout.beams, memory_beams=self.layout.memory_beams)
             before = dict(self.table.dropped)
             added = self.table.insert(msg.batch, stream=msg.actor_id, force=True)
             restored += added
@@ -243,7 +243,7 @@ class ReplayService:
             sender, payload = item if isinstance(item, tuple) else (None, item)
             self.m_batches.inc()
             try:
-                msg = TransitionBatch.decode(payload, beams=self.layout.beams)
+                msg = TransitionBatch.decode(payload, beams=self.layout.beams, memory_beams=self.layout.memory_beams)
                 if sender is not None and msg.actor_id != sender:
                     raise ReplayInputError("key_mismatch", "the batch names another actor than its key")
                 if msg.seq > limit:

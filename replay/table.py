@@ -137,9 +137,10 @@ class ReplaySample:
     next_obs: np.ndarray
 
 
-def stack_frames(ranges: np.ndarray, labels: np.ndarray, goal: np.ndarray) -> np.ndarray:
-    """Frames ((B, R, beams), (B, L, beams), (B, G, 3)) into stacked float32 observations (B, size)."""
-    return SampledBatch.stack(ranges, labels, goal)  # one stacking, beside the wire schema
+def stack_frames(ranges: np.ndarray, labels: np.ndarray, goal: np.ndarray, memory: np.ndarray | None = None) -> np.ndarray:
+    """Frames ((B, R, beams), (B, L, beams), (B, G, 3), the memory's ring (B, M) or None) into
+    stacked float32 observations (B, size)."""
+    return SampledBatch.stack(ranges, labels, goal, memory)  # one stacking, beside the wire schema
 
 
 class ReplayTable:
@@ -166,6 +167,7 @@ class ReplayTable:
         self._f_ranges = np.zeros((fc, beams), np.float16)
         self._f_labels = np.zeros((fc, beams), np.uint8)
         self._f_goal = np.zeros((fc, 3), np.float32)
+        self._f_memory = np.zeros((fc, layout.memory_beams), np.float16)  # the ring of each frame (m)
         self._f_prev = np.zeros(fc, np.int64)
         self._next_frame = 0  # global id of the next frame
         n = self.max_size
@@ -199,7 +201,7 @@ class ReplayTable:
     @property
     def bytes_per_transition(self) -> float:
         beams = self.layout.beams
-        frame = beams * 2 + beams + 3 * 4 + 8
+        frame = beams * 2 + beams + 3 * 4 + 8 + 2 * self.layout.memory_beams
         return self.frame_capacity / self.max_size * frame + TRANSITION_BYTES_FIXED + self.action_size * 4 - 12
 
     def info(self) -> dict:
@@ -223,13 +225,14 @@ class ReplayTable:
         beams = self.layout.beams
         f, t = batch.num_frames, batch.num_transitions
         shapes = {"prev_id": (f,), "ranges": (f, beams), "labels": (f, beams), "goal": (f, 3),
+                  "memory": (f, self.layout.memory_beams),
                   "next_id": (t,), "action": (t, self.action_size), "reward": (t,), "discount": (t,)}
         for name, shape in shapes.items():
             value = getattr(batch, name)
             if not isinstance(value, np.ndarray) or value.shape != shape:
                 got = getattr(value, "shape", type(value).__name__)
                 raise self._reject("shape", f"{name} has shape {got}, expected {shape}")
-        for name in ("ranges", "goal", "action", "reward", "discount"):
+        for name in ("ranges", "goal", "memory", "action", "reward", "discount"):
             if not np.all(np.isfinite(getattr(batch, name).astype(np.float64))):
                 raise self._reject("non_finite", f"{name} contains NaN or infinity")
         if t and (np.any(batch.discount < 0) or np.any(batch.discount > 1)):
@@ -258,6 +261,7 @@ class ReplayTable:
                 self._f_ranges[slot] = batch.ranges[i]
                 self._f_labels[slot] = batch.labels[i]
                 self._f_goal[slot] = batch.goal[i]
+                self._f_memory[slot] = batch.memory[i]
                 local = int(batch.local_id[i])
                 self._f_prev[slot] = ids.get(int(batch.prev_id[i]), gid)
                 ids[local] = gid
@@ -325,18 +329,13 @@ class ReplayTable:
         f = self.sample_frames(batch_size, timeout)
         return ReplaySample(keys=f["keys"], probabilities=f["probabilities"].astype(np.float64),
                            priorities=f["priorities"], times_sampled=f["times_sampled"],
-                           obs=stack_frames(f["obs_ranges"], f["obs_labels"], f["obs_goal"]), action=f["action"],
-                           reward=f["reward"], discount=f["discount"],
-                           next_obs=stack_frames(f["next_ranges"], f["next_labels"], f["next_goal"]))
+                           obs=stack_frames(f["obs_ranges"], f["obs_labels"], f["obs_goal"], f.get("obs_memory")),
+                           action=f["action"], reward=f["reward"], discount=f["discount"],
+                           next_obs=stack_frames(f["next_ranges"], f["next_labels"], f["next_goal"], f.get("next_memory")))
 
     def frame_shapes(self, batch_size: int) -> dict[str, tuple[str, tuple[int, ...]]]:
         """``name -> (dtype, shape)`` of what ``sample_frames`` fills (``SampledBatch.schema``)."""
-        lay, b = self.layout, batch_size
-        frames = {"ranges": ("<f2", (b, lay.range_frames, lay.beams)), "labels": ("|u1", (b, lay.label_frames, lay.beams)),
-                  "goal": ("<f4", (b, lay.goal_frames, 3))}
-        return {**{f"obs_{k}": v for k, v in frames.items()}, **{f"next_{k}": v for k, v in frames.items()},
-                "action": ("<f4", (b, self.action_size)), "reward": ("<f4", (b,)), "discount": ("<f4", (b,)),
-                "keys": ("<i8", (b,)), "probabilities": ("<f4", (b,))}
+        return SampledBatch.schema(batch_size, self.layout, self.action_size)
 
     def sample_frames(self, batch_size: int, timeout: float | None = None,
                       out: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
@@ -392,7 +391,7 @@ class ReplayTable:
         """Stacked float32 observations (B, size) ending at ``frame_ids``."""
         out = {name: np.empty(shape, dtype) for name, (dtype, shape) in self.frame_shapes(len(frame_ids)).items()}
         self._gather_frames(self._history(frame_ids, oldest), out, "obs_")
-        return stack_frames(out["obs_ranges"], out["obs_labels"], out["obs_goal"])
+        return stack_frames(out["obs_ranges"], out["obs_labels"], out["obs_goal"], out.get("obs_memory"))
 
     def _gather_frames(self, hist: np.ndarray, out: dict[str, np.ndarray], prefix: str) -> None:
         lay = self.layout
@@ -402,6 +401,8 @@ class ReplayTable:
                                    ("labels", self._f_labels, lay.label_frames),
                                    ("goal", self._f_goal, lay.goal_frames)):
             np.take(store, slots[:, h - count:], axis=0, out=out[prefix + name], mode="wrap")
+        if lay.memory_beams:  # the ring of the newest frame only
+            np.take(self._f_memory, slots[:, h - 1], axis=0, out=out[prefix + "memory"], mode="wrap")
 
     def _live_slots(self) -> np.ndarray:
         return (self._first_key + np.arange(self.size)) % self.max_size
@@ -441,7 +442,7 @@ class ReplayTable:
             return int(live.sum())
 
     # -- persistence -----------------------------------------------------------------------
-    _FRAME_ARRAYS = ("f_ranges", "f_labels", "f_goal", "f_prev")
+    _FRAME_ARRAYS = ("f_ranges", "f_labels", "f_goal", "f_prev", "f_memory")
     _TRANSITION_ARRAYS = ("t_obs", "t_next", "t_action", "t_reward", "t_discount", "t_priority", "t_sampled")
 
     def _live_frame_slots(self) -> np.ndarray:
@@ -496,6 +497,8 @@ class ReplayTable:
             for names, where in ((cls._FRAME_ARRAYS, frames), (cls._TRANSITION_ARRAYS, slots)):
                 for name in names:
                     target = getattr(table, "_" + name)
+                    if name == "f_memory" and name not in data.files and not target.shape[1]:
+                        continue  # a file from before the network's memory, of a layout without one
                     saved = data[name]
                     expected = (target.shape[0] if isinstance(where, slice) else len(where),) + target.shape[1:]
                     if saved.shape != expected:

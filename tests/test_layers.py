@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
 SETUPTOOLS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
 MAPPED = dict(SETUPTOOLS["package-dir"])  # curlnav.replay -> replay
 #: bottom first: a package may import itself and the packages before it, nothing after
-ORDER = ["proto", "files", "layout", "worlds", "sim", "config", "policy", "bus", "nav", "scheduler",
+ORDER = ["proto", "files", "layout", "memory", "worlds", "sim", "config", "policy", "bus", "nav", "scheduler",
          "replay", "learner", "actor", "ros2", "evaluation", "builder", "run", "bench", "cli"]
 #: narrower rules that stay: (importer, imported) -> the only module it may import there
 EXTRA = {("actor", "learner"): "curlnav.learner.networks"}  # an actor runs the networks, never the learner

@@ -26,14 +26,17 @@ def build_stack(stack: NavStack, env_config, load_policy: Callable[[str], object
     robot, the scan, the sensor model every entry is made for); ``load_policy(path)`` loads a policy
     controller (``curlnav.learner.artefact.load_policy``, or the policy a caller holds already);
     ``controller``: the controller made already (the ROS 2 node's, checked against its robot; an
-    actor's network), used instead of making the stack's."""
+    actor's network), used instead of making the stack's. A policy whose network reads a memory
+    (``curlnav.memory``) is wrapped so that it builds its ring from each step's odometry."""
+    from curlnav.memory import remembering
+
     inner = stack.controller.path or stack.controller.entry
     if controller is not None:
-        agent = controller
+        agent = remembering(controller, env_config.lidar_fov)  # a network with a memory reads it here
     elif stack.controller.entry == POLICY_ENTRY:
         if load_policy is None:
             raise ValueError(f"{inner}: a policy controller needs a policy loader")
-        agent = load_policy(inner)
+        agent = remembering(load_policy(inner), env_config.lidar_fov)
     else:
         agent = stack.controller.info.load()(env_config, **stack.controller.kwargs())
         agent.control_role = stack.controller.entry  # a planner chose its commands (``roles.chooser``)

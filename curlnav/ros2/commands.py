@@ -155,7 +155,9 @@ def deployed(agent, layout, robot: str = "husky", stack=None):
     ``curlnav.nav.build_stack`` for what the node feeds it (``node_env_config``). A plan on the true
     map is the node's own (``/plan``, ``follow_plan``), never built here."""
     if stack is None:
-        return agent
+        from curlnav.memory import remembering
+
+        return remembering(agent, layout.fov_rad)  # a network with a memory builds it from /odom
     import dataclasses
 
     from curlnav.nav import build_stack

@@ -102,6 +102,9 @@ class ScanLayout:
     arm_reach: float = 0.5  # m at action[2] = 1
     control_period_s: float = 0.2
     arm: bool = True  # False: the robot has no arm (metadata robot.arm), /arm_cmd stays 0
+    #: sectors of the network memory's ring (``curlnav.memory``), which the policy's agent adds to
+    #: the frames the node builds, from the odometry it is given; 0: no memory
+    memory_beams: int = 0
 
     @classmethod
     def of(cls, metadata: dict) -> ScanLayout:
@@ -116,7 +119,8 @@ class ScanLayout:
                        goal_frames=int(layout.get("goal_frames", 10)), max_linear_speed=float(scale[0]),
                        max_angular_speed=float(scale[1]), arm_reach=float(scale[2]),
                        control_period_s=float(obs.get("control_period_s", 0.2)),
-                       arm=metadata.get("robot", {}).get("arm", True) is not False)
+                       arm=metadata.get("robot", {}).get("arm", True) is not False,
+                       memory_beams=int(layout.get("memory_beams", 0)))
         except (AttributeError, IndexError, KeyError, TypeError, ValueError, OverflowError) as exc:
             raise ValueError(f"metadata: the observation layout or action.scale cannot be read ({exc})") from None
 
@@ -143,7 +147,8 @@ class ScanLayout:
 
     @property
     def observation_size(self) -> int:
-        return (self.range_frames + self.label_frames) * self.beams + 3 * self.goal_frames
+        """Values the policy reads: the frames the node builds plus the memory's ring."""
+        return (self.range_frames + self.label_frames) * self.beams + 3 * self.goal_frames + self.memory_beams
 
     @property
     def angles(self) -> np.ndarray:

@@ -186,8 +186,12 @@ class BesideEvaluator:
             return None
 
     def evaluate(self, policy, targets: list[Target], stop: threading.Event | None = None) -> list[dict]:
-        """One row per target; raises ``EvaluationStopped`` as soon as ``stop`` is set."""
+        """One row per target; raises ``EvaluationStopped`` as soon as ``stop`` is set. A policy
+        whose network reads a memory builds it from the odometry (``curlnav.memory``)."""
+        from curlnav.memory import remembering
         from curlnav.sim import NamoEnv, get_world
+
+        policy = remembering(policy, self.experiment.env.lidar_fov)
 
         def check_stop(_episode: int, _info: dict) -> None:
             if stop is not None and stop.is_set():

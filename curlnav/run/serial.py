@@ -114,7 +114,8 @@ class SerialTrainer:
             self.policy.steps = max(self.policy.steps, self.policy.warmup_steps)  # a trained policy acts at once
         self.loop = EpisodeLoop(env, builder.make_acting_agent(self.policy), builder.make_nstep_writer(),
                                 builder.make_world_draws(0, stream=self.counters["env_steps"]),
-                                helpers=builder.make_training_helpers(0, 1, stream=self.counters["env_steps"]))
+                                helpers=builder.make_training_helpers(0, 1, stream=self.counters["env_steps"]),
+                                memory=builder.make_memory())
         self.loop.steps = self.counters["env_steps"]  # the helpers' fade goes on from where the run is
         self.recent: deque[tuple[bool, float, int]] = deque(maxlen=100)  # success, return, base collisions
         self.recent_control: deque[dict[str, int]] = deque(maxlen=100)  # control steps by chooser, per episode
@@ -207,11 +208,21 @@ class SerialTrainer:
         self._last_evaluation_number = max(self._last_evaluation_number, len(self.counters["evals"])) + 1
         return self._last_evaluation_number
 
+    def _greedy_policy(self):
+        """The actor without exploration noise, as evaluation runs it; a network that reads a
+        memory builds it from each step's odometry (``curlnav.memory``)."""
+        policy = lambda o: act(self.state.actor, o)  # noqa: E731
+        if not self.state.layout.memory_beams:
+            return policy
+        from curlnav.memory import RememberingPolicy
+
+        return RememberingPolicy(policy, self.state.layout, self.experiment.env.lidar_fov)
+
     def evaluate(self, start: float) -> EvalResult:
         if self.curriculum is not None:
             return self._evaluate_curriculum(start)
         self.state.actor.eval()
-        result = self.evaluation.run(lambda o: act(self.state.actor, o))
+        result = self.evaluation.run(self._greedy_policy())
         self.state.actor.train()
         row = {"evaluation": self._next_evaluation_number(), "wall_s": time.monotonic() - start,
                "env_steps": self.counters["env_steps"], "updates": self.state.steps,
@@ -252,7 +263,7 @@ class SerialTrainer:
         targets = self._eval_targets()
         epoch = self.curriculum.epoch
         self.state.actor.eval()
-        rows = self._evaluator.evaluate(lambda o: act(self.state.actor, o), targets)
+        rows = self._evaluator.evaluate(self._greedy_policy(), targets)
         self.state.actor.train()
         head = {"evaluation": self._next_evaluation_number(), "wall_s": time.monotonic() - start,
                 "env_steps": self.counters["env_steps"],

@@ -1,0 +1,173 @@
+"""The network's memory (issue 53, ``curlnav.memory``): recent static returns kept in the
+odometry frame and read as a ring round the robot. A user would see it break as a network that
+forgets the wall it just turned away from, a ring that points the wrong way after the robot
+turned or drove, a pushed ball remembered as a wall, or a replay, a wire message, an artefact or
+an evaluation that drops or misplaces the ring."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from curlnav.actor.vector import VectorEpisodeLoop, VectorNStepWriter
+from curlnav.builder import D4PGBuilder
+from curlnav.config import ConfigError, ExperimentConfig, MemoryConfig
+from curlnav.layout import ObservationLayout, beam_angles
+from curlnav.memory import MemoryObserver, RememberingPolicy, ScanMemory, remembering
+from curlnav.proto.codec import ProtoError
+from curlnav.proto.messages import SampledBatch, TransitionBatch
+from curlnav.replay.table import ReplayTable
+
+ROOT = Path(__file__).resolve().parent.parent
+T_MAZE = str(ROOT / "scheduler/curricula/worlds/t-maze-0.yaml")
+FOV = math.radians(240.0)
+LAYOUT = ObservationLayout(memory_beams=72, memory_range=8.0, memory_steps=30, memory_stride=1)
+
+
+def wall_scan(pose: tuple[float, float, float], wall_x: float, labels: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The 241 ranges a LiDAR at ``pose`` reads of an endless wall at ``x = wall_x`` (m): an
+    independent ray cast, clipped at 10 m."""
+    x, y, yaw = pose
+    angles = beam_angles(FOV, 241) + yaw
+    with np.errstate(divide="ignore"):
+        t = (wall_x - x) / np.cos(angles)
+    ranges = np.where((t > 0) & np.isfinite(t), t, 10.0)
+    return np.minimum(ranges, 10.0), np.full(241, labels)
+
+
+def sector_at(bearing: float, sectors: int = 72) -> int:
+    """The ring's sector round ``bearing`` (rad, robot frame): sector 0 straight back."""
+    return round((bearing + math.pi) / (2 * math.pi / sectors)) % sectors
+
+
+def test_a_wall_turned_away_from_stays_in_the_ring_behind_the_robot():
+    memory = ScanMemory(LAYOUT, FOV)
+    start = (0.0, 0.0, 0.0)
+    memory.add(*wall_scan(start, 2.0), start)
+    ahead = memory.ring(start)
+    assert ahead[sector_at(0.0)] == pytest.approx(2.0, abs=0.02)  # the wall, 2 m ahead
+    assert ahead[sector_at(math.pi)] == 8.0  # nothing known behind
+    turned = (0.0, 0.0, math.pi)
+    memory.add(*wall_scan(turned, 2.0), turned)  # the LiDAR (240 deg) now faces away: it sees no wall
+    ring = memory.ring(turned)
+    assert ring[sector_at(math.pi)] == pytest.approx(2.0, abs=0.02)  # remembered, straight behind
+    assert ring[sector_at(0.0)] == 8.0
+    # 45 deg off the wall's normal the nearest remembered return is 2 / cos(45 deg) away, within a sector
+    assert ring[sector_at(math.pi - math.pi / 4)] == pytest.approx(2.0 / math.cos(math.pi / 4), rel=0.06)
+
+
+def test_the_ring_follows_the_odometry_as_the_robot_drives():
+    memory = ScanMemory(LAYOUT, FOV)
+    memory.add(*wall_scan((0.0, 0.0, 0.0), 3.0), (0.0, 0.0, 0.0))
+    nearer = (1.5, 0.4, math.pi / 2)  # drove 1.5 m toward the wall, now facing left of it
+    memory.add(np.full(241, 10.0), np.zeros(241), nearer)
+    ring = memory.ring(nearer)
+    assert ring[sector_at(-math.pi / 2)] == pytest.approx(1.5, abs=0.02)  # the wall on the robot's right
+
+
+def test_returns_labelled_movable_are_not_remembered_and_old_ones_are_forgotten():
+    memory = ScanMemory(LAYOUT, FOV)
+    pose = (0.0, 0.0, 0.0)
+    memory.add(*wall_scan(pose, 2.0, labels=1.0), pose)  # a pushed ball, say: the live scan shows it
+    assert np.all(memory.ring(pose) == 8.0)
+    memory.add(*wall_scan(pose, 2.0), pose)
+    for _ in range(LAYOUT.memory_steps - 1):
+        memory.add(np.full(241, 10.0), np.zeros(241), pose)
+        assert memory.ring(pose).min() == pytest.approx(2.0, abs=0.02)  # kept memory_steps steps ...
+    memory.add(np.full(241, 10.0), np.zeros(241), pose)
+    assert np.all(memory.ring(pose) == 8.0)  # ... then forgotten
+    memory.add(*wall_scan(pose, 2.0), pose)
+    memory.reset()
+    assert np.all(memory.ring(pose) == 8.0)
+
+
+def test_memory_settings_out_of_range_are_refused_in_one_line():
+    for bad in ({"beams": -1}, {"range_m": 0.0}, {"steps": 0}, {"stride": 10, "steps": 5}, {"beams": True}):
+        with pytest.raises(ConfigError, match=r"memory\.") as caught:
+            MemoryConfig(**bad)
+        assert "\n" not in str(caught.value)
+    with pytest.raises(ValueError, match="memory_beams"):
+        ObservationLayout(memory_beams=10**6)
+
+
+def memory_experiment(world: str = T_MAZE) -> ExperimentConfig:
+    experiment = dataclasses.replace(ExperimentConfig(), memory=MemoryConfig(beams=36, steps=60, stride=2))
+    return dataclasses.replace(experiment, curriculum=dataclasses.replace(experiment.curriculum, world=world))
+
+
+def test_an_actor_writes_each_frame_with_its_ring_and_the_replay_gives_it_back(tmp_path):
+    experiment = memory_experiment()
+    builder = D4PGBuilder(experiment)
+    layout = builder.layout
+    assert layout.size == builder.config.env.observation_size + 36
+    seen: list[np.ndarray] = []
+
+    def ahead(observations: np.ndarray) -> np.ndarray:
+        seen.extend(observations.copy())
+        return np.tile(np.array([0.6, 0.3, 0.0], np.float32), (len(observations), 1))
+
+    writer = VectorNStepWriter(layout, 2, n_step=1, discount=0.99)
+    loop = VectorEpisodeLoop([builder.make_env() for _ in range(2)], ahead, writer, memory=builder.make_memories(2))
+    table = ReplayTable(layout, 1000)
+    try:
+        for k in range(2):
+            loop.begin(k, seed=k, options={"world": T_MAZE, "pair": "p4"})
+        for _ in range(25):
+            loop.step()
+            for k in loop.waiting():
+                loop.begin(k, seed=50 + k, options={"world": T_MAZE, "pair": "p4"})
+        batch = loop.flush()
+    finally:
+        loop.close()
+    assert all(len(obs) == layout.size for obs in seen)
+    rings = np.array([layout.ring_of(obs) for obs in seen])
+    assert rings.min() < 7.0  # the T-maze's walls are remembered ...
+    assert np.all(rings <= 8.0)
+    assert batch.memory.shape == (batch.num_frames, 36)
+    decoded = TransitionBatch.decode(TransitionBatch("a", 0, 0, batch).encode(), beams=241, memory_beams=36).batch
+    np.testing.assert_array_equal(decoded.memory, batch.memory)
+    with pytest.raises(ProtoError, match="memory"):
+        TransitionBatch.decode(TransitionBatch("a", 0, 0, batch).encode(), beams=241, memory_beams=72)
+    table.insert(decoded, force=True)
+    sample = table.sample(16, timeout=0)
+    assert sample.obs.shape == (16, layout.size)
+    # every sampled observation is one the network saw, ring included (float16 in the replay)
+    for obs in sample.obs:
+        assert min(np.abs(np.array(seen) - obs).max(axis=1)) < 0.01
+    restored = ReplayTable.restore(table.save(tmp_path / "replay.npz"))
+    frames = restored.sample_frames(8, timeout=0)
+    assert frames["obs_memory"].shape == (8, 36)
+    message = SampledBatch.decode(SampledBatch.writer(8, layout).payload(), layout)
+    assert message.obs_memory.shape == (8, 36) and message.obs().shape == (8, layout.size)
+
+
+def test_a_trained_network_with_memory_ships_and_evaluates_with_its_ring(tmp_path):
+    from curlnav.evaluation.protocol import evaluate
+    from curlnav.learner.artefact import export_policy
+    from curlnav.nav import build_stack, parse_agent
+    from curlnav.policy import PolicyArtefact
+
+    experiment = memory_experiment()
+    builder = D4PGBuilder(experiment)
+    state = builder.make_learner_state(device="cpu")
+    folder = export_policy(state, tmp_path / "policy", experiment.env, worlds=[T_MAZE], env_steps=0)
+    policy = PolicyArtefact(folder)
+    assert policy.metadata["observation"]["layout"]["memory_beams"] == 36
+    assert policy.observation_size == builder.layout.size
+    _, agent = build_stack(parse_agent(str(folder) + "+bare"), experiment.eval_env,
+                           lambda path: PolicyArtefact(path))
+    assert isinstance(agent, RememberingPolicy)
+    result = evaluate(agent, T_MAZE, ["p4"], experiment.eval_env)
+    assert result.episodes == 1
+    with pytest.raises(ValueError, match="act\\(observation, info\\)"):
+        agent(np.zeros(experiment.env.observation_size, np.float32))
+    # a policy without memory is left as it is; a network fed a ring built here acts as the wrapper does
+    assert remembering(lambda obs: obs, FOV) is not None
+    observer = MemoryObserver(builder.layout, FOV)
+    env_obs = np.full(experiment.env.observation_size, 5.0, np.float32)
+    full = observer(env_obs, {"odometry": (0.0, 0.0, 0.0)})
+    np.testing.assert_allclose(agent.policy(full), policy(full))
