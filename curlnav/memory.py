@@ -8,8 +8,9 @@ gives the network what the rescue knows, in a form an MLP reads cheaply:
 - every ``memory_stride``-th scan, the returns of beams labelled static (``label < 0.5``) that
   hit something (``range < max_range``) are kept as points in the **odometry frame**, the
   robot's own pose estimate (``info["odometry"]`` in the simulator, ``/odom`` on a robot), so
-  the memory drifts as the robot's odometry does;
-- a point is kept ``memory_steps`` control steps (30 s at 5 Hz by default), then forgotten:
+  the memory drifts as the robot's odometry does; one point per 0.1 m cell (``CELL_M``), the
+  newest return seen there, so a wall seen again and again costs no more than one seen once;
+- a cell not seen for ``memory_steps`` control steps (30 s at 5 Hz by default) is forgotten:
   old points carry old drift, and obstacles move;
 - the memory is read as a **ring** of ``memory_beams`` sectors round the robot, 360 deg (the
   LiDAR covers 240): each sector's value is the distance (m) from the robot to the nearest
@@ -29,11 +30,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from curlnav.layout import ObservationLayout, beam_angles
 
 __all__ = ["ScanMemory", "MemoryObserver", "RememberingPolicy", "newest_scan", "with_ring", "policy_layout", "remembering"]
 
+#: entries of a memory's hash table at first (a power of two; it doubles when it must)
+TABLE_START = 4096
+#: the memory keeps one return per cell of this size (m): the newest seen there
+CELL_M = 0.1
 #: keep every second beam's return as a point: 0.5 deg at 241 beams over 240 deg, finer than the
 #: ring's sectors (5 deg at 72), and half the points to transform at each step
 POINT_BEAM_STEP = 2
@@ -41,7 +47,12 @@ POINT_BEAM_STEP = 2
 
 class ScanMemory:
     """Remembered static returns of one robot, as the module docstring says. ``add`` a scan
-    each control step (the memory keeps every ``memory_stride``-th), ``ring`` to read it."""
+    each control step (the memory keeps every ``memory_stride``-th), ``ring`` to read it.
+
+    The cells live in an open-addressing hash table (numba kernels: ``_remember``, ``_read_ring``),
+    so a scan is merged and the ring read in a few microseconds whatever the number of cells; a
+    forgotten cell stays in the table until it is rebuilt with the remembered ones only, when it
+    is half full."""
 
     def __init__(self, layout: ObservationLayout, lidar_fov_rad: float) -> None:
         if layout.memory_beams < 1:
@@ -53,49 +64,77 @@ class ScanMemory:
         self._sector_width = 2 * math.pi / self.sectors
         self._keep = np.arange(0, layout.beams, POINT_BEAM_STEP)
         self._angles = beam_angles(lidar_fov_rad, layout.beams)[self._keep]
-        slots = max(1, math.ceil(layout.memory_steps / layout.memory_stride))
-        self._x = np.full((slots, len(self._keep)), np.nan)
-        self._y = np.full((slots, len(self._keep)), np.nan)
+        self._table(TABLE_START)
         self._steps = 0
+
+    def _table(self, capacity: int) -> None:
+        """An empty table of ``capacity`` entries (a power of two)."""
+        self._ix = np.zeros(capacity, np.int64)  # cell indices (x, y) of each entry ...
+        self._iy = np.zeros(capacity, np.int64)
+        self._x = np.zeros(capacity)  # ... the newest return seen in it (m, odometry frame) ...
+        self._y = np.zeros(capacity)
+        self._seen = np.full(capacity, -1, np.int64)  # ... and the step it was seen; -1: an empty entry
+        self._used = 0
 
     def reset(self) -> None:
         """Forget everything (a new episode)."""
-        self._x.fill(np.nan)
-        self._y.fill(np.nan)
+        self._seen.fill(-1)
+        self._used = 0
         self._steps = 0
+
+    @property
+    def _first_kept(self) -> int:
+        """The earliest step whose returns are still remembered (after ``add`` of the step
+        ``_steps - 1``)."""
+        return self._steps - self.layout.memory_steps
+
+    @property
+    def cells(self) -> int:
+        """How many cells the memory remembers."""
+        return int((self._seen >= max(self._first_kept, 0)).sum())
 
     def add(self, ranges: np.ndarray, labels: np.ndarray, pose: tuple[float, float, float]) -> None:
         """One control step's scan (``ranges`` (beams,) m, ``labels`` (beams,), 1 = movable),
-        seen from ``pose`` (x m, y m, yaw rad in the odometry frame)."""
+        seen from ``pose`` (x m, y m, yaw rad in the odometry frame). A cell is remembered for
+        ``memory_steps`` steps after it was last seen."""
         step = self._steps
         self._steps += 1
         if step % self.stride:
             return
-        slot = (step // self.stride) % len(self._x)
         r = np.asarray(ranges, np.float64)[self._keep]
         hit = np.isfinite(r) & (r < self.layout.max_range - 1e-3) & (np.asarray(labels)[self._keep] < 0.5)
+        if not hit.any():
+            return
         x, y, yaw = pose
-        a = self._angles + yaw
-        self._x[slot] = np.where(hit, x + r * np.cos(a), np.nan)
-        self._y[slot] = np.where(hit, y + r * np.sin(a), np.nan)
+        a = self._angles[hit] + yaw
+        px, py = x + r[hit] * np.cos(a), y + r[hit] * np.sin(a)
+        if 2 * (self._used + len(px)) > len(self._seen):
+            self._rebuild(len(px))
+        self._used += _remember(self._ix, self._iy, self._x, self._y, self._seen, np.floor(px / CELL_M).astype(np.int64),
+                                np.floor(py / CELL_M).astype(np.int64), px, py, step)
+
+    def _rebuild(self, coming: int) -> None:
+        """The table again with the remembered cells only, twice as large when they and the
+        ``coming`` ones would fill more than half of it."""
+        kept = np.flatnonzero(self._seen >= max(self._first_kept, 0))
+        old = self._ix[kept], self._iy[kept], self._x[kept], self._y[kept], self._seen[kept]
+        capacity = len(self._seen)
+        while 2 * (len(kept) + coming) > capacity:
+            capacity *= 2
+        self._table(capacity)
+        for seen in np.unique(old[4]):  # in step order, so each cell keeps its own step
+            pick = old[4] == seen
+            self._used += _remember(self._ix, self._iy, self._x, self._y, self._seen, old[0][pick], old[1][pick],
+                                    old[2][pick], old[3][pick], int(seen))
 
     def ring(self, pose: tuple[float, float, float]) -> np.ndarray:
         """``(memory_beams,)`` float32: the distance (m) to the nearest remembered point in each
         sector round ``pose``, at most ``memory_range``."""
-        out = np.full(self.sectors, self.range_m)
-        held = np.isfinite(self._x)
-        if not held.any():
-            return out.astype(np.float32)
+        out = np.full(self.sectors, self.range_m * self.range_m)
         x, y, yaw = pose
-        dx, dy = self._x[held] - x, self._y[held] - y
-        c, s = math.cos(yaw), math.sin(yaw)
-        ahead, left = c * dx + s * dy, -s * dx + c * dy
-        distance = np.hypot(ahead, left)
-        near = distance < self.range_m
-        bearing = np.arctan2(left[near], ahead[near])
-        sector = np.floor((bearing + math.pi + self._sector_width / 2) / self._sector_width).astype(np.int64) % self.sectors
-        np.minimum.at(out, sector, distance[near])
-        return out.astype(np.float32)
+        _read_ring(self._x, self._y, self._seen, max(self._first_kept, 0), float(x), float(y), math.cos(yaw),
+                   math.sin(yaw), self._sector_width, out)
+        return np.sqrt(out).astype(np.float32)
 
     def update(self, observation: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
         """``add`` the newest scan of ``observation`` (the environment's, without a ring) seen
@@ -103,6 +142,45 @@ class ScanMemory:
         ranges, labels = newest_scan(self.layout, observation)
         self.add(ranges, labels, pose)
         return self.ring(pose)
+
+
+@njit(cache=True)
+def _remember(cell_ix, cell_iy, cell_x, cell_y, cell_seen, ix, iy, px, py, step):  # pragma: no cover (numba)
+    """Merge the points ``(px, py)`` of cells ``(ix, iy)`` seen at ``step`` into the table
+    (linear probing; its size a power of two, at most half full); returns the entries it filled."""
+    mask = cell_seen.shape[0] - 1
+    filled = 0
+    for i in range(ix.shape[0]):
+        h = ((ix[i] * 73856093) ^ (iy[i] * 19349663)) & mask
+        while cell_seen[h] >= 0 and (cell_ix[h] != ix[i] or cell_iy[h] != iy[i]):
+            h = (h + 1) & mask
+        if cell_seen[h] < 0:
+            cell_ix[h] = ix[i]
+            cell_iy[h] = iy[i]
+            filled += 1
+        cell_x[h] = px[i]
+        cell_y[h] = py[i]
+        cell_seen[h] = step
+    return filled
+
+
+@njit(cache=True)
+def _read_ring(cell_x, cell_y, cell_seen, first_kept, x, y, c, s, width, out):  # pragma: no cover (numba)
+    """``out`` (sectors,), filled with the reach squared: the squared distance of the nearest
+    entry seen at ``first_kept`` or later in each sector round the pose ``(x, y)`` (heading
+    cosine ``c``, sine ``s``)."""
+    sectors = out.shape[0]
+    for h in range(cell_seen.shape[0]):
+        if cell_seen[h] < first_kept:
+            continue
+        dx = cell_x[h] - x
+        dy = cell_y[h] - y
+        ahead = c * dx + s * dy
+        left = -s * dx + c * dy
+        squared = ahead * ahead + left * left
+        k = int(math.floor((math.atan2(left, ahead) + math.pi + width / 2) / width)) % sectors
+        if squared < out[k]:
+            out[k] = squared
 
 
 def newest_scan(layout: ObservationLayout, observation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -171,3 +171,38 @@ def test_a_trained_network_with_memory_ships_and_evaluates_with_its_ring(tmp_pat
     env_obs = np.full(experiment.env.observation_size, 5.0, np.float32)
     full = observer(env_obs, {"odometry": (0.0, 0.0, 0.0)})
     np.testing.assert_allclose(agent.policy(full), policy(full))
+
+
+def test_a_long_drive_keeps_what_a_plain_dictionary_of_cells_keeps():
+    """The hash table (which grows, and drops forgotten cells when it is rebuilt) against an
+    independent memory of the same rule written plainly: a dict from 0.1 m cell to its newest
+    return and step, and every remembered return checked against every sector."""
+    layout = ObservationLayout(memory_beams=72, memory_range=8.0, memory_steps=100, memory_stride=2)
+    memory = ScanMemory(layout, FOV)
+    rng = np.random.default_rng(3)
+    angles = beam_angles(FOV, 241)
+    cells: dict[tuple[int, int], tuple[float, float, int]] = {}
+    pose = np.array([0.0, 0.0, 0.0])
+    checked = 0
+    for step in range(400):  # a random walk among random returns: thousands of cells in all
+        pose += [0.15 * math.cos(pose[2]), 0.15 * math.sin(pose[2]), rng.uniform(-0.3, 0.3)]
+        ranges = np.minimum(rng.uniform(0.5, 12.0, 241), 10.0)
+        labels = (rng.uniform(size=241) < 0.1).astype(float)  # a tenth called movable: never remembered
+        memory.add(ranges, labels, tuple(pose))
+        if step % 2 == 0:
+            for r, label, a in zip(ranges[::2], labels[::2], angles[::2]):
+                if r < 10.0 - 1e-3 and label < 0.5:
+                    px, py = pose[0] + r * math.cos(a + pose[2]), pose[1] + r * math.sin(a + pose[2])
+                    cells[(math.floor(px / 0.1), math.floor(py / 0.1))] = (px, py, step)
+        if step % 7 == 0:
+            expected = [8.0] * 72
+            for px, py, seen in cells.values():
+                if seen > step - layout.memory_steps:
+                    dx, dy = px - pose[0], py - pose[1]
+                    ahead = math.cos(pose[2]) * dx + math.sin(pose[2]) * dy
+                    left = -math.sin(pose[2]) * dx + math.cos(pose[2]) * dy
+                    k = math.floor((math.atan2(left, ahead) + math.pi + math.pi / 72) / (2 * math.pi / 72)) % 72
+                    expected[k] = min(expected[k], math.hypot(ahead, left))
+            np.testing.assert_allclose(memory.ring(tuple(pose)), expected, atol=1e-5)
+            checked += 1
+    assert checked > 50 and memory.cells > 500 and len(memory._seen) > 4096  # the table grew past its first size
