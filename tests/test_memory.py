@@ -206,3 +206,39 @@ def test_a_long_drive_keeps_what_a_plain_dictionary_of_cells_keeps():
             np.testing.assert_allclose(memory.ring(tuple(pose)), expected, atol=1e-5)
             checked += 1
     assert checked > 50 and memory.cells > 500 and len(memory._seen) > 4096  # the table grew past its first size
+
+
+def test_the_barn_suite_builds_a_jackal_memory_from_the_scan_the_policy_reads(tmp_path):
+    """On the BARN suite the Jackal policy reads 271 of the UST-10LX's 1081 beams
+    (``ResampledScanPolicy``): its memory is built from those 271, and its network gets the ring."""
+    from curlnav.evaluation.barn import ResampledScanPolicy, jackal_env_config, policy_loader
+    from curlnav.evaluation.protocol import evaluation_config
+    from curlnav.learner.artefact import export_policy, load_policy
+    from curlnav.sim import NamoEnv
+    from curlnav.sim.robots import load_profile
+
+    profile = load_profile("jackal")
+    experiment = dataclasses.replace(ExperimentConfig(), robot="jackal", env=profile.apply(ExperimentConfig().env),
+                                     memory=MemoryConfig(beams=72))
+    builder = D4PGBuilder(experiment)
+    folder = export_policy(builder.make_learner_state(device="cpu"), tmp_path / "jackal", experiment.env,
+                           worlds=["barn-course:0"], env_steps=0)
+    suite = jackal_env_config(evaluation_config())
+    policy = policy_loader(suite, load_policy)(str(folder))
+    assert isinstance(policy, ResampledScanPolicy) and isinstance(policy.policy, RememberingPolicy)
+    assert policy.policy.observer.memory.layout.beams == 271
+    seen = []
+    network = policy.policy.policy
+    policy.policy.policy = lambda obs: seen.append(obs) or network(obs)
+    env = NamoEnv("barn-course:90", suite)
+    try:
+        obs, info = env.reset(seed=0)
+        policy.reset(env.world, env.pair)
+        for _ in range(5):
+            obs, _, terminated, truncated, info = env.step(policy.act(obs, info))
+            if terminated or truncated:
+                break
+    finally:
+        env.close()
+    assert seen and all(len(o) == builder.layout.size for o in seen)
+    assert builder.layout.ring_of(seen[-1]).min() < 8.0  # the course's cylinders are remembered

@@ -462,6 +462,52 @@ def test_the_node_builds_the_observation_the_simulator_builds():
         env.close()
 
 
+def test_on_a_robot_a_network_with_a_memory_reads_the_ring_its_actor_built_from_the_same_senses(tmp_path):
+    """``curlnav ros2 run`` of a policy whose network reads a memory (issue 53): the node's stack
+    builds the ring from /scan and /odom, and the network gets what an actor's ``MemoryObserver``
+    gives it from the simulator's observation and odometry, step for step."""
+    import dataclasses
+
+    from curlnav.builder import D4PGBuilder
+    from curlnav.config import ExperimentConfig, MemoryConfig
+    from curlnav.learner.artefact import export_policy
+    from curlnav.memory import MemoryObserver, RememberingPolicy
+    from curlnav.nav import parse_agent
+    from curlnav.policy import PolicyArtefact
+    from curlnav.ros2.commands import deployed
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+    from curlnav.sim import NamoEnv
+
+    experiment = dataclasses.replace(ExperimentConfig(), memory=MemoryConfig(beams=36, stride=1))
+    builder = D4PGBuilder(experiment)
+    folder = export_policy(builder.make_learner_state(device="cpu"), tmp_path / "policy", experiment.env,
+                           worlds=["open-room"], env_steps=0)
+    policy = PolicyArtefact(folder)
+    layout = ScanLayout.of(policy.metadata)
+    assert layout.observation_size == policy.observation_size == experiment.env.observation_size + 36
+    agent = deployed(policy, layout, "husky", parse_agent(str(folder) + "+bare"))
+    assert isinstance(agent, RememberingPolicy)
+    seen = []
+    agent.policy = lambda obs: seen.append(obs) or policy(obs)
+    node = PolicyNode(agent, layout)
+    observer = MemoryObserver(builder.layout, experiment.env.lidar_fov)
+    env = NamoEnv("open-room")
+    try:
+        obs, info = env.reset(seed=3, options={"pair": "diagonal"})
+        node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=env.pair.gx, y=env.pair.gy))))
+        for step in range(12):
+            node.on_scan(scan_of(obs[3 * 241:4 * 241], env.last_labels), now=float(step))
+            node.on_odom(odom_of(*info["pose"]), now=float(step))
+            command = node.act(float(step))
+            expected = observer(obs, info)
+            assert len(seen) == step + 1, node.state
+            np.testing.assert_allclose(seen[-1], expected, atol=1e-4, err_msg=f"step {step}")
+            obs, _, _, _, info = env.step([command.linear / 1.0, command.angular / 1.0, command.arm / 0.5])
+        assert builder.layout.ring_of(seen[-1]).min() < builder.layout.memory_range  # it remembers walls
+    finally:
+        env.close()
+
+
 def test_the_simulated_robot_publishes_what_it_senses_and_the_node_rebuilds_the_noisy_observation():
     """``ros2 sim --sensor-noise``: /scan carries the noisy ranges and the segmenter's wrong labels,
     /odom the drifting odometry; fed those messages, the node builds the observation the policy saw

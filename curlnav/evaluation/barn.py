@@ -104,7 +104,23 @@ class ResampledScanPolicy:
         return SimpleNamespace(ranges=ranges, intensities=labels, angle_min=-self.fov / 2, angle_max=self.fov / 2,
                                angle_increment=self.fov / (n - 1), range_min=0.0, range_max=self.range_max)
 
+    def reset(self, world=None, pair=None) -> None:
+        inner = getattr(self.policy, "reset", None)
+        if callable(inner):
+            inner(world, pair)
+
+    def act(self, observation: np.ndarray, info: dict) -> np.ndarray:
+        """The policy's action on the resampled observation; a network with a memory builds its
+        ring from the resampled scan and the step's odometry (``curlnav.memory``)."""
+        inner = getattr(self.policy, "act", None)
+        resampled = self.resampled(observation)
+        return self.policy(resampled) if inner is None else inner(resampled, info)
+
     def __call__(self, observation: np.ndarray) -> np.ndarray:
+        return self.policy(self.resampled(observation))
+
+    def resampled(self, observation: np.ndarray) -> np.ndarray:
+        """The suite's observation as the policy's LiDAR reads it (without a memory's ring)."""
         from curlnav.ros2.node import resample_scan
 
         e = self.env_layout
@@ -119,7 +135,7 @@ class ResampledScanPolicy:
                 out_r.append(r)
             if k < lf:
                 out_l.append(lab)
-        return self.policy(np.concatenate([*out_r, *out_l, obs[(rf + lf) * n:]]))
+        return np.concatenate([*out_r, *out_l, obs[(rf + lf) * n:]])
 
 
 def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
@@ -145,7 +161,9 @@ def policy_loader(env_config: EnvConfig, load: Callable[[str], object],
             policy = speed_limited(policy, env_config.robot)  # trained slower: it commands its own top speed
         beams = metadata.get("observation", {}).get("layout", {}).get("beams")
         if resample and beams != env_config.lidar_beams and records_robot:
-            return ResampledScanPolicy(policy, env_config, metadata)  # this robot's policy, its own LiDAR
+            from curlnav.memory import remembering  # a memory reads the policy's own beams
+
+            return ResampledScanPolicy(remembering(policy, env_config.lidar_fov), env_config, metadata)
         check_observation(metadata, env_config, spec)
         return policy
 
