@@ -310,6 +310,10 @@ class MemoryConfig:
                  and math.isfinite(self.range_m) and 0 < self.range_m <= MAX_MEMORY_RANGE,
                  f"memory.range_m must be a distance above 0 and at most {MAX_MEMORY_RANGE:g} m, got {shown(self.range_m)}")
         _require(self.stride <= self.steps, f"memory.stride ({self.stride}) must not exceed memory.steps ({self.steps})")
+        if not self.beams:  # no memory: its other settings would change the config's hash and nothing else
+            changed = [f.name for f in dataclasses.fields(self) if f.name != "beams" and getattr(self, f.name) != f.default]
+            _require(not changed, f"memory.{changed[0] if changed else ''} is set but memory.beams is 0 (no memory): "
+                                  f"set memory.beams (72: 5 deg sectors) or leave the memory's settings out")
 
 
 @dataclass(frozen=True)

@@ -38,10 +38,14 @@ __all__ = ["ScanMemory", "MemoryObserver", "RememberingPolicy", "newest_scan", "
 
 #: entries of a memory's hash table at first (a power of two; it doubles when it must)
 TABLE_START = 4096
+#: where ``MemoryObserver`` takes the pose of the observation's newest scan, first found first: the
+#: simulator's odometry at the time of that scan (``latency_steps`` old under sensor noise), its
+#: odometry now, the ROS 2 node's ``/odom`` pose
+POSE_KEYS = ("observed_odometry", "odometry", "pose")
 #: the memory keeps one return per cell of this size (m): the newest seen there
 CELL_M = 0.1
-#: keep every second beam's return as a point: 0.5 deg at 241 beams over 240 deg, finer than the
-#: ring's sectors (5 deg at 72), and half the points to transform at each step
+#: keep every second beam's return as a point: 2 deg apart at 241 beams over 240 deg (0.1 m at 3 m),
+#: and half the points to merge at each kept scan
 POINT_BEAM_STEP = 2
 
 
@@ -111,21 +115,18 @@ class ScanMemory:
         if 2 * (self._used + len(px)) > len(self._seen):
             self._rebuild(len(px))
         self._used += _remember(self._ix, self._iy, self._x, self._y, self._seen, np.floor(px / CELL_M).astype(np.int64),
-                                np.floor(py / CELL_M).astype(np.int64), px, py, step)
+                                np.floor(py / CELL_M).astype(np.int64), px, py, np.full(len(px), step, np.int64))
 
     def _rebuild(self, coming: int) -> None:
-        """The table again with the remembered cells only, twice as large when they and the
-        ``coming`` ones would fill more than half of it."""
+        """The table again with the remembered cells only, twice as large (or more) when they
+        and the ``coming`` ones would fill more than a quarter of it (so that rebuilds stay rare)."""
         kept = np.flatnonzero(self._seen >= max(self._first_kept, 0))
         old = self._ix[kept], self._iy[kept], self._x[kept], self._y[kept], self._seen[kept]
         capacity = len(self._seen)
-        while 2 * (len(kept) + coming) > capacity:
+        while 4 * (len(kept) + coming) > capacity:
             capacity *= 2
         self._table(capacity)
-        for seen in np.unique(old[4]):  # in step order, so each cell keeps its own step
-            pick = old[4] == seen
-            self._used += _remember(self._ix, self._iy, self._x, self._y, self._seen, old[0][pick], old[1][pick],
-                                    old[2][pick], old[3][pick], int(seen))
+        self._used = _remember(self._ix, self._iy, self._x, self._y, self._seen, *old)
 
     def ring(self, pose: tuple[float, float, float]) -> np.ndarray:
         """``(memory_beams,)`` float32: the distance (m) to the nearest remembered point in each
@@ -145,9 +146,10 @@ class ScanMemory:
 
 
 @njit(cache=True)
-def _remember(cell_ix, cell_iy, cell_x, cell_y, cell_seen, ix, iy, px, py, step):  # pragma: no cover (numba)
-    """Merge the points ``(px, py)`` of cells ``(ix, iy)`` seen at ``step`` into the table
-    (linear probing; its size a power of two, at most half full); returns the entries it filled."""
+def _remember(cell_ix, cell_iy, cell_x, cell_y, cell_seen, ix, iy, px, py, steps):  # pragma: no cover (numba)
+    """Merge the points ``(px, py)`` of cells ``(ix, iy)`` seen at ``steps`` (one each, in the
+    order seen) into the table (linear probing; its size a power of two, at most half full);
+    returns the entries it filled."""
     mask = cell_seen.shape[0] - 1
     filled = 0
     for i in range(ix.shape[0]):
@@ -160,7 +162,7 @@ def _remember(cell_ix, cell_iy, cell_x, cell_y, cell_seen, ix, iy, px, py, step)
             filled += 1
         cell_x[h] = px[i]
         cell_y[h] = py[i]
-        cell_seen[h] = step
+        cell_seen[h] = steps[i]
     return filled
 
 
@@ -168,8 +170,9 @@ def _remember(cell_ix, cell_iy, cell_x, cell_y, cell_seen, ix, iy, px, py, step)
 def _read_ring(cell_x, cell_y, cell_seen, first_kept, x, y, c, s, width, out):  # pragma: no cover (numba)
     """``out`` (sectors,), filled with the reach squared: the squared distance of the nearest
     entry seen at ``first_kept`` or later in each sector round the pose ``(x, y)`` (heading
-    cosine ``c``, sine ``s``)."""
+    cosine ``c``, sine ``s``), where nearer than the reach."""
     sectors = out.shape[0]
+    reach_squared = out[0]
     for h in range(cell_seen.shape[0]):
         if cell_seen[h] < first_kept:
             continue
@@ -178,6 +181,8 @@ def _read_ring(cell_x, cell_y, cell_seen, first_kept, x, y, c, s, width, out):  
         ahead = c * dx + s * dy
         left = -s * dx + c * dy
         squared = ahead * ahead + left * left
+        if squared >= reach_squared:  # beyond the ring's reach: no atan2 for it
+            continue
         k = int(math.floor((math.atan2(left, ahead) + math.pi + width / 2) / width)) % sectors
         if squared < out[k]:
             out[k] = squared
@@ -219,7 +224,7 @@ class MemoryObserver:
         observation = np.asarray(observation, np.float32)
         if observation.shape[-1] == self.layout.size:  # already has its ring (a stage passed it on)
             return observation
-        pose = info.get("odometry") or info.get("pose")
+        pose = next((info[k] for k in POSE_KEYS if info.get(k) is not None), None)
         if pose is None:
             raise ValueError("a policy with memory needs the robot's odometry (info['odometry']) at every step")
         return with_ring(self.layout, observation, self.memory.update(observation, tuple(pose)))

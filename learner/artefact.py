@@ -94,6 +94,8 @@ def export_policy(state: D4PGState, out_dir: str | Path, env_config: EnvConfig, 
             "size": layout.size,
             "layout": layout.to_dict(),
             "order": ["ranges (range_frames x beams, m, oldest first)", "labels (label_frames x beams, 1 = movable)",
+                      *(["ring (memory_beams, m: the nearest remembered static return per sector over 360 deg, "
+                         "sector 0 straight back, counter-clockwise; curlnav.memory)"] if layout.memory_beams else []),
                       "goal (goal_frames x [sign(dx)log(1+|dx|), sign(dy)log(1+|dy|), bearing rad], robot frame)"],
             "lidar_fov_rad": env_config.lidar_fov,
             "control_period_s": env_config.control_period,

@@ -176,7 +176,7 @@ def check_starting_point(point: StartingPoint, experiment: ExperimentConfig) -> 
                                  f"policy's: --set env.robot.{key}={value:g}")
     check_observation(point.metadata, env, what)
     layout = point.metadata["observation"]["layout"]
-    mine = ObservationLayout.from_env_config(env)
+    mine = ObservationLayout.of(env, experiment.memory)
     if layout != mine.to_dict():
         raise ValueError(f"{what}: its observation layout {layout} is not this run's {mine.to_dict()}; refused")
     recorded_d4pg = (point.metadata.get("training") or {}).get("d4pg")

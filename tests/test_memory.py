@@ -242,3 +242,51 @@ def test_the_barn_suite_builds_a_jackal_memory_from_the_scan_the_policy_reads(tm
         env.close()
     assert seen and all(len(o) == builder.layout.size for o in seen)
     assert builder.layout.ring_of(seen[-1]).min() < 8.0  # the course's cylinders are remembered
+
+
+def test_a_memory_run_starts_only_from_a_policy_with_the_same_memory(tmp_path):
+    """``--init-from``: the run's layout, memory included, must be the source's (one line)."""
+    from curlnav.learner.artefact import export_policy
+    from curlnav.learner.init_from import check_starting_point, find_starting_point
+
+    plain, remembering_one = dataclasses.replace(ExperimentConfig()), memory_experiment("open-room")
+    folders = {}
+    for name, experiment in (("plain", plain), ("memory", remembering_one)):
+        state = D4PGBuilder(experiment).make_learner_state(device="cpu")
+        folders[name] = export_policy(state, tmp_path / name, experiment.env, worlds=["open-room"], env_steps=0)
+    check_starting_point(find_starting_point(str(folders["memory"])), remembering_one)
+    check_starting_point(find_starting_point(str(folders["plain"])), plain)
+    for source, run in (("plain", remembering_one), ("memory", plain)):
+        with pytest.raises(ValueError, match="observation layout") as caught:
+            check_starting_point(find_starting_point(str(folders[source])), run)
+        assert "\n" not in str(caught.value)
+    with pytest.raises(ConfigError, match="memory.beams is 0"):
+        MemoryConfig(range_m=5.0)
+
+
+def test_under_latency_each_scan_is_remembered_where_it_was_sensed():
+    """With ``latency_steps`` the newest scan is that old; the memory places it at the odometry
+    pose it was sensed from (``info["observed_odometry"]``), not at the odometry of now."""
+    from curlnav.sim import NamoEnv
+    from curlnav.sim.config import SensorNoiseConfig
+
+    experiment = ExperimentConfig()
+    env_config = experiment.eval_env.replace(sensor_noise=SensorNoiseConfig(preset="realistic", latency_steps=2))
+    env = NamoEnv("open-room", env_config)
+    layout = ObservationLayout.of(env_config, MemoryConfig(beams=72, stride=1))
+    by_sensed, by_now = ScanMemory(layout, env_config.lidar_fov), ScanMemory(layout, env_config.lidar_fov)
+    observer = MemoryObserver(layout, env_config.lidar_fov)
+    try:
+        obs, info = env.reset(seed=1)
+        moved = 0.0
+        for _ in range(8):
+            ring = layout.ring_of(observer(obs, info))
+            ranges, labels, _ = ObservationLayout.from_env_config(env_config).newest_frame(obs)
+            by_sensed.add(ranges, labels, info["observed_odometry"])
+            by_now.add(ranges, labels, info["odometry"])
+            np.testing.assert_allclose(ring, by_sensed.ring(info["observed_odometry"]), atol=1e-5)
+            moved = max(moved, float(np.abs(by_now.ring(info["odometry"]) - ring).max()))
+            obs, _, _, _, info = env.step([0.2, 1.0, 0.0])  # turning on the spot
+    finally:
+        env.close()
+    assert moved > 0.05  # placed at the pose of now, the remembered walls would have turned with the robot

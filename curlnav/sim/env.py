@@ -346,6 +346,9 @@ class NamoEnv(gym.Env):
             "pose": (x, y, yaw),
             # the robot's own pose estimate (drifts under sensor noise; the true pose without)
             "odometry": self.sensors.odometry.pose if self.sensors is not None else (x, y, yaw),
+            # the odometry pose the observation's newest frame was sensed from (latency_steps old,
+            # as its scan): where a memory of the scans puts them (``curlnav.memory``)
+            "observed_odometry": self.sensors.seen_pose if self.sensors is not None else (x, y, yaw),
             "world": self.world.name,
             "pair": self.pair.name,
             "steps": self._steps,
