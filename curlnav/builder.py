@@ -128,12 +128,35 @@ class D4PGBuilder:
         from curlnav.config import INHERITED_HELPERS
         from curlnav.nav.training import training_stack
 
-        shipped = None
+        shipped, source = None, self.config.init_from
         if spec == INHERITED_HELPERS:
             from curlnav.learner.init_from import inherited_stack
 
             shipped = inherited_stack(self.config.init_from)
-        return training_stack(spec, shipped, self.config.init_from)
+        elif not spec.startswith("+"):
+            shipped, source = self._stack_at(spec), spec
+        return training_stack(spec, shipped, source)
+
+    @staticmethod
+    def _stack_at(path: str) -> dict | None:
+        """The stack a ``helpers.stack`` path holds: a stack file's, or the one a policy artefact
+        (or run, or checkpoint) ships; ``ValueError`` in one line beginning ``helpers.stack:``."""
+        from pathlib import Path
+
+        from curlnav.nav.stack import load_stack
+
+        try:
+            if Path(path).is_file() and Path(path).suffix in (".yaml", ".yml"):
+                return load_stack(path).to_dict()
+            if not Path(path).exists():
+                raise ValueError(f"{path}: no such stack file or policy folder; helpers are suffixes (+rescue+shield), "
+                                 f"inherit, a stack file (curlnav stack show AGENT --out FILE.yaml) or a policy folder")
+            from curlnav.learner.init_from import inherited_stack
+
+            return inherited_stack(path)
+        except ValueError as exc:
+            text = str(exc)
+            raise ValueError(text if text.startswith("helpers.stack:") else f"helpers.stack: {text}") from None
 
     def make_acting_agent(self, policy: BehaviourPolicy) -> BehaviourPolicy:
         """What an actor's behaviour policy proposes with: ``curlnav.nav.build_stack`` of the network

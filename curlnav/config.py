@@ -247,7 +247,10 @@ class HelpersConfig:
     ``stack``: "" (the network alone, the default), the helpers' suffixes as an agent argument
     spells them (``+rescue+shield``: recovery and safety roles with default settings), or
     ``inherit``: the recovery and safety entries, with their settings, of the stack the
-    ``init_from`` artefact ships. Only roles that choose commands train in the loop: a perception
+    ``init_from`` artefact ships, or a path: a stack file (``curlnav stack show AGENT --out FILE``)
+    or a policy artefact folder, whose recovery and safety entries, with their settings, train in
+    the loop (a policy trained from scratch behind the helpers another one ships with). Only roles
+    that choose commands train in the loop: a perception
     stage or a global planner rewrites what the network sees, while the replay keeps what the
     environment gave (refused in one line when the run starts: ``curlnav.nav.training``)."""
 
@@ -274,9 +277,7 @@ class HelpersConfig:
         _require(self.fade_steps > 0 or self.share_end == self.share_start,
                  f"helpers.share_end ({self.share_end:g}) differs from share_start ({self.share_start:g}) but "
                  f"helpers.fade_steps is 0: give the steps to fade over")
-        _require(not self.stack or self.stack == INHERITED_HELPERS or self.stack.startswith("+"),
-                 f"helpers.stack: helpers are suffixes such as +rescue+shield (or {INHERITED_HELPERS}), "
-                 f"got {shown(self.stack)}")
+
 
     def share(self, steps: int) -> float:
         """The fraction of episodes run with the helpers after ``steps`` environment steps."""

@@ -80,7 +80,7 @@ def test_helpers_faded_out_leave_every_step_to_the_network():
 
 @pytest.mark.parametrize(("setting", "words"), [
     ("helpers.stack=+rescue+track", "helpers.stack: +rescue+track: label-vote rewrite(s) what the network sees"),
-    ("helpers.stack=rescue", "helpers are suffixes such as +rescue+shield (or inherit)"),
+    ("helpers.stack=rescue", "helpers.stack: rescue: no such stack file or policy folder; helpers are suffixes"),
     ("helpers.stack=inherit", "inherit takes the stack of the init_from artefact; set init_from"),
     ("helpers.share_end=1.5", "helpers.share_end must be a number in [0, 1]"),
 ])
@@ -99,6 +99,21 @@ def test_inherit_takes_the_recovery_and_safety_the_artefact_ships_and_refuses_on
     assert not helpers.stack.perception  # laser odometry rewrites what the network sees: not in the loop
     general = dataclasses.replace(experiment, init_from=str(ROOT / "policies" / "namo-general"))
     with pytest.raises(ValueError, match="namo-general ships no stack"):
+        D4PGBuilder(general).make_training_helpers(0, 1)
+
+
+def test_a_network_trained_from_scratch_takes_its_helpers_from_a_stack_file_or_a_policy_folder(tmp_path):
+    """``helpers.stack: FILE.yaml`` (``curlnav stack show AGENT --out``) or a policy folder: its
+    recovery and safety entries, settings and all, train in the loop without ``init_from``."""
+    robust = ROOT / "policies" / "namo-robust"
+    assert main(["stack", "show", str(robust), "--out", str(tmp_path / "helpers.yaml")]) == 0
+    for spec in (str(tmp_path / "helpers.yaml"), str(robust)):
+        experiment = dataclasses.replace(ExperimentConfig(), helpers=HelpersConfig(stack=spec))
+        stack = D4PGBuilder(experiment).make_training_helpers(0, 1).stack
+        assert stack.recovery.to_dict()["rescue"]["stall_steps"] == 10 and stack.safety.entry == "shield"
+        assert not stack.perception
+    general = dataclasses.replace(ExperimentConfig(), helpers=HelpersConfig(stack=str(ROOT / "policies" / "namo-general")))
+    with pytest.raises(ValueError, match="helpers.stack: .*namo-general ships no stack"):
         D4PGBuilder(general).make_training_helpers(0, 1)
 
 

@@ -64,18 +64,21 @@ def helpers_of_suffixes(suffixes: str) -> NavStack:
 def training_stack(spec: str, shipped: Mapping | None = None, source: str = "") -> NavStack | None:
     """The stack ``helpers.stack`` = ``spec`` names: None for "", the suffixes' stack, or for
     ``inherit`` the recovery and safety entries of ``shipped`` (the ``"stack"`` of the artefact
-    the run starts from, ``source``; its perception and global planner stay out of the loop).
+    the run starts from, ``source``; its perception and global planner stay out of the loop), and
+    likewise for a path (a stack file's or a policy artefact's stack, ``shipped``, read from
+    ``source`` by the caller).
     ``ValueError`` in one line beginning ``helpers.stack:``."""
     from curlnav.config import INHERITED_HELPERS
 
     if not spec:
         return None
     try:
-        if spec != INHERITED_HELPERS:
+        if spec.startswith("+"):
             return helpers_of_suffixes(spec)
         if not shipped:
-            raise ValueError(f"inherit: {source or 'the run'} ships no stack (the network alone); name the helpers "
-                             f"instead (+rescue+shield)")
+            what = source or "the run"
+            raise ValueError(f"{'inherit: ' if spec == INHERITED_HELPERS else ''}{what} ships no stack (the network "
+                             f"alone); name the helpers instead (+rescue+shield)")
         roles = helper_roles(shipped, f"{source}: stack")
         return _trainable(NavStack(controller=choose("controller", POLICY_ENTRY, path=TRAINING_CONTROLLER),
                                    recovery=roles.get("recovery"), safety=roles.get("safety"),
