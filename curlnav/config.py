@@ -278,7 +278,6 @@ class HelpersConfig:
                  f"helpers.share_end ({self.share_end:g}) differs from share_start ({self.share_start:g}) but "
                  f"helpers.fade_steps is 0: give the steps to fade over")
 
-
     def share(self, steps: int) -> float:
         """The fraction of episodes run with the helpers after ``steps`` environment steps."""
         if not self.fade_steps or steps >= self.fade_steps:

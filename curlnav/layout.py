@@ -92,12 +92,6 @@ class ObservationLayout:
     def size(self) -> int:
         return (self.range_frames + self.label_frames) * self.beams + self.memory_beams + 3 * self.goal_frames
 
-    @property
-    def env_size(self) -> int:
-        """Values of the environment's observation: ``size`` without the memory's ring, which
-        the policy's side adds (``curlnav.memory``)."""
-        return self.size - self.memory_beams
-
     def ring_of(self, obs: np.ndarray) -> np.ndarray:
         """The memory's ring ``(..., memory_beams)`` of (batched) observations with one."""
         start = (self.range_frames + self.label_frames) * self.beams

@@ -189,12 +189,10 @@ def _read_ring(cell_x, cell_y, cell_seen, first_kept, x, y, c, s, width, out):  
 
 
 def newest_scan(layout: ObservationLayout, observation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The newest ranges and labels of an observation with or without its ring."""
-    b = layout.beams
-    r_end = layout.range_frames * b
-    l_end = r_end + layout.label_frames * b
-    labels = observation[l_end - b:l_end] if layout.label_frames else np.zeros(b, np.float32)
-    return observation[r_end - b:r_end], labels
+    """The newest ranges and labels of an observation with or without its ring
+    (``ObservationLayout.newest_frame``; all static where the layout has no label frames)."""
+    ranges, labels, _ = layout.newest_frame(observation)
+    return ranges, labels if layout.label_frames else np.zeros(layout.beams, np.float32)
 
 
 def with_ring(layout: ObservationLayout, observation: np.ndarray, ring: np.ndarray) -> np.ndarray:

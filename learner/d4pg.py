@@ -295,6 +295,17 @@ def save_checkpoint(state: D4PGState, path: str | Path, extra: dict | None = Non
     return path
 
 
+def check_resumed_layout(state: D4PGState, layout: ObservationLayout, path: str | Path, folder: str) -> None:
+    """Refuse (``ConfigError``, one line) to resume the checkpoint at ``path`` into a run that reads
+    another observation ``layout`` (another LiDAR or frame count, or a memory toggled): its
+    networks would meet observations of another size at the first update."""
+    if state.layout != layout:
+        from curlnav.config import ConfigError
+
+        raise ConfigError(f"{path} was trained on another observation ({state.layout.to_dict()}, this run reads "
+                          f"{layout.to_dict()}): use the run's config, or another {folder}")
+
+
 def load_checkpoint(path: str | Path, device: torch.device | str | None = None) -> tuple[D4PGState, dict]:
     """Rebuild a ``D4PGState`` from ``save_checkpoint``'s file; returns (state, extra)."""
     from safetensors import safe_open

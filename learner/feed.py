@@ -107,8 +107,8 @@ class BatchAssembler:
     def __call__(self, batch: SampledBatch | dict[str, np.ndarray], weights: np.ndarray | None = None) -> TensorBatch:
         """``batch``: a decoded message, or ``ReplayTable.sample_frames``' arrays (in one process)."""
         names = SampledBatch.FIELDS + ("obs_memory", "next_memory")
-        got = (lambda n: batch.get(n)) if isinstance(batch, dict) else (lambda n: getattr(batch, n))
-        arrays = {n: got(n) for n in names if got(n) is not None}
+        arrays = {n: batch.get(n) if isinstance(batch, dict) else getattr(batch, n) for n in names}
+        arrays = {n: a for n, a in arrays.items() if a is not None}  # the ring's only where there is one
         if self.cuda:
             t = self._stage(arrays)
         else:

@@ -35,7 +35,16 @@ from curlnav.proto.messages import PriorityUpdate, SampledBatch, ServiceStatus, 
 from curlnav.sim.robots import sensor_metadata
 
 from .artefact import export_policy, training_worlds
-from .d4pg import TensorBatch, compile_networks, load_checkpoint, read_metrics, save_checkpoint, set_amp, sgd_step
+from .d4pg import (
+    TensorBatch,
+    check_resumed_layout,
+    compile_networks,
+    load_checkpoint,
+    read_metrics,
+    save_checkpoint,
+    set_amp,
+    sgd_step,
+)
 from .feed import BatchAssembler, SampleFeed, describe_device, resolve_device
 from .init_from import inherited_stack
 
@@ -127,9 +136,7 @@ class LearnerService:
                 diffs = config_differences(config_to_dict(self.state.config), config_to_dict(experiment.d4pg), "d4pg.")
                 raise ConfigError(f"{ckpt} was trained with another d4pg config ({'; '.join(diffs[:3])}; checkpoint "
                                   f"first): use the run's config, or another data folder")
-            if self.state.layout != self.layout:  # another LiDAR or frame count, or a memory toggled
-                raise ConfigError(f"{ckpt} was trained on another observation ({self.state.layout.to_dict()}, this run "
-                                  f"reads {self.layout.to_dict()}): use the run's config, or another data folder")
+            check_resumed_layout(self.state, self.layout, ckpt, "data folder")
             # a new version for the restored weights, above every version ever published (a crash
             # may have published versions after this checkpoint): versions only go forward
             self.version = max(int(extra.get("version", 0)), self.version_mark.read(), *self.artefact_versions()) + 1

@@ -290,3 +290,14 @@ def test_under_latency_each_scan_is_remembered_where_it_was_sensed():
     finally:
         env.close()
     assert moved > 0.05  # placed at the pose of now, the remembered walls would have turned with the robot
+
+
+def test_a_checkpoint_is_not_resumed_into_a_run_that_reads_another_observation():
+    """A learner or ``--serial`` run resumed with the memory toggled is refused in one line."""
+    from curlnav.learner.d4pg import check_resumed_layout
+
+    state = D4PGBuilder(memory_experiment("open-room")).make_learner_state(device="cpu")
+    check_resumed_layout(state, state.layout, "latest.safetensors", "run folder")
+    with pytest.raises(ConfigError, match="latest.safetensors was trained on another observation") as caught:
+        check_resumed_layout(state, D4PGBuilder(ExperimentConfig()).layout, "latest.safetensors", "run folder")
+    assert "\n" not in str(caught.value)

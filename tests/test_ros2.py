@@ -440,26 +440,35 @@ def odom_of(x, y, yaw, frame="odom"):
                                                                         w=math.cos(yaw / 2)))))
 
 
-def test_the_node_builds_the_observation_the_simulator_builds():
-    from curlnav.policy import PolicyArtefact
-    from curlnav.ros2.node import PolicyNode, ScanLayout
+def drive_beside_the_simulator(node, check, steps: int = 12) -> None:
+    """The node in closed loop with the Husky in open-room: each step the simulator's newest scan
+    goes to /scan and its pose to /odom, the node acts, ``check(step, obs, info)`` is called with
+    the simulator's observation of that step, and the node's command drives the simulator."""
     from curlnav.sim import NamoEnv
 
-    policy = PolicyArtefact(POLICY)
-    seen = []
-    node = PolicyNode(lambda obs: seen.append(obs) or policy(obs), ScanLayout.of(policy.metadata))
     env = NamoEnv("open-room")
     try:
         obs, info = env.reset(seed=3, options={"pair": "diagonal"})
         node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=env.pair.gx, y=env.pair.gy))))
-        for step in range(12):
+        for step in range(steps):
             node.on_scan(scan_of(obs[3 * 241:4 * 241], env.last_labels), now=float(step))
             node.on_odom(odom_of(*info["pose"]), now=float(step))
             command = node.act(float(step))
-            np.testing.assert_allclose(seen[-1], obs, atol=2e-6, err_msg=f"step {step}")
+            check(step, obs, info)
             obs, _, _, _, info = env.step([command.linear / 1.0, command.angular / 1.0, command.arm / 0.5])
     finally:
         env.close()
+
+
+def test_the_node_builds_the_observation_the_simulator_builds():
+    from curlnav.policy import PolicyArtefact
+    from curlnav.ros2.node import PolicyNode, ScanLayout
+
+    policy = PolicyArtefact(POLICY)
+    seen = []
+    node = PolicyNode(lambda obs: seen.append(obs) or policy(obs), ScanLayout.of(policy.metadata))
+    drive_beside_the_simulator(
+        node, lambda step, obs, info: np.testing.assert_allclose(seen[-1], obs, atol=2e-6, err_msg=f"step {step}"))
 
 
 def test_on_a_robot_a_network_with_a_memory_reads_the_ring_its_actor_built_from_the_same_senses(tmp_path):
@@ -476,7 +485,6 @@ def test_on_a_robot_a_network_with_a_memory_reads_the_ring_its_actor_built_from_
     from curlnav.policy import PolicyArtefact
     from curlnav.ros2.commands import deployed
     from curlnav.ros2.node import PolicyNode, ScanLayout
-    from curlnav.sim import NamoEnv
 
     experiment = dataclasses.replace(ExperimentConfig(), memory=MemoryConfig(beams=36, stride=1))
     builder = D4PGBuilder(experiment)
@@ -491,21 +499,14 @@ def test_on_a_robot_a_network_with_a_memory_reads_the_ring_its_actor_built_from_
     agent.policy = lambda obs: seen.append(obs) or policy(obs)
     node = PolicyNode(agent, layout)
     observer = MemoryObserver(builder.layout, experiment.env.lidar_fov)
-    env = NamoEnv("open-room")
-    try:
-        obs, info = env.reset(seed=3, options={"pair": "diagonal"})
-        node.on_goal(ns(header=ns(frame_id="odom"), pose=ns(position=ns(x=env.pair.gx, y=env.pair.gy))))
-        for step in range(12):
-            node.on_scan(scan_of(obs[3 * 241:4 * 241], env.last_labels), now=float(step))
-            node.on_odom(odom_of(*info["pose"]), now=float(step))
-            command = node.act(float(step))
-            expected = observer(obs, info)
-            assert len(seen) == step + 1, node.state
-            np.testing.assert_allclose(seen[-1], expected, atol=1e-4, err_msg=f"step {step}")
-            obs, _, _, _, info = env.step([command.linear / 1.0, command.angular / 1.0, command.arm / 0.5])
-        assert builder.layout.ring_of(seen[-1]).min() < builder.layout.memory_range  # it remembers walls
-    finally:
-        env.close()
+
+    def check(step, obs, info):
+        expected = observer(obs, info)
+        assert len(seen) == step + 1, node.state
+        np.testing.assert_allclose(seen[-1], expected, atol=1e-4, err_msg=f"step {step}")
+
+    drive_beside_the_simulator(node, check)
+    assert builder.layout.ring_of(seen[-1]).min() < builder.layout.memory_range  # it remembers walls
 
 
 def test_the_simulated_robot_publishes_what_it_senses_and_the_node_rebuilds_the_noisy_observation():

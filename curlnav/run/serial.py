@@ -37,10 +37,10 @@ import torch
 from curlnav.actor.loop import EpisodeEnd, EpisodeLoop
 from curlnav.builder import D4PGBuilder
 from curlnav.bus.transport import STOP_SIGNALS, ignore_stop_signals, on_stop_signals, restore_signals
-from curlnav.config import ConfigError, ExperimentConfig
+from curlnav.config import ExperimentConfig
 from curlnav.evaluation.protocol import EvalResult, EvaluationProtocol
 from curlnav.learner.artefact import export_policy, training_worlds
-from curlnav.learner.d4pg import act, load_checkpoint, save_checkpoint, sgd_step
+from curlnav.learner.d4pg import act, check_resumed_layout, load_checkpoint, save_checkpoint, sgd_step
 from curlnav.learner.feed import BatchAssembler
 from curlnav.learner.init_from import inherited_stack
 from curlnav.nav.roles import NETWORK, ControlSteps
@@ -92,9 +92,7 @@ class SerialTrainer:
         ckpt, replay_path = self.ckpt_dir / "latest.safetensors", self.ckpt_dir / "replay.npz"
         if resume and ckpt.exists():
             self.state, extra = load_checkpoint(ckpt)
-            if self.state.layout != builder.layout:  # another LiDAR or frame count, or a memory toggled
-                raise ConfigError(f"{ckpt} was trained on another observation ({self.state.layout.to_dict()}, this run "
-                                  f"reads {builder.layout.to_dict()}): use the run's config, or another run folder")
+            check_resumed_layout(self.state, builder.layout, ckpt, "run folder")
             self.counters.update(extra.get("counters", {}))
             self.table = builder.restore_replay_table(replay_path) if replay_path.exists() else builder.make_replay_table()
             print(f"resumed from {ckpt}: {self.state.steps} updates, {self.counters['env_steps']} env steps, "
