@@ -10,6 +10,8 @@
 #   single-node swarm (docker stack deploy of docker-stack.yml: the main node's router with TLS,
 #   services on the node's network, bus credentials as Docker secrets, actors by task slot)
 #   -> stack rm and its volumes -> clean up (the trap removes the stack's volumes too when a step fails).
+#
+#   bash scripts/compose-smoke.sh --images-only   # only the base image, the wheelhouse and the build
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export COMPOSE_PROJECT_NAME=${COMPOSE_PROJECT_NAME:-curlnavsmoke}
@@ -49,8 +51,11 @@ cleanup() {
   docker swarm leave --force >/dev/null 2>&1 || true
   [ -z "${bus_tmp:-}" ] || rm -rf "$bus_tmp"
 }
-trap cleanup EXIT
-cleanup  # leftovers of an interrupted run (a compose project, a stack, a swarm)
+images_only=false; [ "${1:-}" != --images-only ] || images_only=true
+if ! $images_only; then
+  trap cleanup EXIT
+  cleanup  # leftovers of an interrupted run (a compose project, a stack, a swarm)
+fi
 
 step "base image $BASE_IMAGE and wheelhouse"
 [ "$BASE_IMAGE" = curlnav-base:bookworm ] && bash scripts/make-base-image.sh "$BASE_IMAGE"
@@ -59,6 +64,7 @@ ls wheelhouse/*.whl >/dev/null 2>&1 || bash scripts/make-wheelhouse.sh
 step "build (${DC[*]} build)"
 "${DC[@]}" build --build-arg BASE_IMAGE="$BASE_IMAGE" router
 docker image ls curlnav:latest
+if $images_only; then step "images made"; exit 0; fi
 
 step "up with 3 actors"
 "${DC[@]}" up -d --scale actor=3
@@ -98,7 +104,7 @@ echo "learner version before restart $before, after $after"
 [ "$after" -gt "$before" ]  # a restarted learner numbers its weights above every version published
 
 step "fault injection (Docker SDK): kill -9 replay, learner, scheduler in turn; nothing accepted lost"
-"$PY" scripts/compose_faults.py --project "$COMPOSE_PROJECT_NAME" --status "$STATUS"
+"$PY" scripts/compose_faults.py --project "$COMPOSE_PROJECT_NAME" --status "$STATUS" --pause-s 3
 
 step "pull the latest policy (curlnav pull, and the same with curl) and run it"
 curl -sf "$LEARNER/policy/latest" | "$PY" -c 'import json,sys; d=json.load(sys.stdin); print("policy", d["version"], {k: v.get("sha256", "")[:12] for k, v in d["files"].items()})'

@@ -21,7 +21,7 @@ from conftest import ROOT, die_with_parent, output_of, stop_all, wait_for
 GUIDE = ROOT / "docs" / "guide" / "your-building.md"
 #: the budget of the guide's worked example, made short: (the page's words, the test's)
 SHORTER = [
-    ("--minutes 60", "--minutes 2 --pairs-held-out 3 --pairs-train 10"),
+    ("--minutes 60", "--minutes 1 --pairs-held-out 3 --pairs-train 10"),
     ("--pairs 20", "--pairs 3"),
     ("--seeds 2", "--seeds 2 --pairs 2"),
 ]
