@@ -188,6 +188,32 @@ def test_t_maze_last_step_is_four_rooms_with_a_turn_not_a_straight_run():
     assert p4.y < 3.0 < p4.gy and p4.gx > 9.75, "p4 starts in the stem room and ends in the far bar room R3"
 
 
+def test_dead_end_puts_a_u_between_start_and_goal_that_only_a_way_back_out_of_its_mouth_escapes():
+    """The straight line from each start enters free space walled on both sides (the U's arms)
+    before it meets a wall, the U's back wall near the goal; the shortest way goes round the U, far
+    from where the line meets the wall, and is longer than the line."""
+    for seed in range(12):
+        w = generate("dead-end", seed=seed)
+        graph = GridGraph(cspace(w))
+        for pair in w.pairs:
+            line = [(pair.x + t * (pair.gx - pair.x), pair.y + t * (pair.gy - pair.y)) for t in np.linspace(0, 1, 600)]
+            hit = next(i for i, (x, y) in enumerate(line) if w.occupancy[w.cell_of(x, y)])
+            x_hit, y_hit = line[hit]
+            walled = 0  # points on the line within the U: a wall within 3.5 m on each side, square to the line
+            for x, y in line[:hit]:
+                sides = [next((d for d in np.arange(0.1, 3.5, 0.05)
+                               if w.occupancy[w.cell_of(x, y + sign * d)]), None) for sign in (-1, 1)]
+                walled += all(d is not None for d in sides)
+            assert walled * math.dist(line[0], line[1]) > 2.0, f"seed {seed} {pair.name}: the line meets no U"
+            s, g = w.cell_of(pair.x, pair.y), w.cell_of(pair.gx, pair.gy)
+            path = graph.shortest_paths([s], [g])[0]
+            length = float(np.sum(np.hypot(*np.diff(path, axis=0).T))) * w.resolution
+            assert length > math.dist((pair.x, pair.y), (pair.gx, pair.gy)) + 1.0, (seed, pair.name, length)
+            gap = min(math.dist(((c + 0.5) * w.resolution, (r + 0.5) * w.resolution), (x_hit, y_hit)) for r, c in path)
+            assert gap > 1.2, f"seed {seed} {pair.name}: the way round passes {gap:.2f} m from the wall the line meets"
+            assert math.dist((x_hit, y_hit), (pair.gx, pair.gy)) < 4.5, "the wall it meets is the U's back wall"
+
+
 def test_barn_parameter_grid_gives_metric_ranges_like_the_benchmark():
     values, lengths = barn_parameter_grid(per_setting=3)
     med = np.median(values, axis=0)

@@ -47,6 +47,8 @@ FAMILIES: dict[str, Family] = {
                        "3 x 3 BARN blocks scaled to 36 m, 8 balls re-placed every reset"),
     "t-maze": Family("curlnav.worlds.procedural.generators:t_maze", "five rooms in a T joined by hinged doors and narrow gates, "
                      "one ball per room, curriculum pairs p1..p4"),
+    "dead-end": Family("curlnav.worlds.procedural.generators:dead_end",
+                       "a U-shaped wall between start and goal, its mouth towards the start (a trap without memory)"),
     "cave": Family("curlnav.worlds.procedural.generators:cave", "wide winding tunnels carved by random walkers (SubT-like)"),
     "forest": Family("curlnav.worlds.procedural.generators:forest", "an open field of trees at a given density"),
     "garage": Family("curlnav.worlds.procedural.generators:garage", "a pillared parking hall with a few partition walls"),

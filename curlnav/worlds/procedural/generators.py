@@ -367,6 +367,52 @@ def auditorium(seed: int = 0, width: float = 40.0, height: float = 25.0, tiers: 
     return _finish("auditorium", seed, keep_largest_region(grid), pairs, min_distance=10.0)
 
 
+def dead_end(seed: int = 0, width: float = 22.0, height: float = 16.0, pairs: int = 4, clutter: int = 6) -> World:
+    """A U-shaped wall between start and goal, its mouth towards the start: the straight line to
+    the goal leads into the U, whose back wall (0.3 m thick) stands between the robot and the goal,
+    and the way round is out of the mouth again. Mouth 2.4-4.0 m wide, U 2.5-5.0 m deep; ``clutter``
+    trees (radius 0.2-0.4 m) stand clear of the U and of the pairs. Each pair starts 1.5-4 m before
+    the mouth, facing the goal, and ends 2-4 m behind the back wall (so a policy that only follows
+    the goal's bearing drives into the U, and a policy that remembers no wall turns back into it)."""
+    rng = np.random.default_rng(seed)
+    grid = _walled(_cells(height), _cells(width))
+    mouth, depth, wall = rng.uniform(2.4, 4.0), rng.uniform(2.5, 5.0), 0.3
+    y_mid = height / 2 + rng.uniform(-1.5, 1.5)
+    x_back = width / 2 + rng.uniform(-1.0, 2.0)  # the back wall's inner face
+    x_mouth = x_back - depth
+    _box(grid, x_back, y_mid - mouth / 2 - wall, x_back + wall, y_mid + mouth / 2 + wall)  # back wall
+    for side in (-1, 1):  # the two arms, from the mouth to the back wall
+        y_in = y_mid + side * mouth / 2
+        _box(grid, x_mouth, min(y_in, y_in + side * wall), x_back, max(y_in, y_in + side * wall))
+    chosen: list[StartGoal] = []
+    for _ in range(100 * pairs):
+        if len(chosen) == pairs:
+            break
+        sx, sy = x_mouth - rng.uniform(1.5, 4.0), y_mid + rng.uniform(-0.25, 0.25) * mouth
+        gx, gy = x_back + wall + rng.uniform(2.0, 4.0), y_mid + rng.uniform(-0.25, 0.25) * mouth
+        if min(sx, gx) < 1.0 or max(sx, gx) > width - 1.0:
+            continue
+        chosen.append(StartGoal(f"p{len(chosen) + 1}", sx, sy, math.atan2(gy - sy, gx - sx), gx, gy))
+    trees = 0
+    for _ in range(50 * clutter):  # clear of the U (1.5 m round it) and of every start and goal (2 m)
+        if trees == clutter:
+            break
+        x, y, r = rng.uniform(1.5, width - 1.5), rng.uniform(1.5, height - 1.5), rng.uniform(0.2, 0.4)
+        if (x_mouth - 1.5 < x < x_back + wall + 1.5 and abs(y - y_mid) < mouth / 2 + wall + 1.5) or any(
+                math.hypot(x - px, y - py) < 2.0 for p in chosen for px, py in ((p.x, p.y), (p.gx, p.gy))):
+            continue
+        _disc(grid, x, y, r)
+        trees += 1
+    cs = inflate(grid, int(round(CSPACE_RADIUS_M / RESOLUTION)))
+    graph = GridGraph(cs)
+    for p in chosen:
+        start, goal = (_cells(p.y), _cells(p.x)), (_cells(p.gy), _cells(p.gx))
+        if cs[start] or cs[goal] or graph.shortest_paths([start], [goal])[0] is None:
+            raise ValueError(f"dead-end seed {seed}: pair {p.name} is blocked (width {width} m, height {height} m)")
+    return World(name=f"dead-end-{seed}", occupancy=grid, resolution=RESOLUTION, pairs=tuple(chosen),
+                 source=f"generated:dead-end seed={seed}")
+
+
 def _finish(family: str, seed: int, grid: np.ndarray, pairs: int, min_distance: float) -> World:
     rng = np.random.default_rng([seed, 1])
     chosen = choose_pairs(grid, pairs, min_distance, rng)
