@@ -259,6 +259,11 @@ class HelpersConfig:
     #: a base collision -10): 0 learns from the takeovers without paying for them. Keep
     #: ``intervention_cost / (1 - d4pg.discount)`` well inside the critic's support (``d4pg.v_min``)
     intervention_cost: float = 0.0
+    #: reward taken from each control step the safety role (the shield) chose, in place of
+    #: ``intervention_cost``; None: ``intervention_cost``. A shield's takeover stands for a contact the
+    #: network would have driven into, which the shield hides from it (the episode goes on without
+    #: the collision's -10): a cost near a collision's teaches the network what the shield saw
+    safety_cost: float | None = field(default=None, metadata={"hash": "omit-default"})
     share_start: float = 1.0  # fraction of episodes with the helpers at an actor's first step ...
     share_end: float = 1.0  # ... and from ``fade_steps`` environment steps on (linear between)
     fade_steps: int = 0  # 0: ``share_start`` throughout
@@ -266,12 +271,14 @@ class HelpersConfig:
     def __post_init__(self) -> None:
         _require(isinstance(self.stack, str) and len(self.stack) <= 200 and "\0" not in self.stack,
                  f"helpers.stack must be '', +SUFFIX... or {INHERITED_HELPERS}, got {shown(self.stack)}")
-        for name in ("intervention_cost", "share_start", "share_end"):
+        for name in ("intervention_cost", "safety_cost", "share_start", "share_end"):
             value = getattr(self, name)
-            _require(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                     and value >= 0 and (name == "intervention_cost" or value <= 1),
-                     f"helpers.{name} must be a number in "
-                     f"{'[0, inf)' if name == 'intervention_cost' else '[0, 1]'}, got {shown(value)}")
+            cost = name.endswith("_cost")
+            _require((value is None and name == "safety_cost")
+                     or (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                         and value >= 0 and (cost or value <= 1)),
+                     f"helpers.{name} must be a number in {'[0, inf)' if cost else '[0, 1]'}"
+                     f"{' or none' if name == 'safety_cost' else ''}, got {shown(value)}")
         _require(isinstance(self.fade_steps, int) and not isinstance(self.fade_steps, bool) and self.fade_steps >= 0,
                  f"helpers.fade_steps must be a whole number of environment steps >= 0, got {shown(self.fade_steps)}")
         _require(self.fade_steps > 0 or self.share_end == self.share_start,

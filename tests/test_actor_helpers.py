@@ -1,6 +1,7 @@
 """Training inside the stack (``helpers``, issue 53): an actor's network proposes, the helpers
 (built as evaluation builds them) may take over, and the replay keeps the command that was
-executed; each step a helper chose costs ``helpers.intervention_cost`` of reward; the helpers fade
+executed; each step a helper chose costs ``helpers.intervention_cost`` of reward (the shield's
+``helpers.safety_cost`` where set); the helpers fade
 out on their schedule; each episode's control steps by chooser reach the scheduler's ``/status``."""
 
 from __future__ import annotations
@@ -57,9 +58,12 @@ def run_loop(helpers: HelpersConfig, steps: int = 120, envs: int = 2):
     return [np.array(a) for a in actions], [np.array(r) for r in rewards], loop
 
 
-def test_the_replay_keeps_the_executed_command_and_each_takeover_costs_its_price():
+@pytest.mark.parametrize("costs", [{"intervention_cost": 5.0}, {"intervention_cost": 0.5, "safety_cost": 5.0}],
+                         ids=["intervention_cost", "safety_cost"])
+def test_the_replay_keeps_the_executed_command_and_each_takeover_costs_its_price(costs):
+    """The shield's takeovers cost ``intervention_cost``, or ``safety_cost`` where that is set."""
     free_actions, free_rewards, free = run_loop(HelpersConfig(stack="+shield", intervention_cost=0.0))
-    actions, rewards, paid = run_loop(HelpersConfig(stack="+shield", intervention_cost=5.0))
+    actions, rewards, paid = run_loop(HelpersConfig(stack="+shield", **costs))
     taken_over = paid.helpers.steps.counts["shield"]
     assert taken_over > 0 and paid.helpers.steps.counts == free.helpers.steps.counts
     for k in range(2):
@@ -83,6 +87,7 @@ def test_helpers_faded_out_leave_every_step_to_the_network():
     ("helpers.stack=rescue", "helpers.stack: rescue: no such stack file or policy folder; helpers are suffixes"),
     ("helpers.stack=inherit", "inherit takes the stack of the init_from artefact; set init_from"),
     ("helpers.share_end=1.5", "helpers.share_end must be a number in [0, 1]"),
+    ("helpers.safety_cost=-2", "helpers.safety_cost must be a number in [0, inf) or none"),
 ])
 def test_helpers_that_cannot_train_in_the_loop_are_refused_in_one_line(tmp_path, capsys, setting, words):
     run = tmp_path / "run"

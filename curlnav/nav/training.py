@@ -127,6 +127,11 @@ class TrainingHelpers:
         self.low[0] = -float(env_config.robot.reverse_fraction)
         self.proposed = [ProposedCommand() for _ in range(envs)]
         self.agents = [build_stack(stack, env_config, controller=p)[1] for p in self.proposed]
+        #: reward added per control step, by chooser: a helper's ``-intervention_cost``, the safety
+        #: entry's ``-safety_cost`` where set; the network's 0
+        self.costs = {NETWORK: 0.0}
+        if stack.safety is not None and config.safety_cost is not None:
+            self.costs[stack.safety.entry] = -float(config.safety_cost)
         self.on = [False] * envs  # whether each environment's episode runs with the helpers
         self.steps = ControlSteps()  # every step of every episode, by chooser
         self.episode = [ControlSteps() for _ in range(envs)]  # the current episode's, per environment
@@ -151,7 +156,7 @@ class TrainingHelpers:
     def act(self, k: int, proposal: np.ndarray, observation: np.ndarray, info: dict) -> tuple[np.ndarray, str, float]:
         """``(command to execute, its chooser, reward to add)`` for environment ``k`` whose
         behaviour policy proposed ``proposal``; the reward is ``-intervention_cost`` where a helper
-        chose, else 0."""
+        chose (``-safety_cost`` where the safety entry chose and that is set), else 0."""
         if not self.on[k]:
             role, command = NETWORK, proposal
         else:
@@ -163,4 +168,4 @@ class TrainingHelpers:
             command = np.clip(command, self.low, COMMAND_HIGH)  # a helper may back up where the robot can
         self.steps.counts[role] += 1
         self.episode[k].counts[role] += 1
-        return command, role, 0.0 if role == NETWORK else -float(self.config.intervention_cost)
+        return command, role, self.costs.get(role, -float(self.config.intervention_cost))
