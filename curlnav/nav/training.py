@@ -127,8 +127,8 @@ class TrainingHelpers:
         self.low[0] = -float(env_config.robot.reverse_fraction)
         self.proposed = [ProposedCommand() for _ in range(envs)]
         self.agents = [build_stack(stack, env_config, controller=p)[1] for p in self.proposed]
-        #: reward added per control step, by chooser: a helper's ``-intervention_cost``, the safety
-        #: entry's ``-safety_cost`` where set; the network's 0
+        #: reward added per control step, by chooser: the network's 0 and, where set, the safety
+        #: entry's ``-safety_cost``; any other chooser (a helper) pays ``-intervention_cost``
         self.costs = {NETWORK: 0.0}
         if stack.safety is not None and config.safety_cost is not None:
             self.costs[stack.safety.entry] = -float(config.safety_cost)

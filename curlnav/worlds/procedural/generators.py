@@ -23,6 +23,7 @@ from scipy import ndimage
 
 from curlnav.worlds.core.world import Ball, Door, RandomPairs, Region, StartGoal, World
 from curlnav.worlds.difficulty.metrics import GridGraph, inflate
+from curlnav.worlds.procedural.namo import reachable
 
 RESOLUTION = 0.15  # m per cell: BARN's, fine enough for doors and gates
 CSPACE_RADIUS_M = 0.3  # m; BARN's 2 cells at 0.15 m
@@ -403,14 +404,12 @@ def dead_end(seed: int = 0, width: float = 22.0, height: float = 16.0, pairs: in
             continue
         _disc(grid, x, y, r)
         trees += 1
-    cs = inflate(grid, int(round(CSPACE_RADIUS_M / RESOLUTION)))
-    graph = GridGraph(cs)
+    world = World(name=f"dead-end-{seed}", occupancy=grid, resolution=RESOLUTION, pairs=tuple(chosen),
+                  source=f"generated:dead-end seed={seed}")
     for p in chosen:
-        start, goal = (_cells(p.y), _cells(p.x)), (_cells(p.gy), _cells(p.gx))
-        if cs[start] or cs[goal] or graph.shortest_paths([start], [goal])[0] is None:
+        if not reachable(world, p):
             raise ValueError(f"dead-end seed {seed}: pair {p.name} is blocked (width {width} m, height {height} m)")
-    return World(name=f"dead-end-{seed}", occupancy=grid, resolution=RESOLUTION, pairs=tuple(chosen),
-                 source=f"generated:dead-end seed={seed}")
+    return world
 
 
 def _finish(family: str, seed: int, grid: np.ndarray, pairs: int, min_distance: float) -> World:
